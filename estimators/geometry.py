@@ -1,0 +1,354 @@
+"""Rigid transforms, the camera model and the pose-error metrics used everywhere.
+
+Notation (Drake's monogram notation, see DESIGN.md): ``X_AB`` is the pose of frame B in frame
+A, so a point with coordinates ``p_B`` in B has coordinates ``p_A = X_AB.apply(p_B)`` in A, and
+poses compose when the inner letters cancel: ``X_AC = X_AB @ X_BC``. ``R_AB`` is the rotation
+part and ``p_AB`` the position of B's origin in A. Units are SI (metres, radians).
+
+Camera frame C is OpenCV's optical frame (x right, y down, z forward); pixel coordinates put
+integer values at pixel centres. Lens distortion follows OpenCV's model with 4, 5, 8 or 12
+coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4]]])``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+_ORTHONORMAL_TOL = 1e-6
+
+
+def as_points(points: np.ndarray, dim: int, name: str) -> np.ndarray:
+    array = np.asarray(points, dtype=float)
+    if array.ndim == 1 and array.shape[0] == dim:
+        array = array[None, :]
+    if array.ndim != 2 or array.shape[1] != dim:
+        raise ValueError(f"{name} must have shape (N, {dim}); got {np.shape(points)}")
+    return array
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array = np.array(array, dtype=float)  # a private copy
+    array.flags.writeable = False
+    return array
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Pose:
+    """A rigid transform ``X_AB``: rotation ``R`` (= R_AB) and translation ``p`` (= p_AB, m).
+
+    Immutable; construct with ``Pose(R, p)``, ``Pose.from_matrix``, ``Pose.from_rotvec`` or
+    ``Pose.identity()``. ``R`` must be orthonormal with determinant +1 (within 1e-6).
+    """
+
+    R: np.ndarray
+    p: np.ndarray
+
+    def __post_init__(self) -> None:
+        R = np.asarray(self.R, dtype=float)
+        p = np.asarray(self.p, dtype=float).reshape(-1)
+        if R.shape != (3, 3):
+            raise ValueError(f"Pose.R must be 3x3; got shape {R.shape}")
+        if p.shape != (3,):
+            raise ValueError(f"Pose.p must have 3 elements; got shape {np.shape(self.p)}")
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(p))):
+            raise ValueError("Pose contains NaN or infinite values")
+        deviation = np.abs(R @ R.T - np.eye(3)).max()
+        if deviation > _ORTHONORMAL_TOL or np.linalg.det(R) < 0:
+            raise ValueError(
+                f"Pose.R is not a rotation (|R Rᵀ − I| = {deviation:.2e}, det = "
+                f"{np.linalg.det(R):.3f}); use Pose.from_matrix(..., orthonormalize=True)"
+            )
+        object.__setattr__(self, "R", _frozen(R))
+        object.__setattr__(self, "p", _frozen(p))
+
+    # --- construction -------------------------------------------------------------------
+    @staticmethod
+    def identity() -> Pose:
+        return Pose(np.eye(3), np.zeros(3))
+
+    @staticmethod
+    def from_matrix(X: np.ndarray, *, orthonormalize: bool = False) -> Pose:
+        """From a 4×4 homogeneous matrix; ``orthonormalize`` projects R onto SO(3) by SVD."""
+        X = np.asarray(X, dtype=float)
+        if X.shape != (4, 4):
+            raise ValueError(f"a pose matrix must be 4x4; got shape {X.shape}")
+        if not np.allclose(X[3], [0.0, 0.0, 0.0, 1.0]):
+            raise ValueError(f"the last row of a pose matrix must be [0 0 0 1]; got {X[3]}")
+        R = X[:3, :3]
+        if orthonormalize:
+            R = nearest_rotation(R)
+        return Pose(R, X[:3, 3])
+
+    @staticmethod
+    def from_rotvec(rotvec: np.ndarray, p: np.ndarray) -> Pose:
+        """From an axis-angle vector (rad) and a translation (m)."""
+        return Pose(Rotation.from_rotvec(np.asarray(rotvec, dtype=float)).as_matrix(), p)
+
+    @staticmethod
+    def from_rpy(roll: float, pitch: float, yaw: float, p: np.ndarray) -> Pose:
+        """From roll/pitch/yaw (rad) about fixed x, y, z (R = Rz(yaw)·Ry(pitch)·Rx(roll))."""
+        return Pose(Rotation.from_euler("xyz", [roll, pitch, yaw]).as_matrix(), p)
+
+    # --- views ----------------------------------------------------------------------------
+    @property
+    def matrix(self) -> np.ndarray:
+        X = np.eye(4)
+        X[:3, :3] = self.R
+        X[:3, 3] = self.p
+        return X
+
+    @property
+    def rotvec(self) -> np.ndarray:
+        return Rotation.from_matrix(self.R).as_rotvec()
+
+    @property
+    def quat_xyzw(self) -> np.ndarray:
+        return Rotation.from_matrix(self.R).as_quat()
+
+    def to_list(self) -> list[list[float]]:
+        """The 4×4 matrix as nested lists (for JSON)."""
+        return self.matrix.tolist()
+
+    # --- algebra --------------------------------------------------------------------------
+    def inverse(self) -> Pose:
+        """``X_BA`` from ``X_AB``."""
+        return Pose(self.R.T, -self.R.T @ self.p)
+
+    def __matmul__(self, other: Pose) -> Pose:
+        if not isinstance(other, Pose):
+            return NotImplemented
+        return Pose(self.R @ other.R, self.R @ other.p + self.p)
+
+    def apply(self, points_B: np.ndarray) -> np.ndarray:
+        """Map points (N,3) or (3,) expressed in B to A."""
+        single = np.ndim(points_B) == 1
+        points = as_points(points_B, 3, "points_B")
+        out = points @ self.R.T + self.p
+        return out[0] if single else out
+
+    def is_close(self, other: Pose, *, atol_m: float = 1e-9, atol_rad: float = 1e-9) -> bool:
+        return (
+            translation_error(self, other) <= atol_m
+            and rotation_error_geodesic(self, other) <= atol_rad
+        )
+
+    def __repr__(self) -> str:
+        rpy = np.degrees(Rotation.from_matrix(self.R).as_euler("xyz"))
+        return (
+            f"Pose(p=[{self.p[0]:.4f}, {self.p[1]:.4f}, {self.p[2]:.4f}] m, "
+            f"rpy=[{rpy[0]:.2f}, {rpy[1]:.2f}, {rpy[2]:.2f}] deg)"
+        )
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation matrix closest to ``M`` in the Frobenius norm (SVD, det forced to +1)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """The cross-product matrix [v]ₓ, so that ``skew(a) @ b == np.cross(a, b)``."""
+    x, y, z = np.asarray(v, dtype=float)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def look_at(p_AC: np.ndarray, p_A_target: np.ndarray, up_A: np.ndarray) -> Pose:
+    """Pose ``X_AC`` of an optical camera frame at ``p_AC`` whose z axis points at a target.
+
+    The image's "up" (−y of the optical frame) is as close to ``up_A`` as possible.
+    """
+    z = np.asarray(p_A_target, dtype=float) - np.asarray(p_AC, dtype=float)
+    z /= np.linalg.norm(z)
+    x = np.cross(z, np.asarray(up_A, dtype=float))
+    if np.linalg.norm(x) < 1e-9:
+        raise ValueError("look_at: the up vector is parallel to the viewing direction")
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return Pose(np.column_stack([x, y, z]), p_AC)
+
+
+# --- camera model ---------------------------------------------------------------------------
+
+_SUPPORTED_DISTORTION_LENGTHS = (0, 4, 5, 8, 12)
+
+
+def check_distortion(dist: np.ndarray) -> np.ndarray:
+    """Return ``dist`` as a float array of a supported OpenCV length (0, 4, 5, 8 or 12)."""
+    d = np.asarray(dist, dtype=float).reshape(-1)
+    if d.size not in _SUPPORTED_DISTORTION_LENGTHS:
+        raise ValueError(
+            f"distortion must have 0, 4, 5, 8 or 12 coefficients (OpenCV order); got {d.size}"
+        )
+    if not np.all(np.isfinite(d)):
+        raise ValueError("distortion coefficients must be finite")
+    return d
+
+
+def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Apply OpenCV lens distortion to normalized image coordinates (N,2) → (N,2)."""
+    xy = as_points(xy, 2, "xy")
+    d = np.zeros(12)
+    coeffs = check_distortion(dist)
+    d[: coeffs.size] = coeffs
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = d
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    r6 = r4 * r2
+    radial = (1 + k1 * r2 + k2 * r4 + k3 * r6) / (1 + k4 * r2 + k5 * r4 + k6 * r6)
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + s1 * r2 + s2 * r4
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + s3 * r2 + s4 * r4
+    return np.column_stack([xd, yd])
+
+
+def project(points_C: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None) -> np.ndarray:
+    """Pixel coordinates (N,2) of 3-D points (N,3) given in the camera optical frame C.
+
+    Points must lie in front of the camera (z > 0); otherwise ValueError.
+    """
+    points = as_points(points_C, 3, "points_C")
+    if np.any(points[:, 2] <= 0):
+        raise ValueError("project: points must have positive depth z in the camera frame")
+    xy = points[:, :2] / points[:, 2:3]
+    if dist is not None and np.size(dist) > 0:
+        xy = distort_normalized(xy, dist)
+    K = np.asarray(K, dtype=float)
+    u = K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2]
+    v = K[1, 1] * xy[:, 1] + K[1, 2]
+    return np.column_stack([u, v])
+
+
+def project_from(
+    X_CT: Pose, points_T: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None
+) -> np.ndarray:
+    """Pixel coordinates of points given in frame T, seen by a camera at ``X_CT``."""
+    return project(X_CT.apply(points_T), K, dist)
+
+
+def undistort_pixels(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
+    """Normalized, undistorted image coordinates (N,2) of pixel coordinates (N,2).
+
+    Inverts the distortion model iteratively (OpenCV's undistortPointsIter, to 1e-12).
+    """
+    uv = as_points(uv, 2, "uv")
+    K = np.asarray(K, dtype=float)
+    if dist is None or np.size(dist) == 0:
+        x = (uv[:, 0] - K[0, 2] - K[0, 1] * (uv[:, 1] - K[1, 2]) / K[1, 1]) / K[0, 0]
+        y = (uv[:, 1] - K[1, 2]) / K[1, 1]
+        return np.column_stack([x, y])
+    dist = check_distortion(dist)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+    xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, dist, criteria=criteria).reshape(-1, 2)
+    # OpenCV's fixed-point iteration can stall short of the tolerance for strong distortion;
+    # two Newton steps on distort(xy) = xy_d make the inverse exact to ~1e-12.
+    xy_d = np.column_stack(
+        [
+            (uv[:, 0] - K[0, 2] - K[0, 1] * (uv[:, 1] - K[1, 2]) / K[1, 1]) / K[0, 0],
+            (uv[:, 1] - K[1, 2]) / K[1, 1],
+        ]
+    )
+    step_x = np.array([1e-7, 0.0])
+    step_y = np.array([0.0, 1e-7])
+    for _ in range(2):
+        f = distort_normalized(xy, dist) - xy_d
+        jx = (distort_normalized(xy + step_x, dist) - distort_normalized(xy - step_x, dist)) / 2e-7
+        jy = (distort_normalized(xy + step_y, dist) - distort_normalized(xy - step_y, dist)) / 2e-7
+        det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
+        dx = (jy[:, 1] * f[:, 0] - jy[:, 0] * f[:, 1]) / det
+        dy = (-jx[:, 1] * f[:, 0] + jx[:, 0] * f[:, 1]) / det
+        xy = xy - np.column_stack([dx, dy])
+    return xy
+
+
+def field_radius(K: np.ndarray, dist: np.ndarray | None, width: int, height: int) -> float:
+    """Largest normalized radius √(x² + y²) of a ray that reaches the image (its corners).
+
+    Beyond its calibrated field a distortion polynomial can fold back, so that points far
+    outside the view "project" into the image; ``in_view`` rejects them with this radius.
+    """
+    corners = np.array(
+        [[-0.5, -0.5], [width - 0.5, -0.5], [-0.5, height - 0.5], [width - 0.5, height - 0.5]]
+    )
+    return float(np.linalg.norm(undistort_pixels(corners, K, dist), axis=1).max())
+
+
+def in_view(
+    points_C: np.ndarray,
+    K: np.ndarray,
+    dist: np.ndarray | None,
+    width: int,
+    height: int,
+    *,
+    margin_px: float = 0.0,
+) -> np.ndarray:
+    """Boolean mask (N,) of points (N,3) in C that a camera images at least ``margin_px``
+    inside its borders: in front of it, within its field (no fold-back), inside the image."""
+    points = as_points(points_C, 3, "points_C")
+    mask = points[:, 2] > 1e-9
+    if not np.any(mask):
+        return mask
+    xy = points[mask, :2] / points[mask, 2:3]
+    inside = np.linalg.norm(xy, axis=1) <= field_radius(K, dist, width, height) * 1.02
+    uv = np.full((len(xy), 2), -1.0)
+    if np.any(inside):
+        uv[inside] = project(points[mask][inside], K, dist)
+    inside &= (uv[:, 0] >= margin_px - 0.5) & (uv[:, 0] <= width - 0.5 - margin_px)
+    inside &= (uv[:, 1] >= margin_px - 0.5) & (uv[:, 1] <= height - 0.5 - margin_px)
+    mask[np.flatnonzero(mask)] = inside
+    return mask
+
+
+def back_project(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None) -> np.ndarray:
+    """Unit viewing rays (N,3) in the camera frame C through pixels (N,2)."""
+    xy = undistort_pixels(uv, K, dist)
+    rays = np.column_stack([xy, np.ones(len(xy))])
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+
+def intrinsics_from_fov(width_px: int, height_px: int, hfov_deg: float) -> np.ndarray:
+    """Pinhole K (square pixels) for a horizontal field of view, principal point centred.
+
+    The centre of an image W pixels wide is at (W − 1)/2 with pixel centres at integers.
+    """
+    if not 0.0 < hfov_deg < 180.0:
+        raise ValueError(f"hfov_deg must be in (0, 180); got {hfov_deg}")
+    f = 0.5 * width_px / np.tan(np.radians(hfov_deg) / 2.0)
+    return np.array([[f, 0.0, (width_px - 1) / 2.0], [0.0, f, (height_px - 1) / 2.0], [0, 0, 1]])
+
+
+# --- error metrics --------------------------------------------------------------------------
+
+
+def translation_error(X_true: Pose, X_est: Pose) -> float:
+    """Euclidean distance between the two positions (m)."""
+    return float(np.linalg.norm(X_true.p - X_est.p))
+
+
+def rotation_error_geodesic(X_true: Pose, X_est: Pose) -> float:
+    """Geodesic angle (rad) of R_true · R_estᵀ, in [0, π]."""
+    R = X_true.R @ X_est.R.T
+    cos_angle = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    # arccos loses precision near 0; the axis-angle norm does not.
+    if cos_angle > 0.99:
+        return float(np.linalg.norm(Rotation.from_matrix(R).as_rotvec()))
+    return float(np.arccos(cos_angle))
+
+
+def rotation_error_rpy_norm(X_true: Pose, X_est: Pose) -> float:
+    """Norm (rad) of the roll/pitch/yaw of R_true · R_estᵀ — the reference study's metric."""
+    rpy = Rotation.from_matrix(X_true.R @ X_est.R.T).as_euler("xyz")
+    return float(np.linalg.norm(rpy))
+
+
+def normal_angle(n_true: np.ndarray, n_est: np.ndarray) -> float:
+    """Angle (rad) between two oriented normals (a flipped normal counts as π)."""
+    a = np.asarray(n_true, dtype=float)
+    b = np.asarray(n_est, dtype=float)
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    return float(np.arctan2(np.linalg.norm(np.cross(a, b)), np.dot(a, b)))

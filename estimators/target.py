@@ -1,0 +1,100 @@
+"""The geometry of what the estimators track, in the target frame T (metres).
+
+Built from the mock-up configuration (``hil.config.MockupConfig.target_model``) so that the same
+estimators track any square panel, point-feature layout or circular feature.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+
+def _frozen_vector(values: np.ndarray, size: int, name: str) -> np.ndarray:
+    array = np.array(values, dtype=float).reshape(-1)
+    if array.shape != (size,) or not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} must be {size} finite numbers; got {values!r}")
+    array.flags.writeable = False
+    return array
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PointFeature:
+    """A point feature: a panel corner, or the centre of a bolt head/hole disc.
+
+    ``brighter`` says whether the feature is brighter than the surface around it.
+    """
+
+    name: str
+    p_T: np.ndarray
+    diameter: float
+    kind: Literal["corner", "disc"]
+    brighter: bool
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "p_T", _frozen_vector(self.p_T, 3, f"{self.name}.p_T"))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Circle3D:
+    """A circle of ``radius`` centred at ``center_T`` in the plane with unit normal ``normal_T``."""
+
+    name: str
+    center_T: np.ndarray
+    normal_T: np.ndarray
+    radius: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(
+            self, "center_T", _frozen_vector(self.center_T, 3, f"{self.name}.center_T")
+        )
+        normal = _frozen_vector(self.normal_T, 3, f"{self.name}.normal_T")
+        if abs(np.linalg.norm(normal) - 1.0) > 1e-9:
+            raise ValueError(f"{self.name}.normal_T must be a unit vector")
+        object.__setattr__(self, "normal_T", normal)
+        if not self.radius > 0:
+            raise ValueError(f"{self.name}.radius must be positive")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class TargetModel:
+    """Feature geometry of one mock-up.
+
+    ``panel_corners_T`` (4,3): the square panel's front corners, counter-clockwise seen from +z,
+    starting at (+x, +y). ``point_features`` lists the panel corners first, then the fasteners.
+    ``circles``: ``ring_outer``, ``ring_inner`` and, when the mock-up has a thruster,
+    ``thruster_exit`` and ``thruster_inner``.
+    """
+
+    name: str
+    panel_corners_T: np.ndarray
+    point_features: tuple[PointFeature, ...]
+    circles: tuple[Circle3D, ...]
+
+    def __post_init__(self) -> None:
+        corners = np.array(self.panel_corners_T, dtype=float)
+        if corners.shape != (4, 3):
+            raise ValueError(f"panel_corners_T must be 4x3; got {corners.shape}")
+        corners.flags.writeable = False
+        object.__setattr__(self, "panel_corners_T", corners)
+
+    @property
+    def panel_side(self) -> float:
+        return float(np.linalg.norm(self.panel_corners_T[1] - self.panel_corners_T[0]))
+
+    def circle(self, name: str) -> Circle3D:
+        for c in self.circles:
+            if c.name == name:
+                return c
+        raise KeyError(
+            f"target {self.name!r} has no circle {name!r}; it has {[c.name for c in self.circles]}"
+        )
+
+    def has_circle(self, name: str) -> bool:
+        return any(c.name == name for c in self.circles)
+
+    def points_T(self, kind: str | None = None) -> np.ndarray:
+        """Positions (N,3) of the point features, optionally only of one kind."""
+        return np.array([f.p_T for f in self.point_features if kind is None or f.kind == kind])

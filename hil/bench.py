@@ -1,0 +1,61 @@
+"""Timing benchmarks (not tests): numbers for notes and READMEs, measured on this machine."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from rich.console import Console
+
+from hil.config import NoiseConfig, RenderConfig, load_camera, load_mockup
+from hil.scenarios import camera_pose_for, target_offset
+from sim_backends.renderer import PybulletRenderer
+from sim_backends.scene import MockupScene
+from sim_backends.sensor import expose, frame_rng
+
+
+@dataclass(frozen=True, slots=True)
+class RenderTiming:
+    distance_m: float
+    supersample: int
+    median_ms: float
+    p95_ms: float
+
+
+def render_timings(
+    camera: str,
+    mockup: str,
+    *,
+    distances_m: tuple[float, ...] = (3.0, 2.0, 1.2, 0.5),
+    supersamples: tuple[int, ...] = (1, 2),
+    repeats: int = 9,
+    progress: Console | None = None,
+) -> list[RenderTiming]:
+    """Time render + low-noise exposure of one frame per case; the pose is a generic one
+    (small offset and tilt) so no edge sits on the pixel grid."""
+    info = load_camera(camera).camera_info()
+    noise = NoiseConfig(preset="low")
+    rows = []
+    offset = target_offset(0.02, -0.015, 0.0, np.radians(3.0), np.radians(-4.0), np.radians(7.0))
+    with MockupScene(load_mockup(mockup)) as scene:
+        for supersample in supersamples:
+            renderer = PybulletRenderer(scene, info, RenderConfig(supersample=supersample))
+            for distance in distances_m:
+                X_WC, _ = camera_pose_for(distance, offset)
+                renderer.render(X_WC)  # warm-up
+                times = []
+                for i in range(repeats):
+                    start = time.perf_counter()
+                    rendering = renderer.render(X_WC)
+                    expose(rendering.image, rendering.depth_m, info.K, noise, frame_rng(0, i))
+                    times.append(1000.0 * (time.perf_counter() - start))
+                row = RenderTiming(
+                    distance, supersample, float(np.median(times)), float(np.percentile(times, 95))
+                )
+                if progress is not None:
+                    progress.print(
+                        f"  {distance:.1f} m, supersample {supersample}: {row.median_ms:.1f} ms"
+                    )
+                rows.append(row)
+    return rows

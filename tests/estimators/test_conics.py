@@ -1,0 +1,90 @@
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from estimators.conics import (
+    Ellipse,
+    circle_image_conic,
+    circle_points,
+    conic_from_ellipse,
+    conic_residuals,
+    ellipse_from_conic,
+)
+from estimators.geometry import intrinsics_from_fov, project
+
+K = intrinsics_from_fov(640, 480, 70.0)
+
+
+@given(
+    st.floats(-0.4, 0.4),
+    st.floats(-0.3, 0.3),
+    st.floats(0.6, 5.0),
+    st.floats(-1.2, 1.2),
+    st.floats(-1.2, 1.2),
+    st.floats(0.05, 0.5),
+)
+def test_circle_image_conic_passes_through_projected_circle(x, y, z, tilt_x, tilt_y, radius):
+    center = np.array([x, y, z])
+    normal = np.array([np.sin(tilt_y), np.sin(tilt_x), -1.0])
+    normal /= np.linalg.norm(normal)
+    points_C = circle_points(center, normal, radius, 90)
+    if np.any(points_C[:, 2] < 0.1):
+        return
+    uv = project(points_C, K)
+    Q = circle_image_conic(center, normal, radius, K)
+    ellipse = ellipse_from_conic(Q)
+    # Geometric check: every projected point lies on the fitted ellipse to 1e-6 px, measured in
+    # the ellipse's own frame (distance along the ray to the centre).
+    d = uv - ellipse.center
+    c, s = np.cos(ellipse.angle), np.sin(ellipse.angle)
+    xe = c * d[:, 0] + s * d[:, 1]
+    ye = -s * d[:, 0] + c * d[:, 1]
+    level = np.sqrt((xe / ellipse.a) ** 2 + (ye / ellipse.b) ** 2)
+    assert np.abs(level - 1.0).max() * ellipse.a < 1e-6
+
+
+def test_circle_image_conic_head_on_is_a_centred_circle():
+    Q = circle_image_conic(np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.0, -1.0]), 0.3, K)
+    e = ellipse_from_conic(Q)
+    assert (e.cx, e.cy) == pytest.approx((K[0, 2], K[1, 2]), abs=1e-9)
+    assert e.a == pytest.approx(K[0, 0] * 0.3 / 2.0, rel=1e-12)
+    assert e.b == pytest.approx(e.a, rel=1e-12)
+
+
+@given(
+    st.floats(-500, 500),
+    st.floats(-500, 500),
+    st.floats(1.0, 400.0),
+    st.floats(0.05, 1.0),
+    st.floats(-1.5, 1.5),
+)
+def test_ellipse_conic_round_trip(cx, cy, a, ratio, angle):
+    e = Ellipse(cx, cy, a, a * ratio, angle)
+    back = ellipse_from_conic(conic_from_ellipse(e))
+    assert (back.cx, back.cy, back.a, back.b) == pytest.approx(
+        (cx, cy, a, a * ratio), rel=1e-6, abs=1e-6
+    )
+    if ratio < 0.99:  # the axis angle is undefined for a circle
+        diff = (back.angle - angle + np.pi / 2) % np.pi - np.pi / 2
+        assert abs(diff) < 1e-6
+    assert np.abs(conic_residuals(conic_from_ellipse(e), e.points(16))).max() < 1e-9
+
+
+def test_ellipse_from_conic_rejects_hyperbola_and_imaginary():
+    with pytest.raises(ValueError, match="not an ellipse"):
+        ellipse_from_conic(np.diag([1.0, -1.0, -1.0]))
+    with pytest.raises(ValueError, match="imaginary"):
+        ellipse_from_conic(np.diag([1.0, 1.0, 1.0]))
+
+
+def test_ellipse_validates_axes():
+    with pytest.raises(ValueError, match="a ≥ b"):
+        Ellipse(0, 0, 1.0, 2.0, 0.0)
+    with pytest.raises(ValueError, match="non-finite"):
+        Ellipse(np.nan, 0, 2.0, 1.0, 0.0)
+
+
+def test_circle_image_conic_rejects_degenerate_view():
+    with pytest.raises(ValueError, match="degenerate"):
+        circle_image_conic(np.array([0.0, 0.0, 2.0]), np.array([1.0, 0.0, 0.0]), 0.3, K)

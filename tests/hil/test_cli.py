@@ -1,0 +1,98 @@
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from hil.cli import app
+from hil.config import load_camera
+from hil.scenarios import camera_pose_for, target_offset
+
+runner = CliRunner()
+
+
+def test_version_and_help():
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0 and result.output.startswith("satgrasp ")
+    for command in ([], ["render"], ["bench", "render"], ["demo"]):
+        result = runner.invoke(app, [*command, "--help"])
+        assert result.exit_code == 0, result.output
+        assert "Usage" in result.output
+
+
+def test_render_writes_frame_and_truth(tmp_path):
+    out, truth = tmp_path / "f.png", tmp_path / "t.json"
+    args = [
+        "render",
+        "--camera",
+        "reference",
+        "--distance",
+        "2.0",
+        "--dx",
+        "0.05",
+        "--yaw-deg",
+        "10",
+        "--noise",
+        "low",
+        "--seed",
+        "1",
+        "--out",
+        str(out),
+        "--truth",
+        str(truth),
+    ]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "X_CT" in result.output
+    image = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert image.shape == (480, 640) and image.dtype == np.uint8
+    record = json.loads(truth.read_text())
+    _, X_CT = camera_pose_for(2.0, target_offset(dx=0.05, yaw=np.radians(10)))
+    assert np.allclose(record["X_CT"], X_CT.matrix, atol=1e-12)
+    assert np.allclose(record["camera"]["K"], load_camera("reference").camera_info().K)
+    assert record["camera"]["width"] == 640 and record["camera"]["dist"] == []
+    # Same seed → identical frame.
+    again = tmp_path / "g.png"
+    runner.invoke(app, [*args[:-4], "--out", str(again)])
+    assert np.array_equal(cv2.imread(str(again), cv2.IMREAD_UNCHANGED), image)
+
+
+def test_render_colour_camera_with_distortion(tmp_path):
+    out = tmp_path / "oak.png"
+    result = runner.invoke(
+        app, ["render", "--camera", "oak_d_rgb", "--distance", "3", "--out", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    assert cv2.imread(str(out)).shape == (800, 1280, 3)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--camera", "nikon"], "no built-in configuration named 'nikon'"),
+        (["--noise", "medium"], "--noise must be"),
+        (["--distance", "-1"], "--distance must be positive"),
+        (["--distance", "0.3", "--dz", "0.5"], "behind the camera"),
+    ],
+)
+def test_render_rejects_bad_options(tmp_path, args, message):
+    result = runner.invoke(app, ["render", "--out", str(tmp_path / "x.png"), *args])
+    assert result.exit_code == 2
+    assert message in result.output.replace("\n", " ")
+
+
+def test_console_script_runs_from_another_directory(tmp_path):
+    exe = [sys.executable, "-c", "from hil.cli import main; main()"]
+    result = subprocess.run(
+        [*exe, "render", "--out", "f.png"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "f.png").is_file()
+    assert "pybullet build time" not in result.stdout + result.stderr

@@ -1,0 +1,137 @@
+import numpy as np
+import pytest
+
+from hil.config import CameraConfig, MockupConfig, load_camera, load_mockup
+from hil.configfile import ConfigError, builtin_names, load_config, parse_yaml_text
+
+
+def test_builtin_configs_load_from_any_directory(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert {"reference", "oak_d_rgb"} <= set(builtin_names("cameras"))
+    ref = load_camera("reference").camera_info()
+    assert (ref.width, ref.height) == (640, 480)
+    assert ref.K[0, 0] == pytest.approx(320 / np.tan(np.radians(35)))
+    assert not ref.has_distortion
+    oak = load_camera("oak_d_rgb").camera_info()
+    assert (oak.width, oak.height, oak.channels) == (1280, 800, 3) and oak.has_distortion
+    mockup = load_mockup("default")
+    assert mockup.marman_ring.outer_diameter == 0.60
+    assert mockup.centre_panel.side == 0.30
+
+
+def test_default_mockup_target_model():
+    model = load_mockup("default").target_model()
+    assert model.panel_side == pytest.approx(0.30)
+    discs = [f for f in model.point_features if f.kind == "disc"]
+    assert len(discs) >= 8
+    names = [c.name for c in model.circles]
+    assert names[:3] == ["ring_outer", "ring_inner", "thruster_exit"]
+    exit_circle = model.circle("thruster_exit")
+    # Off the ring axis, so circles alone fix roll.
+    assert np.hypot(*exit_circle.center_T[:2]) > 0.4
+    assert model.circle("ring_outer").radius == pytest.approx(0.30)
+    assert model.circle("ring_inner").radius == pytest.approx(0.25)
+    with pytest.raises(KeyError, match="no circle"):
+        model.circle("antenna")
+
+
+BOLTS = (
+    "fasteners:\n"
+    "  - {name: b, surface: ring, diameter: 0.02, circle_pattern: {radius: 0.275, count: 8}}\n"
+)
+
+
+def _write(tmp_path, text):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_wrong_type_names_file_field_and_line(tmp_path):
+    path = _write(tmp_path, "name: x\nmarman_ring:\n  outer_diameter: big\n")
+    with pytest.raises(ConfigError) as info:
+        load_mockup(path)
+    message = str(info.value)
+    assert str(path) in message
+    assert "marman_ring.outer_diameter (line 3)" in message
+    assert "valid number" in message and "'big'" in message
+
+
+def test_unknown_key_is_rejected_with_its_line(tmp_path):
+    path = _write(tmp_path, "name: x\ncentre_panel:\n  side: 0.3\n  sidee: 0.3\n")
+    with pytest.raises(ConfigError, match=r"centre_panel\.sidee \(line 4\): unknown key"):
+        load_mockup(path)
+
+
+def test_missing_field_is_named(tmp_path):
+    path = _write(tmp_path, "width: 640\nheight: 480\nhfov_deg: 70\n")
+    with pytest.raises(ConfigError, match=r"name.*required field is missing"):
+        load_camera(path)
+
+
+def test_out_of_range_and_inconsistent_values(tmp_path):
+    with pytest.raises(ConfigError, match=r"hfov_deg \(line 4\).*less than 179"):
+        load_camera(_write(tmp_path, "name: c\nwidth: 640\nheight: 480\nhfov_deg: 200\n"))
+    with pytest.raises(ConfigError, match="either hfov_deg or fx/fy/cx/cy"):
+        load_camera(_write(tmp_path, "name: c\nwidth: 640\nheight: 480\nhfov_deg: 70\nfx: 400\n"))
+    with pytest.raises(ConfigError, match="distortion must have"):
+        load_camera(
+            _write(
+                tmp_path,
+                "name: c\nwidth: 640\nheight: 480\nhfov_deg: 70\ndistortion: [0.1, 0.2, 0.3]\n",
+            )
+        )
+    with pytest.raises(ConfigError, match="panel's corners must lie inside"):
+        load_mockup(_write(tmp_path, "name: m\ncentre_panel: {side: 0.4}\n"))
+    with pytest.raises(ConfigError, match=r"fasteners.0 \(ring_bolt\): a fastener at"):
+        text = (
+            "name: m\nfasteners:\n  - {name: ring_bolt, surface: ring, diameter: 0.02, "
+            "circle_pattern: {radius: 0.1, count: 8}}\n"
+        )
+        load_mockup(_write(tmp_path, text))
+    with pytest.raises(ConfigError, match="at least 8 point features"):
+        load_mockup(_write(tmp_path, "name: m\nfasteners: []\n"))
+    with pytest.raises(ConfigError, match="overlaps the marman ring"):
+        load_mockup(_write(tmp_path, "name: m\nthruster: {center: [0.3, 0.0]}\n"))
+
+
+def test_unreadable_inputs_fail_clearly(tmp_path):
+    with pytest.raises(ConfigError, match="file not found"):
+        load_camera(tmp_path / "missing.yaml")
+    with pytest.raises(ConfigError, match=r"no built-in configuration named 'nikon'.*reference"):
+        load_camera("nikon")
+    with pytest.raises(ConfigError, match="the file is empty"):
+        load_camera(_write(tmp_path, ""))
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_camera(_write(tmp_path, "name: [unclosed\n"))
+    with pytest.raises(ConfigError, match="mapping at the top level"):
+        load_camera(_write(tmp_path, "- a\n- b\n"))
+
+
+def test_configs_are_frozen():
+    camera = load_camera("reference")
+    with pytest.raises(Exception, match="frozen"):
+        camera.width = 10
+
+
+def test_parse_yaml_text_validates_any_model():
+    camera = parse_yaml_text(
+        "name: c\nwidth: 64\nheight: 48\nfx: 50\nfy: 50\ncx: 31.5\ncy: 23.5\n",
+        CameraConfig,
+        "inline",
+    )
+    assert camera.camera_info().K[0, 2] == 31.5
+
+
+def test_model_file_path_is_relative_to_the_yaml(tmp_path):
+    (tmp_path / "meshes").mkdir()
+    path = _write(tmp_path, "name: m\nmodel_file: {path: meshes/sat.obj, scale: 0.001}\n" + BOLTS)
+    mockup = load_mockup(path)
+    assert mockup.model_file.path == (tmp_path / "meshes" / "sat.obj").resolve()
+    # The feature geometry still comes from the config.
+    assert mockup.target_model().panel_side == pytest.approx(0.30)
+
+
+def test_load_config_with_explicit_model(tmp_path):
+    path = _write(tmp_path, "name: m\n" + BOLTS)
+    assert isinstance(load_config(path, MockupConfig), MockupConfig)

@@ -1,0 +1,102 @@
+import numpy as np
+import pytest
+from scipy import stats
+
+from estimators.geometry import Pose, intrinsics_from_fov, project
+from hil.config import NoiseConfig
+from sim_backends.sensor import add_noise, expose, frame_rng, image_flow, motion_blur, to_uint8
+
+K = intrinsics_from_fov(640, 480, 70.0)
+
+
+def clipped_gaussian_variance(mean: float, sigma: float) -> float:
+    """Variance of clip(mean + σ·N(0,1), 0, 1), by numerical integration."""
+    x = np.linspace(-12, 12, 200001)
+    values = np.clip(mean + sigma * x, 0.0, 1.0)
+    w = stats.norm.pdf(x)
+    w /= w.sum()
+    m = (w * values).sum()
+    return float((w * (values - m) ** 2).sum())
+
+
+@pytest.mark.parametrize(("preset", "variance"), [("low", 0.05), ("high", 0.1)])
+def test_noise_presets_reproduce_their_variance(preset, variance):
+    noise = NoiseConfig(preset=preset)
+    assert noise.gaussian_variance == variance
+    # On [0, 1] intensities the noise is clipped: at mid-grey the measured variance must match
+    # that of a clipped Gaussian with the preset's σ.
+    rng = frame_rng(7, 0)
+    level = np.full((480, 640), 0.5, dtype=np.float32)
+    noisy = add_noise(level, noise, rng)
+    expected_clipped = clipped_gaussian_variance(0.5, np.sqrt(variance))
+    assert noisy.var() == pytest.approx(expected_clipped, rel=0.05)
+    # Quantised to 8 bits, as a camera delivers it, the variance is unchanged within 5 %.
+    assert (to_uint8(noisy) / 255.0).var() == pytest.approx(expected_clipped, rel=0.05)
+
+
+@pytest.mark.parametrize(("preset", "variance"), [("low", 0.05), ("high", 0.1)])
+def test_noise_field_before_clipping_has_the_preset_variance(preset, variance):
+    """The additive field is N(0, variance): measured with σ scaled down 10× so that clipping
+    cannot bite, and scaled back up."""
+    noise = NoiseConfig(preset=preset)
+    rng = frame_rng(3, 1)
+    sigma = np.sqrt(variance)
+    scaled = NoiseConfig(preset=preset, variance=variance / 100.0)
+    noisy = add_noise(np.full((480, 640), 0.5, dtype=np.float32), scaled, rng)
+    assert (noisy - 0.5).var() * 100.0 == pytest.approx(variance, rel=0.05)
+    assert (noisy - 0.5).mean() == pytest.approx(0.0, abs=0.01 * sigma)
+    assert noise.preset == preset
+
+
+def test_noise_none_leaves_the_image_and_sensor_noise_follows_photon_transfer():
+    image = np.full((200, 300), 0.4, dtype=np.float32)
+    assert np.array_equal(add_noise(image, NoiseConfig(preset="none"), frame_rng(0)), image)
+    sensor = NoiseConfig(preset="sensor", full_well_e=5000.0, read_noise_e=10.0)
+    noisy = add_noise(image, sensor, frame_rng(1))
+    expected = (0.4 * 5000.0 + 10.0**2) / 5000.0**2
+    assert noisy.var() == pytest.approx(expected, rel=0.05)
+    assert noisy.mean() == pytest.approx(0.4, abs=1e-3)
+
+
+def test_same_seed_same_frame_and_different_seed_different_frame():
+    image = np.random.default_rng(0).uniform(0, 1, (48, 64)).astype(np.float32)
+    depth = np.full((48, 64), 2.0, dtype=np.float32)
+    noise = NoiseConfig(preset="low")
+    a = expose(image, depth, K, noise, frame_rng(5, 3))
+    b = expose(image, depth, K, noise, frame_rng(5, 3))
+    c = expose(image, depth, K, noise, frame_rng(5, 4))
+    d = expose(image, depth, K, noise, frame_rng(6, 3))
+    assert a.dtype == np.uint8
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c) and not np.array_equal(a, d)
+
+
+def test_image_flow_matches_finite_differences_of_projection():
+    """The interaction-matrix flow equals the motion of projected points under the twist."""
+    rng = np.random.default_rng(2)
+    twist = np.array([0.05, -0.03, 0.2, 0.04, -0.06, 0.1])
+    depth = np.full((480, 640), 1.7, dtype=np.float32)
+    flow_u, flow_v = image_flow(depth, K, twist)
+    dt = 1e-5
+    # The camera moves by the twist: points in C move by −(v + ω × p) dt.
+    X_C1C0 = Pose.from_rotvec(-twist[3:] * dt, -twist[:3] * dt)
+    for u, v in rng.integers([0, 0], [640, 480], size=(20, 2)):
+        ray = np.array([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], 1.0])
+        p0 = ray * 1.7
+        uv1 = project(X_C1C0.apply(p0)[None], K)[0]
+        numeric = (uv1 - [u, v]) / dt
+        assert numeric == pytest.approx([flow_u[v, u], flow_v[v, u]], rel=1e-3, abs=1e-2)
+
+
+def test_motion_blur_smears_an_edge_along_the_flow():
+    image = np.zeros((100, 200), dtype=np.float32)
+    image[:, 100:] = 1.0
+    depth = np.full((100, 200), 1.0, dtype=np.float32)
+    Kc = np.array([[100.0, 0, 99.5], [0, 100.0, 49.5], [0, 0, 1]])
+    twist = np.array([-1.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # flow +100 px/s in u
+    blurred = motion_blur(image, depth, Kc, twist, exposure_s=0.1)  # 10 px smear
+    row = blurred[50]
+    ramp = np.flatnonzero((row > 0.02) & (row < 0.98))
+    assert 7 <= len(ramp) <= 12
+    assert row[95:105].mean() == pytest.approx(0.5, abs=0.1)
+    assert np.array_equal(motion_blur(image, depth, Kc, np.zeros(6), 0.1), image)
