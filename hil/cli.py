@@ -175,6 +175,113 @@ def bench_render(
     out.print(table)
 
 
+SystemOpt = Annotated[str, typer.Option(help="Estimator: corners | lines | ellipses.")]
+
+
+@app.command()
+def estimate(
+    images: Annotated[list[Path], typer.Argument(help="Image files (PNG, JPEG, …).")],
+    system: SystemOpt = "corners",
+    camera: CameraOpt = "reference",
+    mockup: MockupOpt = "default",
+    track: Annotated[
+        bool, typer.Option(help="Carry the pose from image to image as the prior.")
+    ] = False,
+    overlay: Annotated[
+        Path | None, typer.Option(help="Directory for overlay images (features, labels, model).")
+    ] = None,
+) -> None:
+    """Estimate the target's pose in each image; one JSON line per image on stdout.
+
+    Keys: image, system, status (acquired | tracking | lost), reason, X_CT (4×4 or null),
+    covariance, residual_px, time_ms; 5-DOF circle poses add circle, center_C, normal_C.
+    """
+    from drivers.base import Frame
+    from estimators.measurement import Measurement, Tracker
+    from estimators.registry import build_estimator
+    from hil.config import load_camera, load_mockup
+    from hil.overlay import draw_measurement
+
+    try:
+        info = load_camera(camera).camera_info()
+        target = load_mockup(mockup).target_model()
+        estimator = build_estimator(system, target, info)
+    except (ConfigError, ValueError, NotImplementedError) as exc:
+        raise _fail(str(exc)) from None
+    tracker = Tracker(estimator)
+    if overlay is not None:
+        overlay.mkdir(parents=True, exist_ok=True)
+    flag = cv2.IMREAD_GRAYSCALE if info.channels == 1 else cv2.IMREAD_COLOR
+    for seq, path in enumerate(images):
+        image = cv2.imread(str(path), flag)
+        if image is None:
+            frame = Frame(np.zeros((0, 0), np.uint8), float(seq), info, seq)
+            m = Measurement.lost(system, frame, f"cannot read image {path}")
+        else:
+            if not track:
+                tracker.reset()
+            m = tracker.update(Frame(image, float(seq), info, seq))
+        print(json.dumps({"image": str(path), **m.to_dict()}), flush=True)
+        if overlay is not None and image is not None:
+            cv2.imwrite(
+                str(overlay / f"{path.stem}_{system}.png"), draw_measurement(image, m, info, target)
+            )
+
+
+@app.command()
+def matrix(
+    system: Annotated[list[str], typer.Option(help="Estimator(s); repeat the option for several.")],
+    frames: Annotated[int, typer.Option(min=2, help="Frames per case (one maneuver period).")] = 30,
+    noise: Annotated[str, typer.Option(help="Comma-separated noise levels.")] = "none,low,high",
+    distance: Annotated[str, typer.Option(help="Comma-separated distances (m).")] = "3,2,1.2",
+    maneuver: Annotated[str, typer.Option(help="Comma-separated maneuvers, or 'all'.")] = "all",
+    seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
+    jobs: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 1,
+    out_path: Annotated[
+        Path | None, typer.Option("--out", help="Write the markdown table here.")
+    ] = None,
+    results: Annotated[
+        Path | None, typer.Option(help="Write every frame's result as JSON lines.")
+    ] = None,
+) -> None:
+    """Run the reference study's test matrix against simulator ground truth and print the
+    per-case mean ± std of the errors beside the reference's numbers."""
+    from dataclasses import asdict
+
+    from hil.matrix import MatrixSpec, markdown_table, run_matrix, summarize
+    from hil.scenarios import MANEUVERS
+
+    try:
+        spec = MatrixSpec(
+            systems=tuple(system),
+            distances_m=tuple(float(d) for d in distance.split(",")),
+            maneuvers=tuple(m.name for m in MANEUVERS)
+            if maneuver == "all"
+            else tuple(maneuver.split(",")),
+            noises=tuple(noise.split(",")),
+            frames=frames,
+            seed=seed,
+        )
+    except ValueError as exc:
+        raise _fail(f"bad --distance: {exc}") from None
+    for level in spec.noises:
+        _noise_config(level)
+    try:
+        rows = run_matrix(spec, jobs=jobs, progress=lambda text: console.print(text))
+    except (ValueError, NotImplementedError) as exc:
+        raise _fail(str(exc)) from None
+    table = markdown_table(summarize(rows))
+    out.print(table, markup=False, highlight=False)
+    if out_path is not None:
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        out_path.write_text(table, encoding="utf-8")
+    if results is not None:
+        results.parent.mkdir(parents=True, exist_ok=True)
+        with results.open("w", encoding="utf-8") as f:
+            for row in rows:
+                f.write(json.dumps(asdict(row), allow_nan=True) + "\n")
+
+
 @app.command()
 def demo(
     out_dir: Annotated[Path, typer.Option(help="Directory for the demo's outputs.")] = Path("runs"),

@@ -96,3 +96,23 @@ def test_console_script_runs_from_another_directory(tmp_path):
     assert result.returncode == 0, result.stderr
     assert (tmp_path / "f.png").is_file()
     assert "pybullet build time" not in result.stdout + result.stderr
+
+
+def test_estimate_reports_unreadable_images_as_lost(tmp_path):
+    result = runner.invoke(
+        app,
+        [
+            "estimate",
+            "--system",
+            "tests.hil.fake_estimators:build_raising",
+            str(tmp_path / "missing.png"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    record = json.loads(result.output.strip().splitlines()[-1])
+    assert record["status"] == "lost" and "cannot read image" in record["reason"]
+
+
+def test_estimate_rejects_an_unknown_system(tmp_path):
+    result = runner.invoke(app, ["estimate", "--system", "sonar", str(tmp_path / "x.png")])
+    assert result.exit_code == 2 and "unknown estimator system" in result.output

@@ -1,0 +1,196 @@
+"""What an estimator returns, the estimator protocol, and the tracker that carries the prior.
+
+Covariance conventions (used by fusion; estimators must follow them):
+
+* 6-DOF ``covariance`` (6×6) is over the error δ = [δθ, δp] of ``X_CT`` with the rotation error
+  applied on the left, in the camera frame C: R_true = Exp(δθ)·R_est, p_true = p_est + δp
+  (δθ in rad, δp in m; rotation first).
+* 5-DOF ``covariance_5dof`` (5×5) is over [δc, α, β] of a circle's centre ``center_C`` (m, in C)
+  and unit normal ``normal_C``: n_true ≈ n_est + α·u + β·v with (u, v) =
+  ``estimators.conics.circle_plane_basis(normal_C)``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Literal, Protocol, runtime_checkable
+
+import numpy as np
+
+from drivers.base import Frame
+from estimators.geometry import Pose
+
+Status = Literal["acquired", "tracking", "lost"]
+SYSTEMS = ("corners", "lines", "ellipses")
+
+
+def _readonly(array: np.ndarray | None, shape: tuple[int, ...], name: str) -> np.ndarray | None:
+    if array is None:
+        return None
+    out = np.array(array, dtype=float)
+    if out.shape != shape:
+        raise ValueError(f"Measurement.{name} must have shape {shape}; got {out.shape}")
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"Measurement.{name} contains NaN or infinite values")
+    out.flags.writeable = False
+    return out
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Measurement:
+    """One estimator's answer for one frame.
+
+    ``status``: ``acquired`` (found without using a prior), ``tracking`` (found using the prior)
+    or ``lost`` (``reason`` says why; no pose). A valid measurement has ``X_CT`` (6-DOF) and/or
+    ``center_C`` + ``normal_C`` (5-DOF circle pose of ``circle``). ``X_CT_hint`` is a full pose
+    an estimator proposes as the next prior when it measured only 5 DOF (roll not measured).
+    ``features`` holds image points for overlays and logs (name → (N,2) pixels), e.g.
+    ``extracted``, ``labeled``, ``reprojected``.
+    """
+
+    system: str
+    status: Status
+    stamp: float
+    seq: int
+    reason: str = ""
+    X_CT: Pose | None = None
+    covariance: np.ndarray | None = None
+    circle: str | None = None
+    center_C: np.ndarray | None = None
+    normal_C: np.ndarray | None = None
+    covariance_5dof: np.ndarray | None = None
+    X_CT_hint: Pose | None = None
+    residual_px: float = float("nan")
+    ambiguous: bool = False
+    features: Mapping[str, np.ndarray] = field(default_factory=dict)
+    time_ms: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.status not in ("acquired", "tracking", "lost"):
+            raise ValueError(
+                f"Measurement.status must be acquired, tracking or lost; got {self.status!r}"
+            )
+        object.__setattr__(self, "covariance", _readonly(self.covariance, (6, 6), "covariance"))
+        object.__setattr__(self, "center_C", _readonly(self.center_C, (3,), "center_C"))
+        object.__setattr__(self, "normal_C", _readonly(self.normal_C, (3,), "normal_C"))
+        object.__setattr__(
+            self, "covariance_5dof", _readonly(self.covariance_5dof, (5, 5), "covariance_5dof")
+        )
+        if self.status == "lost":
+            if not self.reason:
+                raise ValueError("a lost Measurement must say why (reason)")
+            if self.X_CT is not None or self.center_C is not None:
+                raise ValueError("a lost Measurement carries no pose")
+        else:
+            if self.X_CT is None and self.center_C is None:
+                raise ValueError(f"a {self.status} Measurement needs X_CT or center_C/normal_C")
+            if self.X_CT is not None and self.covariance is None:
+                raise ValueError("Measurement.X_CT needs its 6x6 covariance")
+            if (self.center_C is None) != (self.normal_C is None):
+                raise ValueError("Measurement.center_C and normal_C go together")
+            if self.center_C is not None and (self.covariance_5dof is None or self.circle is None):
+                raise ValueError("a 5-DOF Measurement needs circle and covariance_5dof")
+            if self.normal_C is not None and abs(np.linalg.norm(self.normal_C) - 1) > 1e-6:
+                raise ValueError("Measurement.normal_C must be a unit vector")
+
+    @property
+    def valid(self) -> bool:
+        return self.status != "lost"
+
+    @property
+    def has_pose(self) -> bool:
+        return self.X_CT is not None
+
+    @property
+    def prior(self) -> Pose | None:
+        """The pose to hand the estimator as prior for the next frame."""
+        return self.X_CT if self.X_CT is not None else self.X_CT_hint
+
+    def to_dict(self, *, with_features: bool = False) -> dict:
+        """JSON-ready view: poses as 4×4 nested lists, arrays as lists, NaN as None."""
+
+        def listed(value):
+            return None if value is None else np.asarray(value).tolist()
+
+        out = {
+            "system": self.system,
+            "status": self.status,
+            "reason": self.reason,
+            "stamp": self.stamp,
+            "seq": self.seq,
+            "X_CT": None if self.X_CT is None else self.X_CT.to_list(),
+            "covariance": listed(self.covariance),
+            "circle": self.circle,
+            "center_C": listed(self.center_C),
+            "normal_C": listed(self.normal_C),
+            "covariance_5dof": listed(self.covariance_5dof),
+            "residual_px": None if not np.isfinite(self.residual_px) else float(self.residual_px),
+            "ambiguous": self.ambiguous,
+            "time_ms": self.time_ms,
+        }
+        if with_features:
+            out["features"] = {k: np.asarray(v).tolist() for k, v in self.features.items()}
+        return out
+
+    @staticmethod
+    def lost(
+        system: str,
+        frame: Frame,
+        reason: str,
+        *,
+        started: float | None = None,
+        features: Mapping[str, np.ndarray] | None = None,
+    ) -> Measurement:
+        """A ``lost`` measurement for ``frame``; ``started`` (perf_counter) sets ``time_ms``."""
+        elapsed = 0.0 if started is None else 1000.0 * (time.perf_counter() - started)
+        return Measurement(
+            system=system,
+            status="lost",
+            stamp=frame.stamp,
+            seq=frame.seq,
+            reason=reason,
+            features=features or {},
+            time_ms=elapsed,
+        )
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    """A FEDALPE pose estimator: a pure function of (frame, prior) given its configuration.
+
+    ``estimate`` never raises for a bad image: it returns a ``lost`` Measurement with a reason.
+    With ``prior_X_CT`` None it searches the whole image (acquisition).
+    """
+
+    system: str
+
+    def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement: ...
+
+
+class Tracker:
+    """Carries the prior from frame to frame — the explicit state of a tracking estimator.
+
+    The prior is the last valid measurement's pose. A lost frame drops it at once, so the next
+    frame is searched globally: a lost system re-acquires by itself.
+    """
+
+    def __init__(self, estimator: Estimator):
+        self.estimator = estimator
+        self.prior_X_CT: Pose | None = None
+
+    def reset(self) -> None:
+        self.prior_X_CT = None
+
+    def update(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
+        """Estimate on ``frame`` with the given prior (e.g. from fusion) or the tracker's own."""
+        prior = prior_X_CT if prior_X_CT is not None else self.prior_X_CT
+        try:
+            measurement = self.estimator.estimate(frame, prior)
+        except Exception as exc:  # an estimator bug must not take the loop down
+            measurement = Measurement.lost(
+                self.estimator.system, frame, f"estimator raised {type(exc).__name__}: {exc}"
+            )
+        self.prior_X_CT = measurement.prior if measurement.valid else None
+        return measurement
