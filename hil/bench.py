@@ -59,3 +59,81 @@ def render_timings(
                     )
                 rows.append(row)
     return rows
+
+
+@dataclass(frozen=True, slots=True)
+class EstimatorTiming:
+    system: str
+    mode: str  # "tracking" (prior given) or "acquisition" (no prior)
+    distance_m: float
+    median_ms: float
+    p95_ms: float
+    valid: int
+    frames: int
+
+
+def estimator_timings(
+    systems: tuple[str, ...],
+    *,
+    camera: str = "reference",
+    mockup: str = "default",
+    distances_m: tuple[float, ...] = (3.0, 2.0, 1.2),
+    frames: int = 20,
+    noise: str = "low",
+    seed: int = 0,
+    progress: Console | None = None,
+) -> list[EstimatorTiming]:
+    """Wall time per frame of each estimator, one thread, in two modes: tracking (the prior is
+    the previous frame's estimate, as in a running loop) and acquisition (no prior). Frames
+    follow the reference's turn-about-y maneuver with the given noise."""
+    import cv2
+
+    from drivers.base import Frame
+    from estimators.registry import build_estimator
+    from hil.scenarios import MANEUVERS
+
+    cv2.setNumThreads(1)
+    info = load_camera(camera).camera_info()
+    mockup_config = load_mockup(mockup)
+    target = mockup_config.target_model()
+    noise_config = NoiseConfig(preset=noise)
+    maneuver = next(m for m in MANEUVERS if m.name == "turn_y_10deg")
+    rows = []
+    with MockupScene(mockup_config) as scene:
+        renderer = PybulletRenderer(scene, info, RenderConfig())
+        for distance in distances_m:
+            images = []
+            for i in range(frames):
+                X_WC, _ = camera_pose_for(distance, maneuver.offset(i / frames))
+                rendering = renderer.render(X_WC)
+                images.append(
+                    expose(
+                        rendering.image, rendering.depth_m, info.K, noise_config, frame_rng(seed, i)
+                    )
+                )
+            for system in systems:
+                estimator = build_estimator(system, target, info)
+                for mode in ("tracking", "acquisition"):
+                    times, valid, prior = [], 0, None
+                    for i, image in enumerate(images):
+                        frame = Frame(image, i / 30.0, info, i)
+                        start = time.perf_counter()
+                        m = estimator.estimate(frame, prior if mode == "tracking" else None)
+                        times.append(1000.0 * (time.perf_counter() - start))
+                        valid += m.valid
+                        prior = m.prior if m.valid else None
+                    row = EstimatorTiming(
+                        system,
+                        mode,
+                        distance,
+                        float(np.median(times)),
+                        float(np.percentile(times, 95)),
+                        valid,
+                        frames,
+                    )
+                    if progress is not None:
+                        progress.print(
+                            f"  {system} {mode} {distance:.1f} m: {row.median_ms:.1f} ms"
+                        )
+                    rows.append(row)
+    return rows

@@ -175,13 +175,10 @@ def bench_render(
     out.print(table)
 
 
-SystemOpt = Annotated[str, typer.Option(help="Estimator: corners | lines | ellipses.")]
-
-
 @app.command()
 def estimate(
     images: Annotated[list[Path], typer.Argument(help="Image files (PNG, JPEG, …).")],
-    system: SystemOpt = "corners",
+    system: Annotated[str, typer.Option(help="Estimator: corners | lines | ellipses.")] = "corners",
     camera: CameraOpt = "reference",
     mockup: MockupOpt = "default",
     track: Annotated[
@@ -280,6 +277,41 @@ def matrix(
         with results.open("w", encoding="utf-8") as f:
             for row in rows:
                 f.write(json.dumps(asdict(row), allow_nan=True) + "\n")
+
+
+@bench_app.command("estimate")
+def bench_estimate(
+    system: Annotated[list[str], typer.Option(help="Estimator(s); repeat for several.")],
+    camera: CameraOpt = "reference",
+    frames: Annotated[int, typer.Option(min=2, help="Frames per distance.")] = 20,
+    noise: NoiseOpt = "low",
+) -> None:
+    """Median and p95 time per frame of each estimator (one thread), tracking and acquisition
+    separately, at 3, 2 and 1.2 m."""
+    from rich.table import Table
+
+    from hil.bench import estimator_timings
+
+    _noise_config(noise)
+    try:
+        rows = estimator_timings(
+            tuple(system), camera=camera, frames=frames, noise=noise, progress=console
+        )
+    except (ConfigError, ValueError, NotImplementedError) as exc:
+        raise _fail(str(exc)) from None
+    table = Table(title=f"estimator time per frame ({camera}, noise {noise}, one thread)")
+    for column in ("system", "mode", "distance (m)", "median (ms)", "p95 (ms)", "valid"):
+        table.add_column(column, justify="right")
+    for r in rows:
+        table.add_row(
+            r.system,
+            r.mode,
+            f"{r.distance_m:.1f}",
+            f"{r.median_ms:.1f}",
+            f"{r.p95_ms:.1f}",
+            f"{r.valid}/{r.frames}",
+        )
+    out.print(table)
 
 
 @app.command()

@@ -116,3 +116,19 @@ def test_estimate_reports_unreadable_images_as_lost(tmp_path):
 def test_estimate_rejects_an_unknown_system(tmp_path):
     result = runner.invoke(app, ["estimate", "--system", "sonar", str(tmp_path / "x.png")])
     assert result.exit_code == 2 and "unknown estimator system" in result.output
+
+
+def test_bench_estimate_times_a_plugged_in_estimator():
+    result = runner.invoke(
+        app,
+        [
+            "bench",
+            "estimate",
+            "--system",
+            "tests.hil.fake_estimators:build_raising",
+            "--frames",
+            "2",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert "acquisition" in result.output and "0/2" in result.output
