@@ -125,7 +125,7 @@ def test_bench_estimate_times_a_plugged_in_estimator():
             "bench",
             "estimate",
             "--system",
-            "tests.hil.fake_estimators:build_raising",
+            "tests.hil.fake_estimators:build_blind",
             "--frames",
             "2",
         ],
