@@ -380,6 +380,9 @@ class StandoffConfig(Strict):
     position_tolerance_m: PositiveM = 0.003
     angle_tolerance_deg: Annotated[float, Field(gt=0.0, le=10.0)] = 0.3
     dwell_s: Annotated[float, Field(ge=0.0)] = 1.0
+    #: A trial succeeds when the TRUE camera pose error at the declared stand-off is within these.
+    success_position_m: PositiveM = 0.005
+    success_angle_deg: Annotated[float, Field(gt=0.0, le=10.0)] = 0.5
 
     def X_TC_goal(self) -> Pose:
         from hil.scenarios import R_TC_FACING

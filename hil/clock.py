@@ -1,0 +1,47 @@
+"""Time for the control loop: real (monotonic, sleeping) or simulated (advanced explicitly).
+
+The loop reads time only through a ``Clock``, so the same code runs on hardware at the control
+rate and in simulation faster than real time.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Protocol
+
+
+class Clock(Protocol):
+    def now(self) -> float: ...
+
+    def sleep_until(self, t: float) -> None: ...
+
+
+class RealClock:
+    """``time.monotonic`` (the same clock depthai stamps host frames with)."""
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def sleep_until(self, t: float) -> None:
+        remaining = t - time.monotonic()
+        if remaining > 0:
+            time.sleep(remaining)
+
+
+class SimClock:
+    """Simulated time: stands still while the loop computes, jumps when advanced."""
+
+    def __init__(self, start: float = 0.0):
+        self._t = float(start)
+
+    def now(self) -> float:
+        return self._t
+
+    def advance(self, dt: float) -> None:
+        if dt < 0:
+            raise ValueError(f"SimClock cannot go back in time (dt={dt})")
+        self._t += dt
+
+    def sleep_until(self, t: float) -> None:
+        if t > self._t:
+            self._t = t
