@@ -135,6 +135,33 @@ class Measurement:
         return out
 
     @staticmethod
+    def from_dict(record: Mapping) -> Measurement:
+        """Inverse of ``to_dict`` (e.g. for a measurement read back from a trial log); raises
+        ``ValueError`` or ``KeyError`` for a record that is not a valid measurement."""
+
+        def pose(value) -> Pose | None:
+            return None if value is None else Pose.from_matrix(np.asarray(value, dtype=float))
+
+        residual = record.get("residual_px")
+        return Measurement(
+            system=record["system"],
+            status=record["status"],
+            stamp=float(record.get("stamp", 0.0)),
+            seq=int(record.get("seq", 0)),
+            reason=record.get("reason") or "",
+            X_CT=pose(record.get("X_CT")),
+            covariance=record.get("covariance"),
+            circle=record.get("circle"),
+            center_C=record.get("center_C"),
+            normal_C=record.get("normal_C"),
+            covariance_5dof=record.get("covariance_5dof"),
+            residual_px=float("nan") if residual is None else float(residual),
+            ambiguous=bool(record.get("ambiguous", False)),
+            features={k: np.asarray(v, dtype=float) for k, v in record.get("features", {}).items()},
+            time_ms=float(record.get("time_ms") or 0.0),
+        )
+
+    @staticmethod
     def lost(
         system: str,
         frame: Frame,

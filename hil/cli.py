@@ -315,6 +315,30 @@ def bench_estimate(
 
 
 @app.command()
+def report(
+    log: Annotated[Path, typer.Argument(help="Trial log (.mcap), complete or cut off by a crash.")],
+    out_dir: Annotated[
+        Path | None,
+        typer.Option("--out", help="Report directory [default: <log name>_report beside the log]."),
+    ] = None,
+) -> None:
+    """Plots and an HTML page for one trial log: range and phases, errors of each estimator
+    and of the fused estimate against ground truth (simulation), measurements accepted /
+    rejected / lost, commands, and a summary."""
+    from hil.report import make_report
+    from hil.triallog import TrialLogError
+
+    target = out_dir if out_dir is not None else log.with_name(f"{log.stem}_report")
+    try:
+        index = make_report(log, target)
+    except (FileNotFoundError, TrialLogError) as exc:
+        raise _fail(str(exc)) from None
+    except OSError as exc:
+        raise _fail(f"cannot write the report to {target}: {exc}") from None
+    out.print(f"report: {index}")
+
+
+@app.command()
 def demo(
     out_dir: Annotated[Path, typer.Option(help="Directory for the demo's outputs.")] = Path("runs"),
 ) -> None:

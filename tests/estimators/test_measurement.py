@@ -76,6 +76,42 @@ def test_to_dict_is_json_ready():
     )
 
 
+def test_from_dict_inverts_to_dict_through_json():
+    import json
+
+    X_CT = Pose.from_rpy(0.1, -0.2, 0.3, np.array([0.01, -0.02, 1.5]))
+    m = Measurement(
+        system="ellipses",
+        status="tracking",
+        stamp=2.5,
+        seq=9,
+        X_CT=X_CT,
+        covariance=np.diag([1e-4, 1e-4, 1e-4, 1e-6, 1e-6, 1e-5]),
+        circle="ring_outer",
+        center_C=np.array([0.01, -0.02, 1.5]),
+        normal_C=np.array([0.0, 0.6, -0.8]),
+        covariance_5dof=np.eye(5) * 1e-6,
+        residual_px=0.31,
+        time_ms=4.2,
+    )
+    back = Measurement.from_dict(json.loads(json.dumps(m.to_dict())))
+    assert back.X_CT.is_close(X_CT, atol_m=0.0, atol_rad=1e-15)
+    assert np.array_equal(back.covariance, m.covariance)
+    assert np.array_equal(back.normal_C, m.normal_C)
+    assert (back.system, back.status, back.stamp, back.seq, back.circle) == (
+        "ellipses",
+        "tracking",
+        2.5,
+        9,
+        "ring_outer",
+    )
+    assert (back.residual_px, back.time_ms) == (0.31, 4.2)
+    lost = Measurement.from_dict(Measurement.lost("lines", FRAME, "no edges").to_dict())
+    assert lost.status == "lost" and lost.reason == "no edges" and np.isnan(lost.residual_px)
+    with pytest.raises(ValueError, match="carries no pose"):
+        Measurement.from_dict({**m.to_dict(), "status": "lost", "reason": "x"})
+
+
 def test_tracker_carries_the_prior_and_drops_it_on_loss():
     seen = []
 
