@@ -25,8 +25,8 @@ app = typer.Typer(
 bench_app = typer.Typer(help="Benchmarks (timings on this machine).", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 
-console = Console(stderr=True)
-out = Console()
+console = Console(stderr=True, soft_wrap=True)  # never split a path across lines
+out = Console(soft_wrap=True)
 
 CameraOpt = Annotated[
     str, typer.Option(help="Camera profile: a built-in name (reference, oak_d_rgb) or a YAML path.")
