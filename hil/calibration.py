@@ -1,0 +1,140 @@
+"""Consistency of the estimators' stated covariances against ground truth, and the scale that
+makes them consistent (``FusionParams.covariance_scale``).
+
+For an honest covariance Σ the normalised estimation error squared NEES = eᵀ Σ⁻¹ e of a
+measurement's error e (``estimators.fusion.measurement_error``, in the model fusion uses for it)
+is χ²-distributed with dof = len(e) degrees of freedom, so its mean is dof (Bar-Shalom, Li &
+Kirubarajan 2001, "Estimation with Applications to Tracking and Navigation", §5.4.2). A system
+whose mean NEES per degree of freedom is s states covariances s times too small: multiplying
+them by s restores mean NEES = dof. Pure functions; no I/O (the caller collects the pairs, e.g.
+from the matrix runner's frames, and writes the result into the fusion parameters).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from estimators.fusion import measurement_covariance, measurement_error, uses_pose
+from estimators.geometry import Pose
+from estimators.measurement import Measurement
+from estimators.target import TargetModel
+
+
+@dataclass(frozen=True, slots=True)
+class NeesStatistics:
+    """NEES of one system's valid measurements against truth.
+
+    ``scale``: Σ NEES / Σ dof — the covariance factor making the mean NEES equal to dof (1 for
+    honest covariances, > 1 for over-confident ones). ``robust_scale``: median of NEES / median
+    of χ²(dof), insensitive to gross errors (frames where the system lost track); when ``scale``
+    is far above it, the excess comes from outliers that gating should reject, not from the
+    covariance. ``consistent``: ``scale`` inside the two-sided ``probability`` χ² interval of
+    Σ dof (``scale_low``, ``scale_high``) — optimistic for time-correlated errors of a tracked
+    sequence. ``position_scale`` / ``attitude_scale``: the same per block (translation or circle
+    centre; rotation or normal), to see which part of the covariance is off.
+    """
+
+    system: str
+    count: int
+    dof: int
+    mean_nees: float
+    scale: float
+    robust_scale: float
+    scale_low: float
+    scale_high: float
+    consistent: bool
+    position_scale: float
+    attitude_scale: float
+
+
+def measurement_nees(m: Measurement, X_CT_true: Pose, target: TargetModel) -> tuple[float, int]:
+    """(NEES, dof) of a valid measurement against the true pose of the target in the camera."""
+    error = measurement_error(m, X_CT_true, target)
+    cov = measurement_covariance(m)
+    return float(error @ np.linalg.solve(cov, error)), len(error)
+
+
+def block_nees(
+    m: Measurement, X_CT_true: Pose, target: TargetModel
+) -> tuple[tuple[float, int], tuple[float, int]]:
+    """((position NEES, dof), (attitude NEES, dof)) with each block's marginal covariance.
+
+    6-DOF: position = δp (3), attitude = δθ (3); 5-DOF: position = δc (3), attitude = (α, β) (2).
+    """
+    error = measurement_error(m, X_CT_true, target)
+    cov = measurement_covariance(m)
+    position = slice(3, 6) if uses_pose(m) else slice(0, 3)
+    attitude = slice(0, 3) if uses_pose(m) else slice(3, 5)
+    out = []
+    for block in (position, attitude):
+        e = error[block]
+        out.append((float(e @ np.linalg.solve(cov[block, block], e)), len(e)))
+    return out[0], out[1]
+
+
+def nees_statistics(
+    samples: Iterable[tuple[Measurement, Pose]],
+    target: TargetModel,
+    *,
+    probability: float = 0.95,
+) -> dict[str, NeesStatistics]:
+    """Per-system NEES statistics of (measurement, true X_CT) pairs; lost measurements are
+    skipped. Raises ValueError naming the system and sample for an unusable measurement."""
+    if not 0.0 < probability < 1.0:
+        raise ValueError(f"probability must be in (0, 1); got {probability}")
+    rows: dict[str, list[tuple[float, int, float, int, float, int]]] = {}
+    for index, (m, X_CT_true) in enumerate(samples):
+        if not m.valid:
+            continue
+        try:
+            total = measurement_nees(m, X_CT_true, target)
+            position, attitude = block_nees(m, X_CT_true, target)
+        except (KeyError, np.linalg.LinAlgError) as exc:
+            raise ValueError(
+                f"sample {index} ({m.system}): cannot compute its NEES: {exc}"
+            ) from exc
+        rows.setdefault(m.system, []).append((*total, *position, *attitude))
+    return {system: _summarize(system, values, probability) for system, values in rows.items()}
+
+
+def _summarize(system: str, values: list, probability: float) -> NeesStatistics:
+    array = np.array(values, dtype=float)
+    nees, dof = array[:, 0], array[:, 1]
+    total_dof = float(dof.sum())
+    scale = float(nees.sum() / total_dof)
+    robust = float(np.median(nees / chi2.median(dof)))
+    tail = (1.0 - probability) / 2.0
+    low, high = (chi2.ppf([tail, 1.0 - tail], total_dof) / total_dof).tolist()
+    return NeesStatistics(
+        system=system,
+        count=len(array),
+        dof=round(float(total_dof) / len(array)),
+        mean_nees=float(nees.mean()),
+        scale=scale,
+        robust_scale=robust,
+        scale_low=low,
+        scale_high=high,
+        consistent=low <= scale <= high,
+        position_scale=float(array[:, 2].sum() / array[:, 3].sum()),
+        attitude_scale=float(array[:, 4].sum() / array[:, 5].sum()),
+    )
+
+
+def covariance_scales(
+    statistics: Mapping[str, NeesStatistics], *, robust: bool = False, floor: float = 1.0
+) -> dict[str, float]:
+    """``FusionParams.covariance_scale`` from the statistics: ``scale`` (or ``robust_scale``),
+    never below ``floor`` (default 1: calibration only inflates; a system that looks
+    under-confident on a short run keeps its stated covariance)."""
+    out = {}
+    for system, stats in statistics.items():
+        value = stats.robust_scale if robust else stats.scale
+        if not math.isfinite(value) or value <= 0:
+            raise ValueError(f"{system}: scale {value} is not a positive number")
+        out[system] = max(value, floor)
+    return out
