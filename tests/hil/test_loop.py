@@ -43,7 +43,7 @@ class Bench:
     log: RecordingLog
 
 
-def make_loop(config=None, systems=("a", "b")) -> Bench:
+def make_loop(config=None, systems=("a", "b"), fusion=None) -> Bench:
     clock = SimClock()
     geometry = rig_geometry()
     arm = FakeArm(clock, start_X_BE(geometry))
@@ -157,6 +157,17 @@ def test_loop_stops_the_arm_on_each_fault(name, inject, expect_kind, final_phase
     _stopped_within_one_tick(log, arm, fault_t, fault_t + detect_window)
     if final_phase is not None:
         assert loop.sequencer.phase == final_phase
+
+
+def test_loop_runs_with_the_real_fusion_filter():
+    from estimators.fusion import PoseFusion
+    from hil.config import load_mockup
+
+    bench = make_loop(fusion=PoseFusion(load_mockup("default").target_model()))
+    outcome = bench.loop.run(max_duration_s=120)
+    assert outcome.success, (outcome, bench.log.events[-4:])
+    accepted = [t["estimate"]["accepted"] for t in bench.log.ticks if t["measurements"]]
+    assert sum(len(a) == 2 for a in accepted) > 0.9 * len(accepted)
 
 
 def test_loop_keeps_going_when_one_system_is_blinded():
