@@ -8,11 +8,12 @@ control period:
    acceleration (like speedL's ``acc``; both parts scaled together so the ramp keeps its
    direction), or falls linearly to rest during a stop;
 2. resolved-rate control: q̇ = J⁺ V_ref by damped least squares, damped only near a singularity
-   (``ur_kinematics.damped_least_squares``; Nakamura & Hanafusa 1986, Chiaverini 1997);
+   (``ur_kinematics.damped_least_squares``; Nakamura & Hanafusa 1986, Chiaverini 1997), with J
+   taken at the period's midpoint so the executed twist matches V_ref to second order;
 3. limits, each applied by scaling the *whole* joint-velocity vector so the flange keeps its
    Cartesian direction: joint speed limits, a braking envelope that stops every joint at its
-   range less the margin (|q̇_i| ≤ √(2·a·room)), then the joint acceleration limit on the change
-   of q̇ (a ramp from rest keeps the direction too);
+   range less the margin (|q̇_i| ≤ √(2·a·room)), then the joint acceleration limit (the largest
+   q̇ on the ray of the desired one that every joint reaches within a·h);
 4. q integrates with the trapezoid rule; X_BE and J come from the DH model (the same
    parameters as the shipped URDF).
 
@@ -280,7 +281,7 @@ class SimArm:
 
     def _update_kinematics(self) -> None:
         frames = joint_frames(self.model, self._q)
-        self._X_BE = Pose.from_matrix(frames[6], orthonormalize=True)
+        self._X_BE = Pose.from_matrix(frames[6])
         self._J = jacobian_from_frames(frames)
 
     def _reference_twist(self, h: float) -> np.ndarray:
@@ -313,11 +314,13 @@ class SimArm:
             self._fault = "watchdog"
             self._begin_stop(self.config.stop_deceleration)
         self._V_ref = self._reference_twist(h)
-        qd_des, self._sigma_min = damped_least_squares(
-            self._J,
-            self._V_ref,
-            sigma_threshold=self.config.singularity_sigma,
-            damping_max=self.config.damping_max,
+        qd_des, self._sigma_min = self._resolve(self._J, self._V_ref)
+        # Midpoint rule: solve again with J half a period ahead, so the twist executed over
+        # the period matches V_ref to second order (with J(q) alone the direction drifts by
+        # ~ω·h per period on a fast or stretched arm).
+        q_mid = self._q + 0.25 * (self._qd + qd_des) * h
+        qd_des, self._sigma_min = self._resolve(
+            jacobian_from_frames(joint_frames(self.model, q_mid)), self._V_ref
         )
         limited = []
         if self._sigma_min < self.config.singularity_sigma:
@@ -330,23 +333,56 @@ class SimArm:
         if scale < 1.0:
             qd_des *= scale
             limited.append(f"joint {joint + 1} range")
-        delta = qd_des - self._qd
-        ratio = float(np.max(np.abs(delta))) / (self._qdd_max * h)
-        if ratio > 1.0:
-            delta /= ratio
-            limited.append("joint acceleration")
-        qd_new = self._qd + delta
+        qd_new = self._accelerate(qd_des, h, limited)
         self._q = self._q + 0.5 * (self._qd + qd_new) * h
         self._qd = qd_new
         self._limited_by = tuple(limited)
         self._update_kinematics()
 
+    def _accelerate(self, qd_des: np.ndarray, h: float, limited: list[str]) -> np.ndarray:
+        """Next joint velocity within the acceleration limit, on the ray of ``qd_des``.
+
+        The largest s ∈ [0, 1] with |s·q̇_des,i − q̇_i| ≤ a·h for every joint keeps the flange's
+        direction (only the speed along it drops); when no point of the ray is reachable in one
+        period (the joint-space direction turned faster than the limit allows), the change
+        toward ``qd_des`` is scaled instead and the path deviates a little.
+        """
+        step = self._qdd_max * h
+        delta = qd_des - self._qd
+        if np.max(np.abs(delta)) <= step:
+            return qd_des
+        lower, upper = 0.0, 1.0
+        for d, c in zip(qd_des, self._qd, strict=True):
+            if abs(d) < 1e-15:
+                if abs(c) > step:
+                    lower, upper = 1.0, 0.0  # this joint cannot stop in one period
+                continue
+            lo, hi = sorted(((c - step) / d, (c + step) / d))
+            lower, upper = max(lower, lo), min(upper, hi)
+        if lower <= upper:
+            limited.append("joint acceleration")
+            return upper * qd_des
+        limited.append("joint acceleration (path deviation)")
+        return self._qd + delta * (step / np.max(np.abs(delta)))
+
+    def _resolve(self, J: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, float]:
+        return damped_least_squares(
+            J,
+            V,
+            sigma_threshold=self.config.singularity_sigma,
+            damping_max=self.config.damping_max,
+        )
+
     def _range_scale(self, qd: np.ndarray, h: float) -> tuple[float, int]:
         """Largest scale ≤ 1 of ``qd`` that lets every joint still brake (at the acceleration
         limit) before its range less the margin, and the joint that sets it."""
+        a = self._qdd_max
         room = np.where(qd > 0, self._q_high - self._q, self._q - self._q_low)
-        room = np.maximum(room, 0.0)
-        allowed = np.minimum(np.sqrt(2.0 * self._qdd_max * room), room / h)
+        # room left after this period's travel (trapezoid: half of the current speed) must
+        # hold the travel of this period's other half plus the braking distance:
+        # v²/(2a) + v·h/2 ≤ room − |q̇|·h/2, solved for the largest v.
+        room = np.maximum(room - 0.5 * np.abs(self._qd) * h, 0.0)
+        allowed = a * (np.sqrt(0.25 * h * h + 2.0 * room / a) - 0.5 * h)
         speed = np.abs(qd)
         with np.errstate(divide="ignore", invalid="ignore"):
             scales = np.where(speed > allowed, allowed / speed, 1.0)

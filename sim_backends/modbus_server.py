@@ -98,6 +98,25 @@ def _sim_device(device_id: int, device: RegisterDevice) -> SimDevice:
     return SimDevice(id=device_id, simdata=blocks, action=_action_for(device))
 
 
+def _absent_devices(devices: list[RegisterDevice]) -> SimDevice:
+    """pymodbus' catch-all device (id 0): requests for an id nobody serves are answered like
+    a gateway whose target is silent (exception 11), instead of pymodbus' internal error."""
+    blocks = sorted({block for device in devices for block in device.register_blocks()})
+    merged: list[tuple[int, int]] = []
+    for start, count in blocks:  # pymodbus refuses overlapping blocks
+        if merged and start <= merged[-1][0] + merged[-1][1]:
+            first, length = merged[-1]
+            merged[-1] = (first, max(length, start + count - first))
+        else:
+            merged.append((start, count))
+
+    async def silent(*_args) -> ExcCodes:
+        return ExcCodes.GATEWAY_NO_RESPONSE
+
+    simdata = [SimData(a, count=n, datatype=DataType.REGISTERS) for a, n in merged]
+    return SimDevice(id=0, simdata=simdata, action=silent)
+
+
 class ModbusDeviceServer:
     """A pymodbus Modbus TCP server on loopback serving ``devices`` (device id → model).
 
@@ -182,6 +201,8 @@ class ModbusDeviceServer:
         self._stopped = asyncio.Event()
         try:
             devices = [_sim_device(i, d) for i, d in self._devices.items()]
+            if 0 not in self._devices:
+                devices.append(_absent_devices(list(self._devices.values())))
             server = ModbusTcpServer(devices, address=(self.host, self._port))
             await server.serve_forever(background=True)
             if server.transport is None:

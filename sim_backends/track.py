@@ -6,8 +6,8 @@ be served over Modbus TCP by ``sim_backends.modbus_server`` or reached in-proces
 ``DirectLink``) and moves only when the world loop calls ``step(dt)``.
 
 Motion: velocity mode ramps to the set velocity at the maximum acceleration; position mode
-follows a trapezoidal profile (v_des = min(speed, √(2·a·|e|)) toward the target, speed
-changes limited to a·h per cycle) and snaps onto the target once within tolerance at crawl
+follows a trapezoidal profile (v_des = min(speed, braking speed that stops on the target),
+speed changes limited to a·h per cycle) and snaps onto the target once within tolerance at crawl
 speed. Soft limits: crossing one while moving outward latches its fault bit and brakes at the
 maximum acceleration (the carriage overshoots by v²/2a, like a real axis' software limit
 switch); a position target beyond them is refused (exception 3). A latched fault, a cleared
@@ -163,7 +163,7 @@ class TrackModel:
         self._faults |= bit
         self._commands[R.MODE] = R.MODE_STOP  # a fault never lets an old command resume
 
-    def _desired_velocity(self) -> float:
+    def _desired_velocity(self, h: float) -> float:
         cfg = self.config
         mode = self._commands[R.MODE]
         enabled = self._commands[R.CONTROL] & R.CTRL_ENABLE
@@ -174,7 +174,12 @@ class TrackModel:
             return float(np.clip(v, -cfg.max_speed, cfg.max_speed))
         error = self._int32(self._commands, R.TARGET_POSITION) / MICRO - self._x
         speed = min(self._int32(self._commands, R.PROFILE_SPEED) / MICRO, cfg.max_speed)
-        return math.copysign(min(speed, math.sqrt(2 * cfg.max_acceleration * abs(error))), error)
+        # Largest speed that still stops on the target at the maximum deceleration, in this
+        # discrete cycle (trapezoid integration): v²/2a + v·h/2 ≤ |e| − |v_now|·h/2.
+        a = cfg.max_acceleration
+        room = max(abs(error) - 0.5 * abs(self._v) * h, 0.0)
+        v_brake = a * (math.sqrt(0.25 * h * h + 2.0 * room / a) - 0.5 * h)
+        return math.copysign(min(speed, v_brake), error)
 
     def _cycle(self, h: float) -> None:
         cfg = self.config
@@ -188,7 +193,7 @@ class TrackModel:
         ):
             self._latch(R.FAULT_WATCHDOG)
         a_step = cfg.max_acceleration * h
-        v_new = self._v + float(np.clip(self._desired_velocity() - self._v, -a_step, a_step))
+        v_new = self._v + float(np.clip(self._desired_velocity(h) - self._v, -a_step, a_step))
         self._x += 0.5 * (self._v + v_new) * h
         self._v = v_new
         if self._commands[R.MODE] == R.MODE_POSITION:

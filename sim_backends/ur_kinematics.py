@@ -188,13 +188,9 @@ def jacobian_from_frames(frames: np.ndarray) -> np.ndarray:
     Column i of a revolute joint about z_{i} (axis of frame i, through its origin o_i):
     ``[z_i × (o_E − o_i); z_i]`` (Siciliano et al., Robotics, §3.1).
     """
-    p_E = frames[6][:3, 3]
-    J = np.empty((6, 6))
-    for i in range(6):
-        z = frames[i][:3, 2]
-        J[:3, i] = np.cross(z, p_E - frames[i][:3, 3])
-        J[3:, i] = z
-    return J
+    z = frames[:6, :3, 2]  # joint axes (6, 3)
+    lever = frames[6, :3, 3] - frames[:6, :3, 3]  # joint origin → flange (6, 3)
+    return np.vstack([np.cross(z, lever).T, z.T])
 
 
 def jacobian(model: URModel, q: np.ndarray) -> np.ndarray:
