@@ -281,8 +281,15 @@ class SimArm:
 
     def _update_kinematics(self) -> None:
         frames = joint_frames(self.model, self._q)
-        self._X_BE = Pose.from_matrix(frames[6])
+        self._T_BE = frames[6]
+        self._X_BE_cache: Pose | None = None  # built on demand: most periods nobody asks
         self._J = jacobian_from_frames(frames)
+
+    @property
+    def _X_BE(self) -> Pose:
+        if self._X_BE_cache is None:
+            self._X_BE_cache = Pose.from_matrix(self._T_BE)
+        return self._X_BE_cache
 
     def _reference_twist(self, h: float) -> np.ndarray:
         cfg = self.config
@@ -351,6 +358,9 @@ class SimArm:
         delta = qd_des - self._qd
         if np.max(np.abs(delta)) <= step:
             return qd_des
+        if not np.any(qd_des):  # braking to rest: shrink q̇ along its own ray
+            limited.append("joint acceleration")
+            return self._qd * (1.0 - step / np.max(np.abs(self._qd)))
         lower, upper = 0.0, 1.0
         for d, c in zip(qd_des, self._qd, strict=True):
             if abs(d) < 1e-15:

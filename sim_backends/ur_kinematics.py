@@ -190,7 +190,9 @@ def jacobian_from_frames(frames: np.ndarray) -> np.ndarray:
     """
     z = frames[:6, :3, 2]  # joint axes (6, 3)
     lever = frames[6, :3, 3] - frames[:6, :3, 3]  # joint origin → flange (6, 3)
-    return np.vstack([np.cross(z, lever).T, z.T])
+    # row-wise z × lever, written out (np.cross costs more than the rest of this function)
+    cross = z[:, [1, 2, 0]] * lever[:, [2, 0, 1]] - z[:, [2, 0, 1]] * lever[:, [1, 2, 0]]
+    return np.vstack([cross.T, z.T])
 
 
 def jacobian(model: URModel, q: np.ndarray) -> np.ndarray:
