@@ -3,7 +3,9 @@
 
 import socket
 import threading
+import time
 
+import numpy as np
 import pytest
 
 from drivers.base import DeviceError, DeviceFault, DeviceTimeout, Track
@@ -133,3 +135,34 @@ def test_describe_faults_names_every_bit():
         "soft limit min crossed; communication watchdog (no request in time)"
     )
     assert "unknown fault bits 0x0100" in describe_faults(0x0100)
+
+
+def test_modbus_track_served_while_the_world_steps_in_another_thread():
+    # the server thread reads registers while another thread steps the model: every sample
+    # must be a consistent snapshot (position and velocity from the same control cycle)
+    model = TrackModel(CONFIG.model_copy(update={"travel_max": 1000.0}))
+    stop = threading.Event()
+
+    def world():
+        while not stop.is_set():
+            model.step(0.004)
+            time.sleep(0.0002)
+
+    with ModbusDeviceServer({1: model}) as server:
+        track = ModbusTrack.over_tcp("127.0.0.1", server.port, timeout_s=1.0)
+        track.connect()
+        track.move_velocity(0.2)
+        stepper = threading.Thread(target=world, daemon=True)
+        stepper.start()
+        try:
+            samples = [track.state() for _ in range(300)]
+        finally:
+            stop.set()
+            stepper.join(2.0)
+        track.close()
+    assert np.all(np.diff([s.position for s in samples]) >= 0.0)
+    assert samples[-1].position > samples[0].position
+    for s in samples:  # on the ramp x = v²/2a (exact for the model's integration), then cruise
+        assert s.fault is None
+        expected = min(0.2, (2 * CONFIG.max_acceleration * s.position) ** 0.5)
+        assert s.velocity == pytest.approx(expected, abs=0.003)
