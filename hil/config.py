@@ -373,7 +373,7 @@ def load_mockup(name_or_path: str | Path) -> MockupConfig:
 
 Vec3 = tuple[float, float, float]
 Vec6 = tuple[float, float, float, float, float, float]
-PositiveS = Annotated[float, Field(gt=0.0)]
+Positive = Annotated[float, Field(gt=0.0)]  # a positive quantity in the unit its name gives
 
 
 class PoseConfig(Strict):
@@ -394,7 +394,7 @@ class ModbusEndpoint(Strict):
     host: str = "127.0.0.1"
     port: Annotated[int, Field(ge=1, le=65535)] = 502
     device_id: Annotated[int, Field(ge=0, le=247)] = 1
-    timeout_s: PositiveS = 0.5
+    timeout_s: Positive = 0.5
 
 
 #: Joint ranges of every UR e-Series arm (deg): ±360 except the elbow, which the upper arm
@@ -411,23 +411,23 @@ class ArmConfig(Strict):
     q0_deg: Vec6
     #: None: the model's published maximum joint speeds (a lower value caps them).
     joint_speed_limit_deg_s: (
-        tuple[PositiveM, PositiveM, PositiveM, PositiveM, PositiveM, PositiveM] | None
+        tuple[Positive, Positive, Positive, Positive, Positive, Positive] | None
     ) = None
-    joint_acceleration_limit_deg_s2: PositiveM = 300.0
+    joint_acceleration_limit_deg_s2: Positive = 300.0
     #: Cap on the flange's linear speed (m/s); a faster command is scaled down, direction kept.
-    tcp_speed_limit: PositiveM = 1.0
+    tcp_speed_limit: Positive = 1.0
     #: Ramp of the commanded twist, like speedL's ``acc`` (m/s², and deg/s² for rotation).
-    tcp_acceleration: PositiveM = 1.0
-    tcp_angular_acceleration_deg_s2: PositiveM = 120.0
+    tcp_acceleration: Positive = 1.0
+    tcp_angular_acceleration_deg_s2: Positive = 120.0
     #: Deceleration (m/s² and, numerically the same, rad/s²) of halts and the watchdog stop.
-    stop_deceleration: PositiveM = 2.0
+    stop_deceleration: Positive = 2.0
     joint_limit_margin_deg: Annotated[float, Field(ge=0.0, le=30.0)] = 5.0
     control_rate_hz: Annotated[float, Field(ge=10.0, le=2000.0)] = 500.0
-    watchdog_s: PositiveS = 0.1
+    watchdog_s: Positive = 0.1
     #: Damped least squares: damping starts below this smallest singular value of J …
-    singularity_sigma: PositiveM = 0.05
+    singularity_sigma: Positive = 0.05
     #: … and reaches this damping factor at the singularity.
-    damping_max: PositiveM = 0.05
+    damping_max: Positive = 0.05
     X_EC: PoseConfig = PoseConfig()
 
     @model_validator(mode="after")
@@ -456,8 +456,8 @@ class TrackConfig(Strict):
     travel_min: float = 0.0
     travel_max: float = 2.05
     start_position: float = 0.0
-    max_speed: PositiveM = 0.25
-    max_acceleration: PositiveM = 0.5
+    max_speed: Positive = 0.25
+    max_acceleration: Positive = 0.5
     position_tolerance: PositiveM = 0.0005
     X_WM0: PoseConfig = PoseConfig()
     X_MT: PoseConfig = PoseConfig()
@@ -495,9 +495,9 @@ class GripperConfig(Strict):
     nothing there), the driver's grip speed/force (0…1), and its Modbus endpoint."""
 
     stroke: PositiveM = 0.085
-    max_speed: PositiveM = 0.15
-    min_speed: PositiveM = 0.02
-    activation_s: PositiveS = 0.5
+    max_speed: Positive = 0.15
+    min_speed: Positive = 0.02
+    activation_s: Positive = 0.5
     object_width: PositiveM | None = None
     grip_speed: Unit = 1.0
     grip_force: Unit = 0.5
