@@ -1,0 +1,128 @@
+"""The Robotiq driver through the real pymodbus client against the real pymodbus server on
+127.0.0.1, serving the simulated 2F-85 (each test starts and stops its own server)."""
+
+import pytest
+
+from drivers.base import Gripper
+from drivers.gripper_robotiq import RobotiqGripper, RobotiqRegisters, command_registers
+from hil.config import GripperConfig
+from sim_backends.gripper import GripperModel
+from sim_backends.modbus_server import ModbusDeviceServer
+
+CONFIG = GripperConfig(activation_s=0.5)
+
+
+@pytest.fixture
+def served_gripper():
+    model = GripperModel(CONFIG)
+    with ModbusDeviceServer({9: model}) as server:
+        gripper = RobotiqGripper.over_tcp("127.0.0.1", server.port, timeout_s=1.0)
+        gripper.connect()
+        yield model, gripper
+        gripper.close()
+
+
+def run(model, gripper, seconds, period=0.05):
+    for _ in range(round(seconds / period)):
+        model.step(period)
+    return gripper.state()
+
+
+def activated(model, gripper):
+    gripper.activate()
+    state = run(model, gripper, CONFIG.activation_s + 0.1)
+    assert state.activated
+    return state
+
+
+def test_robotiq_command_registers_match_the_manual():
+    close_full = command_registers(
+        RobotiqRegisters.rACT | RobotiqRegisters.rGTO, position=255, speed=255, force=255
+    )
+    assert close_full == [0x0900, 0x00FF, 0xFFFF]
+    with pytest.raises(ValueError, match="speed request 300"):
+        command_registers(0x09, speed=300)
+
+
+def test_robotiq_gripper_activation(served_gripper):
+    model, gripper = served_gripper
+    assert isinstance(gripper, Gripper)
+    assert not gripper.state().activated
+    gripper.activate()
+    model.step(0.2)
+    state = gripper.state()
+    assert not state.activated and state.moving  # activation in progress (gSTA = 1)
+    status = gripper.link.read_input(RobotiqRegisters.INPUT, 1)[0] >> 8
+    assert (status >> 4) & 0b11 == RobotiqRegisters.STA_ACTIVATING
+    state = run(model, gripper, 0.4)
+    assert state.activated and not state.moving and state.fault is None
+
+
+def test_robotiq_gripper_close_on_object_detects_it(served_gripper):
+    model, gripper = served_gripper
+    activated(model, gripper)
+    model.set_object(0.040)
+    gripper.grip()
+    model.step(0.05)
+    assert gripper.state().moving
+    state = run(model, gripper, 1.0)
+    assert state.object_detected and not state.moving
+    # stopped where the fingers meet the object: 40 mm of the 85 mm stroke
+    assert model.opening == pytest.approx(0.040, abs=1e-9)
+    assert state.position == pytest.approx(round(255 * (1 - 0.040 / 0.085)) / 255)
+    status = gripper.link.read_input(RobotiqRegisters.INPUT, 3)
+    assert status[0] >> 14 == RobotiqRegisters.OBJ_CONTACT_CLOSING  # gOBJ = 2
+    assert status[1] & 0xFF == 255  # rPR echoed
+    assert status[2] & 0xFF > 0  # current while squeezing
+
+
+def test_robotiq_gripper_close_without_object_reaches_position(served_gripper):
+    model, gripper = served_gripper
+    activated(model, gripper)
+    gripper.grip()
+    # full stroke at full speed: 0.085 m / 0.15 m/s ≈ 0.57 s
+    state = run(model, gripper, 0.5)
+    assert state.moving and not state.object_detected
+    state = run(model, gripper, 0.2)
+    assert state.position == 1.0 and not state.moving and not state.object_detected
+    status = gripper.link.read_input(RobotiqRegisters.INPUT, 1)[0]
+    assert status >> 14 == RobotiqRegisters.OBJ_AT_POSITION  # gOBJ = 3
+    gripper.open()
+    state = run(model, gripper, 1.0)
+    assert state.position == 0.0 and model.opening == pytest.approx(0.085)
+
+
+def test_robotiq_gripper_move_before_activation_is_a_minor_fault(served_gripper):
+    model, gripper = served_gripper
+    gripper.link.write(RobotiqRegisters.OUTPUT, command_registers(RobotiqRegisters.rGTO, 255))
+    state = gripper.state()
+    assert state.fault == "the activation bit must be set prior to action"
+    activated(model, gripper)
+    assert gripper.state().fault is None
+
+
+def test_robotiq_gripper_injected_fault_stops_until_reactivated(served_gripper):
+    model, gripper = served_gripper
+    activated(model, gripper)
+    gripper.grip()
+    model.step(0.2)
+    model.inject_fault(0x0E)
+    position = gripper.state().position
+    state = run(model, gripper, 1.0)
+    assert state.fault == "overcurrent triggered" and state.position == position
+    gripper.grip()  # refused while the major fault stands
+    assert run(model, gripper, 0.5).position == position
+    activated(model, gripper)  # reset + activation clears it
+    gripper.grip()
+    assert run(model, gripper, 1.0).position == 1.0
+
+
+def test_robotiq_gripper_releases_when_object_removed(served_gripper):
+    model, gripper = served_gripper
+    activated(model, gripper)
+    model.set_object(0.03)
+    gripper.grip()
+    assert run(model, gripper, 1.0).object_detected
+    model.set_object(None)
+    state = run(model, gripper, 1.0)
+    assert not state.object_detected and state.position == 1.0
