@@ -1,0 +1,177 @@
+"""The simulated rig as one world: arm, track carrying the mock-up, gripper, scene and camera,
+all on one simulated clock and advanced together by the control loop between ticks.
+
+The loop reaches these devices only through their protocols and real drivers: the track and
+the gripper are driven by ``ModbusTrack`` and ``RobotiqGripper`` over their register maps —
+in-process (``links="direct"``, fast) or over a real pymodbus TCP server on loopback
+(``links="tcp"``, the full protocol path).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Mapping
+from typing import Literal
+
+import numpy as np
+
+from drivers.gripper_robotiq import RobotiqGripper
+from drivers.track_modbus import ModbusTrack
+from estimators.geometry import Pose
+from hil.clock import SimClock
+from hil.config import CameraConfig, MockupConfig, NoiseConfig, RenderConfig, RigConfig
+from hil.servo import pose_error
+from sim_backends.arm import SimArm
+from sim_backends.camera import SimCamera, Viewpoint
+from sim_backends.gripper import GripperModel
+from sim_backends.modbus_server import DirectLink, ModbusDeviceServer
+from sim_backends.renderer import PybulletRenderer
+from sim_backends.scene import MockupScene
+from sim_backends.track import TrackModel
+
+
+class SimWorld:
+    """Everything physical in a simulated trial.
+
+    ``grasp_X_TC``: where the camera is when the fingers straddle the ring lip; within
+    ``capture_position_m`` / ``capture_angle_deg`` of it (a compliant gripper's capture range)
+    the world puts an object of ``object_width`` between the fingers.
+    """
+
+    def __init__(
+        self,
+        rig: RigConfig,
+        mockup: MockupConfig,
+        camera: CameraConfig,
+        *,
+        noise: NoiseConfig,
+        render: RenderConfig,
+        seed: int,
+        grasp_X_TC: Pose,
+        start_q: np.ndarray | None = None,
+        links: Literal["direct", "tcp"] = "direct",
+        capture_position_m: float = 0.01,
+        capture_angle_deg: float = 3.0,
+        object_width: float = 0.05,
+    ):
+        self.clock = SimClock()
+        self.rig = rig
+        self._grasp_X_TC = grasp_X_TC
+        self._capture_m = capture_position_m
+        self._capture_rad = math.radians(capture_angle_deg)
+        self._object_width = object_width
+        self._servers: list[ModbusDeviceServer] = []
+        self.scene: MockupScene | None = None
+        try:
+            self.arm = SimArm(rig.arm, clock=self.clock.now)
+            if start_q is not None:
+                self.arm.set_joint_positions(np.asarray(start_q, dtype=float))
+            self.track_model = TrackModel(rig.track)
+            self.gripper_model = GripperModel(rig.gripper)
+            self.track, self.gripper = self._drivers(links)
+            self.scene = MockupScene(mockup, X_WT=self.track_model.X_WT())
+            self.renderer = PybulletRenderer(self.scene, camera.camera_info(), render)
+            self.camera = SimCamera(
+                self.renderer, self._viewpoint, noise, seed=seed, clock=self.clock.now
+            )
+        except Exception:
+            self.close()
+            raise
+
+    def _drivers(self, links: str) -> tuple[ModbusTrack, RobotiqGripper]:
+        track_cfg, gripper_cfg = self.rig.track.modbus, self.rig.gripper.modbus
+        speed, force = self.rig.gripper.grip_speed, self.rig.gripper.grip_force
+        if links == "direct":
+            track = ModbusTrack(
+                DirectLink(self.track_model, "simulated track"), clock=self.clock.now
+            )
+            gripper = RobotiqGripper(
+                DirectLink(self.gripper_model, "simulated gripper"),
+                speed=speed,
+                force=force,
+                clock=self.clock.now,
+            )
+            return track, gripper
+        if links != "tcp":
+            raise ValueError(f"links must be 'direct' or 'tcp'; got {links!r}")
+        for devices in (
+            {track_cfg.device_id: self.track_model},
+            {gripper_cfg.device_id: self.gripper_model},
+        ):
+            self._servers.append(ModbusDeviceServer(devices, host="127.0.0.1", port=0).start())
+        track = ModbusTrack.over_tcp(
+            "127.0.0.1",
+            self._servers[0].port,
+            track_cfg.device_id,
+            timeout_s=track_cfg.timeout_s,
+            clock=self.clock.now,
+        )
+        gripper = RobotiqGripper.over_tcp(
+            "127.0.0.1",
+            self._servers[1].port,
+            gripper_cfg.device_id,
+            timeout_s=gripper_cfg.timeout_s,
+            speed=speed,
+            force=force,
+            clock=self.clock.now,
+        )
+        return track, gripper
+
+    # --- what the camera sees -------------------------------------------------------------
+    def _viewpoint(self) -> Viewpoint:
+        X_WC = self.arm.camera_pose_W()
+        # Relative twist for motion blur: the camera's own, minus the carriage's motion seen in C.
+        twist = np.array(self.arm.camera_twist_C(), dtype=float)
+        carriage_v_W = self.track_model.velocity * self.rig.track.axis_unit_W
+        twist[:3] -= X_WC.R.T @ carriage_v_W
+        return Viewpoint(X_WC, twist)
+
+    # --- the loop's World protocol ----------------------------------------------------------
+    def start(self, settle_s: float = 1.0, dt: float = 0.01) -> None:
+        """Connect every device and activate the gripper (advancing simulated time)."""
+        self.arm.connect()
+        self.track.connect()
+        self.gripper.connect()
+        self.camera.connect()
+        self.gripper.activate()
+        waited = 0.0
+        while not self.gripper.state().activated:
+            if waited > settle_s + self.rig.gripper.activation_s:
+                raise RuntimeError("the simulated gripper did not activate")
+            self.advance(dt)
+            waited += dt
+
+    def advance(self, dt: float) -> None:
+        self.arm.step(dt)
+        self.track_model.step(dt)
+        self.gripper_model.step(dt)
+        self.clock.advance(dt)
+        X_WT = self.track_model.X_WT()
+        if self.scene is not None:
+            self.scene.set_pose(X_WT)
+        X_TC = X_WT.inverse() @ self.arm.camera_pose_W()
+        error = pose_error(X_TC, self._grasp_X_TC)
+        captured = error.distance_m <= self._capture_m and error.angle_rad <= self._capture_rad
+        self.gripper_model.set_object(self._object_width if captured else None)
+
+    def truth(self) -> Mapping[str, Pose]:
+        return {"X_WT": self.track_model.X_WT(), "X_WC": self.arm.camera_pose_W()}
+
+    def close(self) -> None:
+        for device in ("camera", "gripper", "track", "arm"):
+            if hasattr(self, device):
+                with contextlib.suppress(Exception):
+                    getattr(self, device).close()
+        for server in self._servers:
+            server.stop()
+        self._servers.clear()
+        if self.scene is not None:
+            self.scene.close()
+            self.scene = None
+
+    def __enter__(self) -> SimWorld:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
