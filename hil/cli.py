@@ -338,6 +338,134 @@ def report(
     out.print(f"report: {index}")
 
 
+SimOpt = Annotated[
+    str, typer.Option("--config", help="Simulation: 'sim' (configs/sim.yaml) or a YAML path.")
+]
+
+
+def _simulation(config: str, noise: str | None, systems: str | None, links: str | None):
+    from hil.config import load_simulation
+    from hil.trial import with_overrides
+
+    if noise is not None:
+        _noise_config(noise)
+    try:
+        sim = load_simulation(config)
+        return with_overrides(
+            sim,
+            noise={"preset": noise} if noise else None,
+            systems=systems.split(",") if systems else None,
+            links=links,
+        )
+    except ValueError as exc:  # ConfigError or a validation error of an override
+        raise _fail(str(exc)) from None
+
+
+@app.command()
+def approach(
+    config: SimOpt = "sim",
+    noise: Annotated[
+        str | None, typer.Option(help="Override the noise: none | low | high | sensor.")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the random start and the image noise.")] = 1,
+    systems: Annotated[
+        str | None, typer.Option(help="Comma-separated estimators, e.g. corners,lines,ellipses.")
+    ] = None,
+    links: Annotated[
+        str | None, typer.Option(help="direct | tcp (track and gripper over pymodbus).")
+    ] = None,
+    log_dir: Annotated[Path, typer.Option(help="Directory for the trial log.")] = Path("runs"),
+    report_too: Annotated[
+        bool, typer.Option("--report/--no-report", help="Write the report after the trial.")
+    ] = True,
+) -> None:
+    """Run one simulated approach (2.5 m → 0.5 m stand-off, grasp, retreat) with a live
+    progress line; write its trial log (MCAP) and, by default, its report."""
+    import time
+
+    from rich.live import Live
+
+    from hil.progress import tick_line
+    from hil.trial import run_sim_trial
+
+    sim = _simulation(config, noise, systems, links)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    log_path = log_dir / f"approach_{sim.noise.preset}_seed{seed}_{stamp}.mcap"
+    out.print(
+        f"simulated approach: systems {', '.join(sim.systems)}, noise {sim.noise.preset}, seed {seed}"
+    )
+    last_shown = [-1.0]
+    with Live("", console=console, refresh_per_second=8, transient=False) as live:
+
+        def on_tick(record: dict) -> None:
+            if record["t"] - last_shown[0] >= 0.25 or record["phase"] in ("done", "abort"):
+                last_shown[0] = record["t"]
+                live.update(tick_line(record))
+
+        try:
+            result = run_sim_trial(sim, seed=seed, log_path=log_path, on_tick=on_tick)
+        except (ValueError, NotImplementedError) as exc:
+            raise _fail(str(exc)) from None
+    console.print()  # end the live line
+    o = result.outcome
+    verdict = "[bold green]SUCCESS[/]" if o.success else "[bold red]FAILURE[/]"
+    out.print(
+        f"{verdict}: ended in {o.phase} after {o.duration_s:.1f} s simulated ({o.ticks} ticks)"
+    )
+    if o.abort_reason:
+        out.print(f"abort reason: {o.abort_reason}")
+    if o.standoff_error_m is not None:
+        import math
+
+        out.print(
+            f"true camera error at the stand-off: {1000 * o.standoff_error_m:.2f} mm, "
+            f"{math.degrees(o.standoff_error_rad):.3f}° (success needs ≤ "
+            f"{1000 * sim.approach.standoff.success_position_m:.0f} mm and "
+            f"{sim.approach.standoff.success_angle_deg}°)"
+        )
+    out.print(f"trial log: {log_path}")
+    if report_too:
+        from hil.report import make_report
+
+        index = make_report(log_path, log_path.with_name(log_path.stem + "_report"))
+        out.print(f"report: {index}")
+    raise typer.Exit(code=0 if o.success else 1)
+
+
+@app.command()
+def campaign(
+    config: SimOpt = "sim",
+    seeds: Annotated[int, typer.Option(min=1, help="Trials per noise level (seeds 1..N).")] = 20,
+    noise: Annotated[str, typer.Option(help="Comma-separated noise levels.")] = "low,high",
+    systems: Annotated[str | None, typer.Option(help="Comma-separated estimators.")] = None,
+    jobs: Annotated[int, typer.Option(min=1, help="Trials run at once (processes).")] = 1,
+    out_dir: Annotated[Path, typer.Option(help="Directory for the logs and the summary.")] = Path(
+        "runs/campaign"
+    ),
+) -> None:
+    """Run many simulated approaches (random starts as in the reference: 2.5 m, ±0.3 m off
+    centre, ±10° rotated) and summarise success and errors from their logs."""
+    from hil.campaign import campaign_markdown, run_campaign
+
+    levels = noise.split(",")
+    for level in levels:
+        _noise_config(level)
+    sim = _simulation(config, None, systems, None)
+
+    def progress(row, done, total) -> None:
+        verdict = "ok  " if row.success else "FAIL"
+        console.print(
+            f"[{done}/{total}] {verdict} noise {row.noise} seed {row.seed}: {row.phase} "
+            f"{row.abort_reason}".rstrip()
+        )
+
+    rows = run_campaign(sim, range(1, seeds + 1), levels, out_dir, jobs=jobs, progress=progress)
+    table = campaign_markdown(rows)
+    (out_dir / "summary.md").write_text(table, encoding="utf-8")
+    out.print(table, markup=False, highlight=False)
+    out.print(f"summary: {out_dir / 'summary.md'}")
+
+
 @app.command()
 def demo(
     out_dir: Annotated[Path, typer.Option(help="Directory for the demo's outputs.")] = Path("runs"),
