@@ -66,6 +66,19 @@ class Pose:
         object.__setattr__(self, "p", _frozen(p))
 
     # --- construction -------------------------------------------------------------------
+    @classmethod
+    def _product(cls, R: np.ndarray, p: np.ndarray) -> Pose:
+        """A pose computed from valid poses (product, inverse): already a rigid transform up to
+        rounding, so the checks of ``__post_init__`` are skipped — they dominate the cost of
+        composing poses in the control loop."""
+        pose = object.__new__(cls)
+        R, p = np.array(R, dtype=float), np.array(p, dtype=float)
+        R.flags.writeable = False
+        p.flags.writeable = False
+        object.__setattr__(pose, "R", R)
+        object.__setattr__(pose, "p", p)
+        return pose
+
     @staticmethod
     def identity() -> Pose:
         return Pose(np.eye(3), np.zeros(3))
@@ -116,12 +129,12 @@ class Pose:
     # --- algebra --------------------------------------------------------------------------
     def inverse(self) -> Pose:
         """``X_BA`` from ``X_AB``."""
-        return Pose(self.R.T, -self.R.T @ self.p)
+        return Pose._product(self.R.T, -self.R.T @ self.p)
 
     def __matmul__(self, other: Pose) -> Pose:
         if not isinstance(other, Pose):
             return NotImplemented
-        return Pose(self.R @ other.R, self.R @ other.p + self.p)
+        return Pose._product(self.R @ other.R, self.R @ other.p + self.p)
 
     def apply(self, points_B: np.ndarray) -> np.ndarray:
         """Map points (N,3) or (3,) expressed in B to A."""

@@ -137,3 +137,53 @@ def estimator_timings(
                         )
                     rows.append(row)
     return rows
+
+
+@dataclass(frozen=True, slots=True)
+class LoopTiming:
+    frame_ticks: int
+    other_ticks: int
+    frame_tick_median_ms: float
+    frame_tick_p95_ms: float
+    other_tick_median_ms: float
+    estimator_median_ms: dict[str, float]
+    fusion_median_ms: float
+    camera_read_median_ms: float
+
+
+def loop_timings(sim_config: str, *, seed: int, duration_s: float, log_path) -> LoopTiming:
+    """Run a simulated approach for ``duration_s`` (simulated) and time its ticks from the log.
+
+    A "frame tick" runs every estimator on a new frame, fuses and commands; its time excludes
+    waiting for the camera (in simulation: rendering), which a real camera does on its own.
+    """
+    import cv2
+
+    from hil.config import load_simulation
+    from hil.trial import run_sim_trial, with_overrides
+    from hil.triallog import TrialLog
+
+    cv2.setNumThreads(1)
+    sim = with_overrides(load_simulation(sim_config), max_duration_s=duration_s)
+    run_sim_trial(sim, seed=seed, log_path=log_path)
+    frame, other, estimators, fusion, read = [], [], {}, [], []
+    for tick in TrialLog.open(log_path).ticks():
+        timing = tick.get("timing_ms") or {}
+        if tick.get("measurements"):
+            frame.append(timing.get("tick", np.nan))
+            fusion.append(timing.get("fusion", np.nan))
+            read.append(timing.get("camera_read", np.nan))
+            for system, ms in (timing.get("estimators") or {}).items():
+                estimators.setdefault(system, []).append(ms)
+        else:
+            other.append(timing.get("tick", np.nan))
+    return LoopTiming(
+        frame_ticks=len(frame),
+        other_ticks=len(other),
+        frame_tick_median_ms=float(np.nanmedian(frame)),
+        frame_tick_p95_ms=float(np.nanpercentile(frame, 95)),
+        other_tick_median_ms=float(np.nanmedian(other)),
+        estimator_median_ms={s: float(np.nanmedian(v)) for s, v in estimators.items()},
+        fusion_median_ms=float(np.nanmedian(fusion)),
+        camera_read_median_ms=float(np.nanmedian(read)),
+    )

@@ -343,6 +343,41 @@ SimOpt = Annotated[
 ]
 
 
+@bench_app.command("loop")
+def bench_loop(
+    config: SimOpt = "sim",
+    seed: Annotated[int, typer.Option(help="Trial seed.")] = 1,
+    duration: Annotated[
+        float, typer.Option(help="Simulated seconds of the approach to time.")
+    ] = 20.0,
+    log_dir: Annotated[Path, typer.Option(help="Where the timed trial's log goes.")] = Path(
+        "runs/bench"
+    ),
+) -> None:
+    """Median and p95 of one control tick with a frame (every estimator + fusion + command,
+    one thread, camera wait excluded) during a simulated approach."""
+    import time as _time
+
+    from hil.bench import loop_timings
+
+    log_dir.mkdir(parents=True, exist_ok=True)
+    log_path = log_dir / f"bench_loop_{_time.strftime('%Y%m%d-%H%M%S')}.mcap"
+    try:
+        r = loop_timings(config, seed=seed, duration_s=duration, log_path=log_path)
+    except (ValueError, NotImplementedError) as exc:
+        raise _fail(str(exc)) from None
+    out.print(
+        f"ticks with a frame: {r.frame_ticks}, median {r.frame_tick_median_ms:.1f} ms, "
+        f"p95 {r.frame_tick_p95_ms:.1f} ms (estimators + fusion + command; camera wait excluded)"
+    )
+    for system, ms in r.estimator_median_ms.items():
+        out.print(f"  {system}: median {ms:.1f} ms")
+    out.print(f"  fusion: median {r.fusion_median_ms:.2f} ms")
+    out.print(f"ticks without a frame: {r.other_ticks}, median {r.other_tick_median_ms:.2f} ms")
+    out.print(f"camera read (simulation: rendering): median {r.camera_read_median_ms:.1f} ms")
+    out.print(f"log: {log_path}")
+
+
 def _simulation(config: str, noise: str | None, systems: str | None, links: str | None):
     from hil.config import load_simulation
     from hil.trial import with_overrides

@@ -170,6 +170,9 @@ def _obj_parts(path: Path, scale: float) -> list[_Part]:
     return parts
 
 
+_I3 = np.eye(3)
+
+
 class MockupScene:
     """A pybullet world holding the mock-up at pose ``X_WT``.
 
@@ -190,6 +193,7 @@ class MockupScene:
             self.close()
             raise
         self._X_WT = Pose.identity()
+        self._placed = False
         self.set_pose(X_WT or Pose.identity())
 
     # --- building -----------------------------------------------------------------------
@@ -251,15 +255,25 @@ class MockupScene:
 
     def set_pose(self, X_WT: Pose) -> None:
         """Place the mock-up so that its frame T is at ``X_WT`` in the world."""
+        if (
+            np.array_equal(X_WT.R, self._X_WT.R)
+            and np.array_equal(X_WT.p, self._X_WT.p)
+            and self._placed
+        ):
+            return  # the track stands still most of the time
+        quat_WT = Rotation.from_matrix(X_WT.R).as_quat().tolist()
         for body, X_TB in self._bodies:
             X_WB = X_WT @ X_TB
+            # Built-in parts are not rotated relative to T: reuse T's quaternion.
+            if np.array_equal(X_TB.R, _I3):
+                quat = quat_WT
+            else:
+                quat = Rotation.from_matrix(X_WB.R).as_quat().tolist()
             pybullet.resetBasePositionAndOrientation(
-                body,
-                X_WB.p.tolist(),
-                Rotation.from_matrix(X_WB.R).as_quat().tolist(),
-                physicsClientId=self.client,
+                body, X_WB.p.tolist(), quat, physicsClientId=self.client
             )
         self._X_WT = X_WT
+        self._placed = True
 
     # --- lifecycle ------------------------------------------------------------------------
     def close(self) -> None:
