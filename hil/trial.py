@@ -3,6 +3,7 @@ fusion, loop and trial log."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -88,6 +89,113 @@ class TrialResult:
     start: TrialStart
 
 
+class SimTrial:
+    """A simulated trial, built and torn down as a context manager: ``world``, ``log`` and
+    ``loop`` are available inside, so tests can step it and inject faults; ``run()`` runs it to
+    the end and records the outcome in the log."""
+
+    def __init__(
+        self,
+        sim: SimulationConfig,
+        *,
+        seed: int,
+        log_path: Path,
+        on_tick: Callable[[dict], None] | None = None,
+        mockup: MockupConfig | None = None,
+    ):
+        self.sim, self.seed, self.log_path, self._on_tick = sim, seed, Path(log_path), on_tick
+        self.mockup = mockup or load_mockup(sim.mockup)
+        self.camera = load_camera(sim.camera)
+        self.start = sample_start(sim, load_rig(sim.rig), np.random.default_rng(seed))
+        self._stack = contextlib.ExitStack()
+
+    def _header(self) -> dict:
+        sim, start = self.sim, self.start
+        return {
+            "config": {
+                "simulation": sim.model_dump(mode="json"),
+                "mockup": self.mockup.model_dump(mode="json"),
+                "camera": self.camera.model_dump(mode="json"),
+                "rig": start.rig.model_dump(mode="json"),
+            },
+            "seed": self.seed,
+            "notes": f"simulated approach, noise {sim.noise.preset}, systems {', '.join(sim.systems)}",
+            "start": {"X_TC": start.X_TC.to_list(), "q": start.start_q.tolist()},
+        }
+
+    def __enter__(self) -> SimTrial:
+        sim, start = self.sim, self.start
+        target = self.mockup.target_model()
+        info = self.camera.camera_info()
+        grasp_X_TC = sim.approach.standoff.X_TC_goal() @ Pose(
+            np.eye(3), np.array([0.0, 0.0, sim.approach.grasp.advance_m])
+        )
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self.world = self._stack.enter_context(
+                SimWorld(
+                    start.rig,
+                    self.mockup,
+                    self.camera,
+                    noise=sim.noise,
+                    render=sim.render,
+                    seed=self.seed,
+                    grasp_X_TC=grasp_X_TC,
+                    start_q=start.start_q,
+                    links=sim.links,
+                    capture_position_m=sim.grasp_capture_m,
+                    capture_angle_deg=sim.grasp_capture_deg,
+                    object_width=sim.grasp_object_width_m,
+                )
+            )
+            self.log = self._stack.enter_context(TrialLogWriter(self.log_path, self._header()))
+            self.world.start()
+            estimators = {s: build_estimator(s, target, info) for s in sim.systems}
+            frame_logger = None
+            if sim.log_frames_every_s > 0:
+                log = self.log
+
+                def frame_logger(t: float, image: np.ndarray) -> None:
+                    log.write_frame(t, image, encoding="jpeg")
+
+            self.loop = ApproachLoop(
+                arm=self.world.arm,
+                track=self.world.track,
+                gripper=self.world.gripper,
+                camera=self.world.camera,
+                estimators=estimators,
+                fusion=PoseFusion(target, sim.fusion),
+                geometry=rig_geometry(start.rig),
+                config=sim.approach,
+                clock=self.world.clock,
+                log=_TeeLog(self.log, self._on_tick),
+                world=self.world,
+                camera_fps=sim.camera_fps,
+                frame_log_period_s=sim.log_frames_every_s or math.inf,
+                frame_logger=frame_logger,
+            )
+        except BaseException:
+            self._stack.close()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stack.close()
+
+    def run(self) -> TrialResult:
+        outcome = self.loop.run(max_duration_s=self.sim.max_duration_s)
+        self.log.write_event(
+            outcome.duration_s,
+            "outcome",
+            "success" if outcome.success else "failure",
+            phase=outcome.phase,
+            abort_reason=outcome.abort_reason,
+            standoff_error_m=outcome.standoff_error_m,
+            standoff_error_rad=outcome.standoff_error_rad,
+        )
+        return TrialResult(outcome, self.log_path, self.start)
+
+
 def run_sim_trial(
     sim: SimulationConfig,
     *,
@@ -97,80 +205,8 @@ def run_sim_trial(
     mockup: MockupConfig | None = None,
 ) -> TrialResult:
     """Run one simulated approach and write its trial log to ``log_path``."""
-    mockup = mockup or load_mockup(sim.mockup)
-    camera = load_camera(sim.camera)
-    rig = load_rig(sim.rig)
-    start = sample_start(sim, rig, np.random.default_rng(seed))
-    target = mockup.target_model()
-    info = camera.camera_info()
-    header = {
-        "config": {
-            "simulation": sim.model_dump(mode="json"),
-            "mockup": mockup.model_dump(mode="json"),
-            "camera": camera.model_dump(mode="json"),
-            "rig": start.rig.model_dump(mode="json"),
-        },
-        "seed": seed,
-        "notes": f"simulated approach, noise {sim.noise.preset}, systems {', '.join(sim.systems)}",
-        "start": {"X_TC": start.X_TC.to_list(), "q": start.start_q.tolist()},
-    }
-    sequencer_goal = sim.approach.standoff.X_TC_goal()
-    grasp_X_TC = sequencer_goal @ Pose(
-        np.eye(3), np.array([0.0, 0.0, sim.approach.grasp.advance_m])
-    )
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    with (
-        SimWorld(
-            start.rig,
-            mockup,
-            camera,
-            noise=sim.noise,
-            render=sim.render,
-            seed=seed,
-            grasp_X_TC=grasp_X_TC,
-            start_q=start.start_q,
-            links=sim.links,
-            capture_position_m=sim.grasp_capture_m,
-            capture_angle_deg=sim.grasp_capture_deg,
-            object_width=sim.grasp_object_width_m,
-        ) as world,
-        TrialLogWriter(log_path, header) as log,
-    ):
-        world.start()
-        estimators = {s: build_estimator(s, target, info) for s in sim.systems}
-        frame_logger = None
-        if sim.log_frames_every_s > 0:
-
-            def frame_logger(t: float, image: np.ndarray) -> None:
-                log.write_frame(t, image, encoding="jpeg")
-
-        loop = ApproachLoop(
-            arm=world.arm,
-            track=world.track,
-            gripper=world.gripper,
-            camera=world.camera,
-            estimators=estimators,
-            fusion=PoseFusion(target, sim.fusion),
-            geometry=rig_geometry(start.rig),
-            config=sim.approach,
-            clock=world.clock,
-            log=_TeeLog(log, on_tick),
-            world=world,
-            camera_fps=sim.camera_fps,
-            frame_log_period_s=sim.log_frames_every_s or math.inf,
-            frame_logger=frame_logger,
-        )
-        outcome = loop.run(max_duration_s=sim.max_duration_s)
-        log.write_event(
-            outcome.duration_s,
-            "outcome",
-            "success" if outcome.success else "failure",
-            phase=outcome.phase,
-            abort_reason=outcome.abort_reason,
-            standoff_error_m=outcome.standoff_error_m,
-            standoff_error_rad=outcome.standoff_error_rad,
-        )
-    return TrialResult(outcome, log_path, start)
+    with SimTrial(sim, seed=seed, log_path=log_path, on_tick=on_tick, mockup=mockup) as trial:
+        return trial.run()
 
 
 class _TeeLog:
