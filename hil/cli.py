@@ -503,12 +503,11 @@ def campaign(
 
 @app.command()
 def demo(
-    out_dir: Annotated[Path, typer.Option(help="Directory for the demo's outputs.")] = Path("runs"),
+    out_dir: Annotated[Path, typer.Option(help="Directory for the trial log and its report.")] = Path("runs"),
 ) -> None:
-    """Run the simulated demo on the embedded default configuration."""
-    from hil.demo import run_demo
-
-    run_demo(out_dir, console=out)
+    """The simulated demo on the embedded default configuration (configs/sim.yaml): one full
+    approach with low noise — 2.5 m start, stand-off, grasp, retreat — its trial log and report."""
+    approach(config="sim", noise="low", seed=1, systems=None, links=None, log_dir=out_dir, report_too=True)
 
 
 def main() -> None:
