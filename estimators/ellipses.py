@@ -1,0 +1,758 @@
+"""The ellipse estimator: the marman ring's circle pose (5-DOF) and, with the thruster, 6-DOF.
+
+Pipeline (FEDALPE: extract → detect/label → pose), see DESIGN.md:
+
+* **Tracking** (a prior ``X_CT`` is given): the model's circles — the ring's two edges and the
+  thruster's — are projected with the prior and their edges searched along the normals, first
+  smoothed more in a window sized to the image (coarse), then in a narrow window (fine): the
+  predicted ellipses verified by their edge support, a region-of-interest search. Should the
+  ring not verify, the arc-based extractor runs in a region around the prediction and its
+  ellipses are labeled against the predicted ones (``ellipse_detection.label_with_prior``).
+* **Acquisition** (no prior, or tracking failed): the extractor runs on the whole frame; the
+  ring is hypothesised from concentric pairs of ellipses of opposite polarity in the ratio of
+  its radii (then lone ellipses); each hypothesis gives two closed-form circle poses
+  (``circle_pose``), refined and verified by the support of both ring edges. The thruster is
+  then found by a 1-D search over the roll about the ring's axis
+  (``ellipse_detection.search_roll``).
+* **Pose**: robust least squares of the sub-pixel edge points' distances to the projected
+  circles (``circle_fit``): 5-DOF from the ring's coaxial edges, 6-DOF ``X_CT`` when the
+  thruster is found.
+* **Ambiguity**: one circle has two poses. A prior picks the one nearer its normal; without a
+  prior the thruster (found for only one of them) or the lower cost decides, and when nothing
+  decides the measurement says ``ambiguous``.
+
+Bad frames (wrong size, blank, no ring) come back ``lost`` with a reason, never an exception.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+
+from drivers.base import CameraInfo, Frame, frame_problem
+from estimators.circle_edges import (
+    CircleEdges,
+    camera_field_radius,
+    find_circle_edges,
+    sample_projected_circle,
+    to_ideal_pixels,
+    visible_pixels,
+)
+from estimators.circle_fit import EdgeSet, FitResult, fit_circle_pose, fit_target_pose
+from estimators.circle_pose import CirclePose, circle_poses_from_conic
+from estimators.conics import (
+    circle_cone,
+    circle_image_conic,
+    circle_plane_basis,
+    fit_ellipse_direct,
+    sampson_distances,
+)
+from estimators.edge_search import (
+    GradientField,
+    estimate_noise_sigma,
+    smoothed_gradient,
+    to_gray_float,
+)
+from estimators.ellipse_detection import (
+    label_with_prior,
+    pose_with_roll,
+    projected_ellipse,
+    ring_hypotheses,
+    roll_of,
+    search_roll,
+)
+from estimators.ellipse_extraction import ExtractedEllipse, ExtractorSettings, extract_ellipses
+from estimators.geometry import Pose, normal_angle, skew
+from estimators.measurement import Measurement
+from estimators.target import Circle3D, TargetModel
+
+SYSTEM = "ellipses"
+#: Roll search: the best roll's mean edge SNR per sample (each clipped at 8) must reach this,
+#: and stand this many times above the median over all rolls (a real circle, not clutter).
+_ROLL_SCORE_MIN = 3.0
+_ROLL_DISTINCTNESS = 4.0
+
+
+@dataclass(frozen=True, slots=True)
+class EllipseSettings:
+    """Tuning of the ellipse estimator (pixels at full resolution)."""
+
+    extractor: ExtractorSettings = field(default_factory=ExtractorSettings)
+    coarse_sigma_px: float = 2.0
+    fine_sigma_px: float = 1.0
+    sample_spacing_px: float = 2.0
+    fine_half_width_px: float = 3.0
+    min_outer_support: float = 0.5
+    min_inner_support: float = 0.3
+    min_thruster_support: float = 0.6
+    max_hypotheses: int = 6
+    #: The inner edge joins the fit (free radius) when its image lies this far inside the outer
+    #: one: closer, the unresolved inner wall biases it (the wall's shading is unknown).
+    inner_edge_min_gap_px: float = 15.0
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Image:
+    """One frame prepared for the stages, with a per-call cache of gradient fields."""
+
+    gray: np.ndarray
+    noise: float
+    camera: CameraInfo
+    fields: dict = field(default_factory=dict)
+
+    def field(self, sigma_px: float, roi=None) -> GradientField:
+        """The smoothed gradient at ``sigma_px`` over ``roi`` (x0, y0, x1, y1) or the frame."""
+        if (sigma_px, None) in self.fields:  # a full-frame field covers any region
+            return self.fields[(sigma_px, None)]
+        if roi is not None:
+            h, w = self.gray.shape
+            x0, y0, x1, y1 = roi
+            roi = (max(0, int(x0)), max(0, int(y0)), min(w, int(x1) + 1), min(h, int(y1) + 1))
+        key = (sigma_px, roi)
+        if key not in self.fields:
+            self.fields[key] = smoothed_gradient(self.gray, sigma_px, self.noise, roi)
+        return self.fields[key]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Fit:
+    """A refined pose: 5-DOF (``ring``) or 6-DOF (``X_CT`` too), the least-squares result, the
+    edges found per circle, and a cost that compares candidates on the same footing."""
+
+    ring: CirclePose
+    X_CT: Pose | None
+    result: FitResult
+    edges: dict[str, CircleEdges]
+    cost: float
+
+    @property
+    def polarities(self) -> dict[str, int]:
+        return {name: e.polarity for name, e in self.edges.items()}
+
+
+class EllipseEstimator:
+    """Ring (and thruster) pose from ellipses; see the module docstring."""
+
+    system = SYSTEM
+
+    def __init__(
+        self, target: TargetModel, camera: CameraInfo, settings: EllipseSettings | None = None
+    ):
+        if not target.has_circle("ring_outer"):
+            raise ValueError(f"target {target.name!r} has no 'ring_outer' circle to track")
+        self.target = target
+        self.camera = camera
+        self.settings = settings or EllipseSettings()
+        self.outer = target.circle("ring_outer")
+        self.inner = target.circle("ring_inner") if target.has_circle("ring_inner") else None
+        if self.inner is not None and not _coaxial(self.inner, self.outer):
+            raise ValueError("target circle 'ring_inner' must be coaxial with 'ring_outer'")
+        self.off_axis = tuple(c for c in target.circles if not _coaxial(c, self.outer))
+        self._K_inv = np.linalg.inv(camera.K)
+        self._field_radius = camera_field_radius(camera)  # a property of the camera
+
+    # --- entry point ----------------------------------------------------------------------
+    def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
+        started = time.perf_counter()
+        problem = frame_problem(frame)
+        if problem is not None:
+            return Measurement.lost(SYSTEM, frame, f"unusable frame: {problem}", started=started)
+        if frame.info.K.shape != self.camera.K.shape or not np.allclose(
+            frame.info.K, self.camera.K
+        ):
+            return Measurement.lost(
+                SYSTEM,
+                frame,
+                "frame intrinsics differ from the estimator's camera",
+                started=started,
+            )
+        gray = to_gray_float(frame.image)
+        noise = estimate_noise_sigma(gray)
+        if _blank(gray, noise):
+            return Measurement.lost(SYSTEM, frame, "blank image (no contrast)", started=started)
+        image = _Image(gray, max(noise, 0.5 / 255.0), self.camera)
+        found = self._track(image, prior_X_CT) if prior_X_CT is not None else None
+        status = "tracking"
+        extracted: list[ExtractedEllipse] = []
+        if found is None:
+            status = "acquired"
+            extracted = extract_ellipses(
+                gray,
+                image.noise,
+                settings=self.settings.extractor,
+                field=image.field(self.settings.extractor.fine_sigma_px),
+            )
+            found = self._acquire(image, extracted)
+        if found is None:
+            reason = (
+                f"no ring among {len(extracted)} extracted ellipses"
+                if extracted
+                else "no ellipse extracted"
+            )
+            return Measurement.lost(SYSTEM, frame, reason, started=started)
+        fit, ambiguous = found
+        return self._measurement(frame, status, fit, ambiguous, prior_X_CT, extracted, started)
+
+    # --- tracking -------------------------------------------------------------------------
+    def _track(self, image: _Image, prior: Pose):
+        """Refine from the prior (ring and thruster together); fall back to the ring alone and
+        a roll search, then to an extraction around the predicted ring."""
+        ring0 = CirclePose(prior.apply(self.outer.center_T), prior.R @ self.outer.normal_T)
+        predicted = projected_ellipse(
+            ring0.center_C, ring0.normal_C, self.outer.radius, self.camera
+        )
+        if predicted is None:
+            return None
+        width = float(np.clip(0.1 * predicted.a + 4.0, 6.0, 30.0))
+        fit = None
+        if self.off_axis:
+            fit = self._refine_full(image, prior, self._visible_off_axis(prior), None, width)
+        if fit is None:
+            ring = self._refine_ring(image, ring0, None, coarse_half_width=width)
+            if ring is None:
+                ring = self._track_by_extraction(image, prior, ring0, predicted)
+            if ring is None:
+                return None
+            fit = self._find_thruster(image, ring, prior) or ring
+        if fit.X_CT is None:  # the ring alone: keep the pose nearer the prior's normal
+            mirror = self._mirror(image, fit)
+            prior_normal = prior.R @ self.outer.normal_T
+            if mirror is not None and normal_angle(
+                mirror.ring.normal_C, prior_normal
+            ) < normal_angle(fit.ring.normal_C, prior_normal):
+                fit = self._find_thruster(image, mirror, None) or mirror
+        return fit, False
+
+    def _track_by_extraction(self, image: _Image, prior: Pose, ring0: CirclePose, predicted):
+        """Extract ellipses around the prediction, label them against the predicted ring edges
+        and refine from the best labeled one (its closed-form pose nearer the prior)."""
+        margin = 0.3 * predicted.a + 20.0
+        box = (
+            int(predicted.cx - predicted.a - margin),
+            int(predicted.cy - predicted.a - margin),
+            int(predicted.cx + predicted.a + margin),
+            int(predicted.cy + predicted.a + margin),
+        )
+        extracted = extract_ellipses(
+            image.gray,
+            image.noise,
+            roi=box,
+            settings=self.settings.extractor,
+            field=image.field(self.settings.extractor.fine_sigma_px, box),
+        )
+        expected = {"ring_outer": (predicted, None)}
+        if self.inner is not None:
+            inner = projected_ellipse(
+                prior.apply(self.inner.center_T),
+                prior.R @ self.inner.normal_T,
+                self.inner.radius,
+                self.camera,
+            )
+            if inner is not None:
+                expected["ring_inner"] = (inner, None)
+        labels = label_with_prior(extracted, expected)
+        for name, (labeled, _) in sorted(labels.items(), key=lambda item: item[1][1]):
+            circle = self.target.circle(name)
+            candidates = sorted(
+                self._closed_form(labeled, circle),
+                key=lambda c: normal_angle(c.normal_C, ring0.normal_C),
+            )
+            if candidates:
+                ring = self._refine_ring(image, candidates[0], {name: labeled.polarity})
+                if ring is not None:
+                    return ring
+        return None
+
+    # --- acquisition ----------------------------------------------------------------------
+    def _acquire(self, image: _Image, extracted: list[ExtractedEllipse]):
+        """Verify ring hypotheses in order; resolve the first that verifies."""
+        hypotheses = ring_hypotheses(
+            extracted, self.outer, self.inner, max_count=self.settings.max_hypotheses
+        )
+        for hypothesis in hypotheses:
+            labeled = hypothesis.outer if hypothesis.outer is not None else hypothesis.inner
+            circle = self.outer if hypothesis.outer is not None else self.inner
+            assert labeled is not None and circle is not None
+            polarities = {}
+            if hypothesis.outer is not None:
+                polarities[self.outer.name] = hypothesis.outer.polarity
+            if hypothesis.inner is not None and self.inner is not None:
+                polarities[self.inner.name] = hypothesis.inner.polarity
+            ring = None
+            for candidate in self._closed_form(labeled, circle):
+                ring = self._refine_ring(image, candidate, polarities)
+                if ring is not None:
+                    break
+            if ring is not None:
+                return self._resolve(image, ring)
+        return None
+
+    def _closed_form(self, labeled: ExtractedEllipse, circle: Circle3D) -> list[CirclePose]:
+        """The two closed-form poses of the ring's reference circle from one labeled ellipse
+        (its conic refitted on the undistorted support points)."""
+        try:
+            Q = fit_ellipse_direct(to_ideal_pixels(labeled.points, self.camera))
+            poses = circle_poses_from_conic(Q, circle.radius, self.camera.K)
+        except ValueError:
+            return []
+        # The labeled circle is coaxial with the reference: move its centre along the axis.
+        height = float((circle.center_T - self.outer.center_T) @ self.outer.normal_T)
+        return [CirclePose(p.center_C - height * p.normal_C, p.normal_C) for p in poses]
+
+    def _resolve(self, image: _Image, ring: _Fit):
+        """Without a prior: add the thruster (6-DOF) and settle the two-fold ambiguity of the
+        ring's pose with it or with the costs. Returns (fit, ambiguous)."""
+        full = self._find_thruster(image, ring, None)
+        mirror = self._mirror(image, ring)
+        if mirror is None:
+            return full or ring, False
+        mirror_full = self._find_thruster(image, mirror, None)
+        options = [full or ring, mirror_full or mirror]
+        if (full is None) != (mirror_full is None):  # the thruster decides
+            return (full or mirror_full), False
+        if full is not None and mirror_full is not None:
+            # Both converged with the thruster, often to the same pose (the thruster pulled
+            # the mirror back): then there is no ambiguity at all.
+            n0 = full.X_CT.R @ self.outer.normal_T
+            n1 = mirror_full.X_CT.R @ self.outer.normal_T
+            sigma = _normal_sigma(_five_from_six(full.result.covariance, full.X_CT, self.outer))
+            if normal_angle(n0, n1) < max(np.radians(1.0), 3.0 * sigma):
+                return min(options, key=lambda f: f.cost), False
+        best, other = sorted(options, key=lambda f: f.cost)
+        return best, other.cost <= 1.15 * best.cost
+
+    def _mirror(self, image: _Image, ring: _Fit) -> _Fit | None:
+        """The ring's other closed-form pose, refined — when it differs from ``ring`` by more
+        than 3σ of its normal (and 1°) and verifies; None otherwise."""
+        Q = circle_image_conic(
+            ring.ring.center_C, ring.ring.normal_C, self.outer.radius, self.camera.K
+        )
+        try:
+            candidates = circle_poses_from_conic(Q, self.outer.radius, self.camera.K)
+        except ValueError:
+            return None
+        other = max(candidates, key=lambda c: normal_angle(c.normal_C, ring.ring.normal_C))
+        separation = max(np.radians(1.0), 3.0 * _normal_sigma(ring.result.covariance))
+        if normal_angle(other.normal_C, ring.ring.normal_C) < separation:
+            return None
+        mirror = self._refine_ring(image, other, ring.polarities)
+        if mirror is None or normal_angle(mirror.ring.normal_C, ring.ring.normal_C) < separation:
+            return None
+        return mirror
+
+    # --- refinement -----------------------------------------------------------------------
+    def _ring_circles(self) -> list[Circle3D]:
+        return [self.outer] if self.inner is None else [self.outer, self.inner]
+
+    def _refine_ring(
+        self,
+        image: _Image,
+        ring: CirclePose,
+        polarities: dict[str, int] | None,
+        *,
+        coarse_half_width: float | None = None,
+    ) -> _Fit | None:
+        """5-DOF: edge search around the projected ring edges and fit, coarse-to-fine when the
+        start may be several pixels off; None unless both edges are supported."""
+        s = self.settings
+        first = (s.fine_sigma_px, s.fine_half_width_px + 1.0)
+        if coarse_half_width is not None:
+            first = (s.coarse_sigma_px, coarse_half_width)
+        stages = (first, (s.fine_sigma_px, s.fine_half_width_px))
+        X_CT = pose_with_roll(ring, self.outer, 0.0)
+        refined = self._refine(image, X_CT, self._ring_circles(), stages, polarities, full=False)
+        if refined is None or not self._ring_supported(refined.edges):
+            return None
+        return refined
+
+    def _refine_full(
+        self,
+        image: _Image,
+        X_CT: Pose,
+        off_axis: list[Circle3D],
+        polarities: dict[str, int] | None,
+        coarse_half_width: float,
+    ) -> _Fit | None:
+        """6-DOF: ring and off-axis circles searched coarse then fine around ``X_CT`` and
+        fitted together; None unless the ring and an off-axis circle are supported and the
+        off-axis circles' nuisance radii are plausible."""
+        s = self.settings
+        if not off_axis:
+            return None
+        stages = ((s.coarse_sigma_px, coarse_half_width), (s.fine_sigma_px, s.fine_half_width_px))
+        refined = self._refine(
+            image, X_CT, self._ring_circles() + off_axis, stages, polarities, full=True
+        )
+        if refined is None or not self._ring_supported(refined.edges):
+            return None
+        supported = [
+            c.name
+            for c in off_axis
+            if c.name in refined.edges and refined.edges[c.name].support >= s.min_thruster_support
+        ]
+        if not supported:
+            return None
+        free = [e.circle.name for e in self._edge_sets(refined.edges) if e.free_radius]
+        for name, offset in zip(free, refined.result.radius_offsets, strict=True):
+            if abs(offset) > 0.3 * self.target.circle(name).radius:
+                return None
+        return refined
+
+    def _refine(
+        self,
+        image: _Image,
+        X_CT: Pose,
+        circles: list[Circle3D],
+        stages,
+        polarities: dict[str, int] | None,
+        *,
+        full: bool,
+    ) -> _Fit | None:
+        """Search every circle's edges at each (σ, window) stage and refit the pose."""
+        polarities = dict(polarities or {})
+        edges: dict[str, CircleEdges] = {}
+        result = None
+        ring = CirclePose(X_CT.apply(self.outer.center_T), X_CT.R @ self.outer.normal_T)
+        for sigma, width in stages:
+            edges = {}
+            for circle in circles:
+                circle_width = width
+                if circle in self.off_axis:
+                    # Small circles get at most a window of about their own size.
+                    radius_px = self._radius_px(X_CT, circle)
+                    circle_width = min(
+                        width, max(self.settings.fine_half_width_px, 0.5 * radius_px)
+                    )
+                found = self._circle_edges(
+                    image, X_CT, circle, sigma, circle_width, polarities.get(circle.name)
+                )
+                if found is not None and found.hits.count >= 8:
+                    edges[circle.name] = found
+                    polarities.setdefault(circle.name, found.polarity)
+            edges = self._drop_blurred(edges, X_CT, sigma)
+            if self.outer.name not in edges or edges[self.outer.name].hits.count < 12:
+                return None
+            sets = self._edge_sets(edges)
+            try:
+                # The first stage only needs to land within the second's window.
+                iterations = 3 if (sigma, width) != stages[-1] else 6
+                if full:
+                    result = fit_target_pose(sets, X_CT, self.camera.K, iterations=iterations)
+                    X_CT = result.pose
+                else:
+                    result = fit_circle_pose(
+                        sets, ring, self.outer, self.camera.K, iterations=iterations
+                    )
+                    ring = result.pose
+                    X_CT = pose_with_roll(ring, self.outer, 0.0)
+            except (ValueError, np.linalg.LinAlgError):
+                return None
+            if not np.all(np.isfinite(X_CT.p)) or X_CT.p[2] <= 0:
+                return None
+        assert result is not None
+        if full:
+            ring = CirclePose(X_CT.apply(self.outer.center_T), X_CT.R @ self.outer.normal_T)
+        return _Fit(ring, X_CT if full else None, result, edges, self._cost(edges, X_CT))
+
+    def _ring_supported(self, edges: dict[str, CircleEdges]) -> bool:
+        s = self.settings
+        if (
+            edges.get(self.outer.name) is None
+            or edges[self.outer.name].support < s.min_outer_support
+        ):
+            return False
+        if self.inner is None:
+            return True
+        inner = edges.get(self.inner.name)
+        return inner is not None and inner.support >= s.min_inner_support
+
+    def _radius_px(self, X_CT: Pose, circle: Circle3D) -> float:
+        return float(
+            self.camera.K[0, 0] * circle.radius / max(X_CT.apply(circle.center_T)[2], 1e-3)
+        )
+
+    def _drop_blurred(
+        self, edges: dict[str, CircleEdges], X_CT: Pose, sigma: float
+    ) -> dict[str, CircleEdges]:
+        """Of two concentric off-axis circles whose images are closer than ~3σ (a thin lip at
+        long range), keep the one with the stronger edges: the other is blurred into it."""
+        names = [c.name for c in self.off_axis if c.name in edges]
+        drop = set()
+        for i, a in enumerate(names):
+            for b in names[i + 1 :]:
+                ca, cb = self.target.circle(a), self.target.circle(b)
+                if np.linalg.norm(ca.center_T - cb.center_T) > 1e-6:
+                    continue
+                gap = abs(self._radius_px(X_CT, ca) - self._radius_px(X_CT, cb))
+                if gap < 3.0 * sigma + 1.0:
+                    weaker = min((a, b), key=lambda n: float(edges[n].hits.snr.sum()))
+                    drop.add(weaker)
+        return {name: e for name, e in edges.items() if name not in drop}
+
+    def _edge_sets(self, edges: dict[str, CircleEdges]) -> list[EdgeSet]:
+        """Edge sets for the fit: the ring's outer edge fixes the scale; the others (inner
+        edge, thruster) have free radii — their apparent size is biased by neighbours (the
+        ring's inner wall, the nozzle's thin lip) while their position and shape are not. The
+        inner edge joins only when it is far enough inside the outer one (see the settings)."""
+        use_inner = False
+        if self.inner is not None and self.inner.name in edges:
+            outer = edges[self.outer.name].samples
+            inner = edges[self.inner.name].samples
+            gap = 0.5 * (outer.perimeter_px - inner.perimeter_px) / np.pi
+            use_inner = gap >= self.settings.inner_edge_min_gap_px
+        return [
+            EdgeSet(self.target.circle(name), e.uv_ideal, free_radius=name != self.outer.name)
+            for name, e in edges.items()
+            if len(e.uv_ideal) >= 8 and (self.inner is None or name != self.inner.name or use_inner)
+        ]
+
+    def _cost(self, edges: dict[str, CircleEdges], X_CT: Pose) -> float:
+        """Truncated quadratic cost per searched sample, misses included: compares candidate
+        poses on the same footing whatever their supports (residuals in px, capped at 2)."""
+        total, count = 0.0, 0
+        for name, e in edges.items():
+            circle = self.target.circle(name)
+            cone = circle_cone(X_CT.apply(circle.center_T), X_CT.R @ circle.normal_T, circle.radius)
+            r = sampson_distances(self._K_inv.T @ cone @ self._K_inv, e.uv_ideal)
+            if name != self.outer.name and len(r):
+                r = r - np.median(r)  # a free radius: only the shape counts
+            total += float(np.sum(np.minimum(r**2, 4.0))) + 4.0 * (len(e.samples.uv) - len(r))
+            count += len(e.samples.uv)
+        return total / max(count, 1)
+
+    def _circle_edges(
+        self,
+        image: _Image,
+        X_CT: Pose,
+        circle: Circle3D,
+        sigma: float,
+        half_width: float,
+        polarity: int | None,
+    ) -> CircleEdges | None:
+        samples = sample_projected_circle(
+            X_CT.apply(circle.center_T),
+            X_CT.R @ circle.normal_T,
+            circle.radius,
+            self.camera,
+            spacing_px=self.settings.sample_spacing_px * max(1.0, sigma),
+            margin_px=half_width + 2.0,
+            field_radius_xy=self._field_radius,
+        )
+        if samples is None or len(samples.uv) < 8:
+            return None
+        lo = samples.uv.min(axis=0) - half_width - 4.0 * sigma - 4.0
+        hi = samples.uv.max(axis=0) + half_width + 4.0 * sigma + 4.0
+        grad = image.field(sigma, (lo[0], lo[1], hi[0], hi[1]))
+        return find_circle_edges(
+            grad,
+            samples,
+            self.camera,
+            polarity=polarity,
+            half_width_px=half_width,
+            prior_sigma_px=max(half_width / 2.0, 1.5),
+        )
+
+    def _locus_in_view(self, ring: CirclePose, circle: Circle3D, radius_px: float) -> bool:
+        """Whether the off-axis circle's centre can be in view at some roll."""
+        rolls = np.linspace(-np.pi, np.pi, 72, endpoint=False)
+        axis_point = ring.center_C
+        zero = pose_with_roll(ring, self.outer, 0.0).apply(circle.center_T) - axis_point
+        n = ring.normal_C
+        along = (zero @ n) * n
+        radial = zero - along
+        ortho = np.cross(n, radial)
+        locus = (
+            axis_point + along + np.outer(np.cos(rolls), radial) + np.outer(np.sin(rolls), ortho)
+        )
+        return bool(np.any(visible_pixels(locus, self.camera, -radius_px, self._field_radius)[0]))
+
+    def _visible_off_axis(self, X_CT: Pose) -> list[Circle3D]:
+        """Off-axis circles the pose puts in view and large enough to find (radius ≥ 3 px)."""
+        out = []
+        for c in self.off_axis:
+            center = X_CT.apply(c.center_T)
+            if center[2] <= 0 or self._radius_px(X_CT, c) < 3.0:
+                continue
+            if visible_pixels(center[None, :], self.camera, 0.0, self._field_radius)[0][0]:
+                out.append(c)
+        return out
+
+    # --- the thruster -----------------------------------------------------------------------
+    def _find_thruster(self, image: _Image, ring: _Fit, prior: Pose | None) -> _Fit | None:
+        """Search the roll about the ring's axis for each off-axis circle (near the prior's
+        roll first), then refine the best candidate to a 6-DOF pose and verify it."""
+        candidates = []
+        zero = pose_with_roll(ring.ring, self.outer, 0.0)
+        for probe in self.off_axis:
+            radius_px = self._radius_px(zero, probe)
+            if radius_px < 3.0 or not self._locus_in_view(ring.ring, probe, radius_px):
+                continue
+            # Smooth and search in proportion to the circle's image: a small one must not be
+            # blurred away, a large one is displaced by the ring's tilt error times its lever.
+            sigma = float(np.clip(0.2 * radius_px, 1.0, 2.0 * self.settings.coarse_sigma_px))
+            width = float(max(2.5, 0.3 * radius_px))
+            grad = image.field(sigma, None)
+            found = None
+            if prior is not None:
+                local = roll_of(prior, ring.ring, self.outer) + np.radians(
+                    np.arange(-12.0, 12.5, 1.0)
+                )
+                found = search_roll(
+                    grad,
+                    ring.ring,
+                    self.outer,
+                    probe,
+                    self.camera,
+                    polarity=None,
+                    rolls=local,
+                    half_width_px=width,
+                    field_radius_xy=self._field_radius,
+                )
+                if found is not None and found.score < _ROLL_SCORE_MIN:
+                    found = None
+            if found is None:
+                found = search_roll(
+                    grad,
+                    ring.ring,
+                    self.outer,
+                    probe,
+                    self.camera,
+                    polarity=None,
+                    half_width_px=width,
+                    field_radius_xy=self._field_radius,
+                )
+            if found is not None and found.score >= max(
+                _ROLL_DISTINCTNESS * found.median_score, _ROLL_SCORE_MIN
+            ):
+                candidates.append((found.score, probe, found, width))
+        for _, probe, found, width in sorted(candidates, key=lambda c: -c[0]):
+            X_CT = pose_with_roll(ring.ring, self.outer, found.roll)
+            polarities = {**ring.polarities, probe.name: found.polarity}
+            full = self._refine_full(
+                image, X_CT, self._visible_off_axis(X_CT), polarities, max(width, 4.0)
+            )
+            if full is not None:
+                return full
+        return None
+
+    # --- the measurement ------------------------------------------------------------------
+    def _measurement(
+        self,
+        frame: Frame,
+        status: str,
+        fit: _Fit,
+        ambiguous: bool,
+        prior: Pose | None,
+        extracted: list[ExtractedEllipse],
+        started: float,
+    ) -> Measurement:
+        """5-DOF always (the ring's centre and normal); 6-DOF ``X_CT`` when the thruster was
+        found; otherwise a full-pose hint with the roll carried over from the prior."""
+        inflation = _correlation_inflation(self.settings)
+        X_CT = covariance = hint = None
+        if fit.X_CT is not None:
+            X_CT = fit.X_CT
+            covariance = inflation * fit.result.covariance
+            cov5 = _five_from_six(covariance, X_CT, self.outer)
+        else:
+            cov5 = inflation * fit.result.covariance
+            roll = roll_of(prior, fit.ring, self.outer) if prior is not None else 0.0
+            hint = pose_with_roll(fit.ring, self.outer, roll)
+        labeled = np.vstack([e.hits.uv[e.hits.found] for e in fit.edges.values()])
+        extracted_points = (
+            np.vstack([e.points for e in extracted]) if extracted else np.zeros((0, 2))
+        )
+        return Measurement(
+            system=SYSTEM,
+            status=status,
+            stamp=frame.stamp,
+            seq=frame.seq,
+            X_CT=X_CT,
+            covariance=covariance,
+            circle=self.outer.name,
+            center_C=fit.ring.center_C,
+            normal_C=fit.ring.normal_C,
+            covariance_5dof=cov5,
+            X_CT_hint=hint,
+            residual_px=fit.result.rms_px,
+            ambiguous=ambiguous,
+            features={
+                "extracted": _subsample(extracted_points, 400),
+                "labeled": _subsample(labeled, 160),
+            },
+            time_ms=1000.0 * (time.perf_counter() - started),
+        )
+
+
+# --- helpers ----------------------------------------------------------------------------------
+
+
+def _blank(gray: np.ndarray, noise: float) -> bool:
+    """True when the frame holds nothing but noise: 16×16 block means vary no more than the
+    noise averaged over a block would make them."""
+    h, w = gray.shape
+    if h < 32 or w < 32:
+        return True
+    blocks = cv2.resize(gray, (w // 16, h // 16), interpolation=cv2.INTER_AREA)
+    return float(blocks.std()) < max(3.0 * noise / 16.0, 0.004)
+
+
+def _coaxial(circle: Circle3D, reference: Circle3D) -> bool:
+    """True when ``circle`` shares the reference's axis (parallel normal, centre on the axis):
+    such circles are fixed by the 5-DOF pose; others need the roll."""
+    offset = circle.center_T - reference.center_T
+    lateral = offset - (offset @ reference.normal_T) * reference.normal_T
+    parallel = abs(float(circle.normal_T @ reference.normal_T)) > 1.0 - 1e-9
+    return bool(np.linalg.norm(lateral) <= 1e-6 and parallel)
+
+
+def _normal_sigma(covariance5: np.ndarray) -> float:
+    return float(np.sqrt(max(covariance5[3, 3] + covariance5[4, 4], 0.0)))
+
+
+def _five_from_six(covariance: np.ndarray, X_CT: Pose, circle: Circle3D) -> np.ndarray:
+    """5×5 covariance of a circle's (centre, normal) from the 6×6 covariance of X_CT.
+
+    With R_true = Exp(δθ)·R and p_true = p + δp: δc = δp − [R·c_T]ₓ·δθ and δn = δθ × n, whose
+    components on (u, v) = circle_plane_basis(n) are (α, β)."""
+    n = X_CT.R @ circle.normal_T
+    u, v = circle_plane_basis(n)
+    J = np.zeros((5, 6))
+    J[:3, :3] = -skew(X_CT.R @ circle.center_T)
+    J[:3, 3:] = np.eye(3)
+    J[3, :3] = u @ -skew(n)  # δθ × n = −[n]ₓ δθ
+    J[4, :3] = v @ -skew(n)
+    out = J @ covariance @ J.T
+    return 0.5 * (out + out.T)
+
+
+def _correlation_inflation(settings: EllipseSettings) -> float:
+    """Neighbouring edge samples share pixels through the smoothing, so they are not
+    independent: the fit's covariance (which assumes they are) is scaled by the number of
+    samples per correlation length, 2√π·σ_eff (the width of the smoothing's autocorrelation;
+    σ_eff includes the Sobel kernel's own smoothing)."""
+    sigma_eff = np.hypot(settings.fine_sigma_px, 0.7)
+    spacing = settings.sample_spacing_px * max(1.0, settings.fine_sigma_px)
+    return float(max(1.0, 2.0 * np.sqrt(np.pi) * sigma_eff / spacing))
+
+
+def _subsample(points: np.ndarray, count: int) -> np.ndarray:
+    if len(points) <= count:
+        return points
+    return points[np.linspace(0, len(points) - 1, count).astype(int)]
+
+
+def build(target: TargetModel, camera: CameraInfo, **options) -> EllipseEstimator:
+    """Factory for ``estimators.registry``: options override ``EllipseSettings`` fields."""
+    extractor_options = options.pop("extractor", None)
+    settings = EllipseSettings()
+    unknown = set(options) - set(EllipseSettings.__dataclass_fields__)
+    if unknown:
+        raise ValueError(f"unknown ellipse estimator option(s): {', '.join(sorted(unknown))}")
+    settings = replace(settings, **options)
+    if extractor_options:
+        settings = replace(settings, extractor=replace(settings.extractor, **extractor_options))
+    return EllipseEstimator(target, camera, settings)
