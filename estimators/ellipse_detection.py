@@ -112,8 +112,9 @@ def ring_hypotheses(
     *,
     max_count: int = 8,
 ) -> list[RingHypothesis]:
-    """Ring hypotheses without a prior, best first: concentric pairs (opposite polarity, axis
-    ratios ≈ r_inner / r_outer, centres together), then lone ellipses, largest first."""
+    """Ring hypotheses without a prior: concentric pairs (opposite polarity, axis ratios ≈
+    r_inner / r_outer, centres together), then lone ellipses; largest first within each kind,
+    since smaller look-alikes (a bright annular lip) are the likelier confusion."""
     hypotheses: list[RingHypothesis] = []
     if inner is not None:
         ratio = inner.radius / outer.radius
@@ -134,7 +135,7 @@ def ring_hypotheses(
                     + (distance / (0.03 * o.a + 1.0)) ** 2
                 )
                 hypotheses.append(RingHypothesis(eo, ei, float(cost)))
-    hypotheses.sort(key=lambda h: h.cost)
+    hypotheses.sort(key=lambda h: -h.outer.ellipse.a)
     singles = sorted(extracted, key=lambda e: -len(e.points))
     for e in singles:
         hypotheses.append(RingHypothesis(e, None, np.inf))

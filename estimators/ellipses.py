@@ -82,13 +82,20 @@ class EllipseSettings:
 
     extractor: ExtractorSettings = field(default_factory=ExtractorSettings)
     coarse_sigma_px: float = 2.0
+    #: Smoothing of the final edge search: this at low noise, growing with the noise (σ_n × 5)
+    #: up to ``fine_sigma_max_px`` so that edges stay well above the noise.
     fine_sigma_px: float = 1.0
+    fine_sigma_max_px: float = 1.6
     sample_spacing_px: float = 2.0
     fine_half_width_px: float = 3.0
-    min_outer_support: float = 0.5
-    min_inner_support: float = 0.3
-    min_thruster_support: float = 0.6
+    min_outer_support: float = 0.35
+    min_inner_support: float = 0.25
+    min_thruster_support: float = 0.45
     max_hypotheses: int = 6
+    #: Operating range of the ring's centre (m): a ring "found" beyond it is a smaller look-alike
+    #: (the thruster's lip is a bright annulus too) and is rejected.
+    min_range_m: float = 0.2
+    max_range_m: float = 5.0
     #: The inner edge joins the fit (free radius) when its image lies this far inside the outer
     #: one: closer, the unresolved inner wall biases it (the wall's shading is unknown).
     inner_edge_min_gap_px: float = 15.0
@@ -101,6 +108,7 @@ class _Image:
     gray: np.ndarray
     noise: float
     camera: CameraInfo
+    fine_sigma: float
     fields: dict = field(default_factory=dict)
 
     def field(self, sigma_px: float, roi=None) -> GradientField:
@@ -127,6 +135,7 @@ class _Fit:
     result: FitResult
     edges: dict[str, CircleEdges]
     cost: float
+    sigma_px: float  # smoothing of the final edge search
 
     @property
     def polarities(self) -> dict[str, int]:
@@ -173,7 +182,10 @@ class EllipseEstimator:
         noise = estimate_noise_sigma(gray)
         if _blank(gray, noise):
             return Measurement.lost(SYSTEM, frame, "blank image (no contrast)", started=started)
-        image = _Image(gray, max(noise, 0.5 / 255.0), self.camera)
+        noise = max(noise, 0.5 / 255.0)
+        s = self.settings
+        fine_sigma = float(np.clip(5.0 * noise, s.fine_sigma_px, s.fine_sigma_max_px))
+        image = _Image(gray, noise, self.camera, fine_sigma)
         found = self._track(image, prior_X_CT) if prior_X_CT is not None else None
         status = "tracking"
         extracted: list[ExtractedEllipse] = []
@@ -358,10 +370,10 @@ class EllipseEstimator:
         """5-DOF: edge search around the projected ring edges and fit, coarse-to-fine when the
         start may be several pixels off; None unless both edges are supported."""
         s = self.settings
-        first = (s.fine_sigma_px, s.fine_half_width_px + 1.0)
+        first = (image.fine_sigma, s.fine_half_width_px + 1.0)
         if coarse_half_width is not None:
             first = (s.coarse_sigma_px, coarse_half_width)
-        stages = (first, (s.fine_sigma_px, s.fine_half_width_px))
+        stages = (first, (image.fine_sigma, s.fine_half_width_px))
         X_CT = pose_with_roll(ring, self.outer, 0.0)
         refined = self._refine(image, X_CT, self._ring_circles(), stages, polarities, full=False)
         if refined is None or not self._ring_supported(refined.edges):
@@ -382,7 +394,7 @@ class EllipseEstimator:
         s = self.settings
         if not off_axis:
             return None
-        stages = ((s.coarse_sigma_px, coarse_half_width), (s.fine_sigma_px, s.fine_half_width_px))
+        stages = ((s.coarse_sigma_px, coarse_half_width), (image.fine_sigma, s.fine_half_width_px))
         refined = self._refine(
             image, X_CT, self._ring_circles() + off_axis, stages, polarities, full=True
         )
@@ -453,9 +465,14 @@ class EllipseEstimator:
             if not np.all(np.isfinite(X_CT.p)) or X_CT.p[2] <= 0:
                 return None
         assert result is not None
+        distance = float(np.linalg.norm(X_CT.apply(self.outer.center_T)))
+        if not self.settings.min_range_m <= distance <= self.settings.max_range_m:
+            return None
         if full:
             ring = CirclePose(X_CT.apply(self.outer.center_T), X_CT.R @ self.outer.normal_T)
-        return _Fit(ring, X_CT if full else None, result, edges, self._cost(edges, X_CT))
+        return _Fit(
+            ring, X_CT if full else None, result, edges, self._cost(edges, X_CT), stages[-1][0]
+        )
 
     def _ring_supported(self, edges: dict[str, CircleEdges]) -> bool:
         s = self.settings
@@ -651,7 +668,7 @@ class EllipseEstimator:
     ) -> Measurement:
         """5-DOF always (the ring's centre and normal); 6-DOF ``X_CT`` when the thruster was
         found; otherwise a full-pose hint with the roll carried over from the prior."""
-        inflation = _correlation_inflation(self.settings)
+        inflation = _correlation_inflation(self.settings, fit.sigma_px)
         X_CT = covariance = hint = None
         if fit.X_CT is not None:
             X_CT = fit.X_CT
@@ -729,13 +746,13 @@ def _five_from_six(covariance: np.ndarray, X_CT: Pose, circle: Circle3D) -> np.n
     return 0.5 * (out + out.T)
 
 
-def _correlation_inflation(settings: EllipseSettings) -> float:
+def _correlation_inflation(settings: EllipseSettings, sigma_px: float) -> float:
     """Neighbouring edge samples share pixels through the smoothing, so they are not
     independent: the fit's covariance (which assumes they are) is scaled by the number of
     samples per correlation length, 2√π·σ_eff (the width of the smoothing's autocorrelation;
     σ_eff includes the Sobel kernel's own smoothing)."""
-    sigma_eff = np.hypot(settings.fine_sigma_px, 0.7)
-    spacing = settings.sample_spacing_px * max(1.0, settings.fine_sigma_px)
+    sigma_eff = np.hypot(sigma_px, 0.7)
+    spacing = settings.sample_spacing_px * max(1.0, sigma_px)
     return float(max(1.0, 2.0 * np.sqrt(np.pi) * sigma_eff / spacing))
 
 
