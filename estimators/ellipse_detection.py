@@ -204,30 +204,21 @@ class RollSearch:
     polarity: int
 
 
-def search_roll(
+def _score_rolls(
     field: GradientField,
     ring: CirclePose,
     reference: Circle3D,
     circle: Circle3D,
     camera: CameraInfo,
-    *,
-    polarity: int | None,
-    rolls: np.ndarray | None = None,
-    samples_per_circle: int = 16,
-    half_width_px: float = 2.5,
-    field_radius_xy: float | None = None,
-) -> RollSearch | None:
-    """Score the off-axis ``circle`` at every roll about the ring's axis; None when it is not
-    in view at any roll. Rolls default to steps of about a fifth of its image radius; the
-    window ``half_width_px`` should cover the error of the ring's pose at the circle."""
+    polarity: int,
+    rolls: np.ndarray,
+    samples_per_circle: int,
+    half_width_px: float,
+    field_radius_xy: float,
+) -> np.ndarray:
+    """Score (mean clipped edge SNR per sample; NaN where out of view) of the off-axis circle
+    at each roll, for one polarity."""
     zero = pose_with_roll(ring, reference, 0.0)
-    center_zero = zero.apply(circle.center_T)
-    lever = np.linalg.norm(center_zero - ring.center_C)
-    radius_px = camera.K[0, 0] * circle.radius / max(center_zero[2], 1e-3)
-    lever_px = camera.K[0, 0] * lever / max(center_zero[2], 1e-3)
-    if rolls is None:
-        step = max(0.2 * radius_px / max(lever_px, 1e-6), np.radians(0.25))
-        rolls = np.arange(-np.pi, np.pi, step)
     rolls = np.asarray(rolls, dtype=float)
     # The circle at roll 0 (points at t and t ± dt for the tangent), then turned about the
     # ring's axis for every roll at once (Rodrigues' formula).
@@ -256,14 +247,12 @@ def search_roll(
     ) + ring.center_C  # (M, 3K, 3)
     m, k = len(rolls), samples_per_circle
     flat = turned.reshape(-1, 3)
-    if field_radius_xy is None:
-        field_radius_xy = camera_field_radius(camera)
     visible, uv_flat = visible_pixels(flat, camera, half_width_px + 2.0, field_radius_xy)
     visible = visible.reshape(m, 3 * k)
     visible = visible[:, :k] & visible[:, k : 2 * k] & visible[:, 2 * k :]
     usable = visible.sum(axis=1) >= 0.75 * k
     if not np.any(usable):
-        return None
+        return np.full(m, np.nan)
     uv = uv_flat.reshape(m, 3 * k, 2)
     point_uv = uv[:, :k]
     tangent = uv[:, k : 2 * k] - uv[:, 2 * k :]
@@ -274,23 +263,85 @@ def search_roll(
     outward = np.einsum("mkj,mkj->mk", normal_uv, point_uv - centres[:, None, :])
     normal_uv[outward < 0] *= -1.0
     keep = visible & usable[:, None]
-    points = [point_uv[keep]]
-    normals = [normal_uv[keep]]
-    owner = [np.nonzero(keep)[0]]
-    points_all = np.vstack(points)
-    normals_all = np.vstack(normals)
-    owner_all = np.concatenate(owner)
+    owner = np.nonzero(keep)[0]
+    hits = search_edges(field, point_uv[keep], normal_uv[keep], polarity, half_width_px)
+    # Clip each sample's SNR so a few very strong edges (clutter) cannot outvote support all
+    # around the circle.
+    score = np.bincount(owner, weights=np.minimum(hits.snr, 8.0), minlength=m) / np.maximum(
+        np.bincount(owner, minlength=m), 1
+    )
+    score[~usable] = np.nan
+    return score
+
+
+def search_roll(
+    field: GradientField,
+    ring: CirclePose,
+    reference: Circle3D,
+    circle: Circle3D,
+    camera: CameraInfo,
+    *,
+    polarity: int | None,
+    rolls: np.ndarray | None = None,
+    samples_per_circle: int = 16,
+    half_width_px: float = 2.5,
+    field_radius_xy: float | None = None,
+) -> RollSearch | None:
+    """Score the off-axis ``circle`` at rolls about the ring's axis and return the best; None
+    when it is not in view at any roll.
+
+    Without ``rolls`` the whole turn is searched coarse to fine: steps of half the circle's
+    image radius along its locus, then the three best neighbourhoods at a tenth of it. The
+    window ``half_width_px`` should cover the error of the ring's pose at the circle.
+    """
+    if field_radius_xy is None:
+        field_radius_xy = camera_field_radius(camera)
+    center_zero = pose_with_roll(ring, reference, 0.0).apply(circle.center_T)
+    lever_px = (
+        camera.K[0, 0] * np.linalg.norm(center_zero - ring.center_C) / max(center_zero[2], 1e-3)
+    )
+    radius_px = camera.K[0, 0] * circle.radius / max(center_zero[2], 1e-3)
+    step = max(0.5 * radius_px / max(lever_px, 1e-6), np.radians(0.5))
+    coarse = rolls is None
+    tried = np.arange(-np.pi, np.pi, step) if coarse else np.asarray(rolls, dtype=float)
     best: RollSearch | None = None
     for p in (1, -1) if polarity is None else (polarity,):
-        hits = search_edges(field, points_all, normals_all, p, half_width_px)
-        # Clip each sample's SNR so a few very strong edges (clutter) cannot outvote support
-        # all around the circle.
-        score = np.bincount(
-            owner_all, weights=np.minimum(hits.snr, 8.0), minlength=len(rolls)
-        ) / np.maximum(np.bincount(owner_all, minlength=len(rolls)), 1)
-        tried = np.unique(owner_all)
-        k = int(tried[np.argmax(score[tried])])
-        result = RollSearch(float(rolls[k]), float(score[k]), float(np.median(score[tried])), p)
+        score = _score_rolls(
+            field,
+            ring,
+            reference,
+            circle,
+            camera,
+            p,
+            tried,
+            samples_per_circle,
+            max(half_width_px, 0.5 * step * lever_px if coarse else 0.0),
+            field_radius_xy,
+        )
+        if not np.any(np.isfinite(score)):
+            continue
+        median = float(np.nanmedian(score))
+        candidates_rolls, candidates_scores = tried, score
+        if coarse:
+            top = np.argsort(np.nan_to_num(score, nan=-1.0))[::-1][:3]
+            fine = np.concatenate([tried[k] + np.linspace(-step, step, 11) for k in top])
+            candidates_rolls = fine
+            candidates_scores = _score_rolls(
+                field,
+                ring,
+                reference,
+                circle,
+                camera,
+                p,
+                fine,
+                samples_per_circle,
+                half_width_px,
+                field_radius_xy,
+            )
+        if not np.any(np.isfinite(candidates_scores)):
+            continue
+        k = int(np.nanargmax(candidates_scores))
+        result = RollSearch(float(candidates_rolls[k]), float(candidates_scores[k]), median, p)
         if best is None or result.score > best.score:
             best = result
     return best

@@ -401,7 +401,7 @@ def fit_ellipse_subpixel(
         try:
             e = ellipse_from_conic(fit_ellipse_direct(found))
             if round_index == rounds - 1:  # geometric refinement once, on the final points
-                e, residuals, sigma = refine_ellipse(found, e, iterations=4)
+                e, residuals, sigma = refine_ellipse(found, e, iterations=3)
         except ValueError:
             return None
         if e.b < settings.min_minor_axis_px / 2:

@@ -318,27 +318,40 @@ class EllipseEstimator:
         """Without a prior: add the thruster (6-DOF) and settle the two-fold ambiguity of the
         ring's pose with it or with the costs. Returns (fit, ambiguous)."""
         full = self._find_thruster(image, ring, None)
-        mirror = self._mirror(image, ring)
-        if mirror is None:
+        mirror_pose = self._mirror_pose(ring)
+        if mirror_pose is None:  # both poses are one (near head-on)
             return full or ring, False
+        if full is not None:
+            # The thruster fixes the roll; start the 6-DOF fit once more from the mirror's
+            # normal with that roll. It usually converges back (the thruster pulls it): no
+            # ambiguity. Otherwise the lower cost wins.
+            roll = roll_of(full.X_CT, mirror_pose, self.outer)
+            X0 = pose_with_roll(mirror_pose, self.outer, roll)
+            other = self._refine_full(image, X0, self._visible_off_axis(X0), full.polarities, 4.0)
+            if other is None or self._same_normal(full, other):
+                return full, False
+            best, second = sorted((full, other), key=lambda f: f.cost)
+            return best, second.cost <= 1.15 * best.cost
+        mirror = self._refine_ring(image, mirror_pose, ring.polarities)
+        if mirror is None or self._same_normal(ring, mirror):
+            return ring, False
         mirror_full = self._find_thruster(image, mirror, None)
-        options = [full or ring, mirror_full or mirror]
-        if (full is None) != (mirror_full is None):  # the thruster decides
-            return (full or mirror_full), False
-        if full is not None and mirror_full is not None:
-            # Both converged with the thruster, often to the same pose (the thruster pulled
-            # the mirror back): then there is no ambiguity at all.
-            n0 = full.X_CT.R @ self.outer.normal_T
-            n1 = mirror_full.X_CT.R @ self.outer.normal_T
-            sigma = _normal_sigma(_five_from_six(full.result.covariance, full.X_CT, self.outer))
-            if normal_angle(n0, n1) < max(np.radians(1.0), 3.0 * sigma):
-                return min(options, key=lambda f: f.cost), False
-        best, other = sorted(options, key=lambda f: f.cost)
-        return best, other.cost <= 1.15 * best.cost
+        if mirror_full is not None:  # the thruster decides
+            return mirror_full, False
+        best, second = sorted((ring, mirror), key=lambda f: f.cost)
+        return best, second.cost <= 1.15 * best.cost
 
-    def _mirror(self, image: _Image, ring: _Fit) -> _Fit | None:
-        """The ring's other closed-form pose, refined — when it differs from ``ring`` by more
-        than 3σ of its normal (and 1°) and verifies; None otherwise."""
+    def _same_normal(self, a: _Fit, b: _Fit) -> bool:
+        """Whether two fits' normals agree within 3σ (and 1°)."""
+        separation = max(np.radians(1.0), 3.0 * _normal_sigma(a.result.covariance[:5, :5]))
+        if a.X_CT is not None:
+            cov5 = _five_from_six(a.result.covariance, a.X_CT, self.outer)
+            separation = max(np.radians(1.0), 3.0 * _normal_sigma(cov5))
+        return normal_angle(a.ring.normal_C, b.ring.normal_C) < separation
+
+    def _mirror_pose(self, ring: _Fit) -> CirclePose | None:
+        """The ring's other closed-form pose, when it differs from ``ring`` by more than 3σ of
+        its normal (and 1°); None otherwise."""
         Q = circle_image_conic(
             ring.ring.center_C, ring.ring.normal_C, self.outer.radius, self.camera.K
         )
@@ -350,8 +363,15 @@ class EllipseEstimator:
         separation = max(np.radians(1.0), 3.0 * _normal_sigma(ring.result.covariance))
         if normal_angle(other.normal_C, ring.ring.normal_C) < separation:
             return None
-        mirror = self._refine_ring(image, other, ring.polarities)
-        if mirror is None or normal_angle(mirror.ring.normal_C, ring.ring.normal_C) < separation:
+        return other
+
+    def _mirror(self, image: _Image, ring: _Fit) -> _Fit | None:
+        """The ring's other pose, refined, when distinct and verified; None otherwise."""
+        pose = self._mirror_pose(ring)
+        if pose is None:
+            return None
+        mirror = self._refine_ring(image, pose, ring.polarities)
+        if mirror is None or self._same_normal(ring, mirror):
             return None
         return mirror
 
@@ -599,11 +619,11 @@ class EllipseEstimator:
 
     # --- the thruster -----------------------------------------------------------------------
     def _find_thruster(self, image: _Image, ring: _Fit, prior: Pose | None) -> _Fit | None:
-        """Search the roll about the ring's axis for each off-axis circle (near the prior's
-        roll first), then refine the best candidate to a 6-DOF pose and verify it."""
-        candidates = []
+        """Search the roll about the ring's axis for the off-axis circles, largest first (near
+        the prior's roll first when there is a prior), refine the best roll to a 6-DOF pose
+        and verify it; the first circle that verifies settles it."""
         zero = pose_with_roll(ring.ring, self.outer, 0.0)
-        for probe in self.off_axis:
+        for probe in sorted(self.off_axis, key=lambda c: -c.radius):
             radius_px = self._radius_px(zero, probe)
             if radius_px < 3.0 or not self._locus_in_view(ring.ring, probe, radius_px):
                 continue
@@ -641,11 +661,10 @@ class EllipseEstimator:
                     half_width_px=width,
                     field_radius_xy=self._field_radius,
                 )
-            if found is not None and found.score >= max(
+            if found is None or found.score < max(
                 _ROLL_DISTINCTNESS * found.median_score, _ROLL_SCORE_MIN
             ):
-                candidates.append((found.score, probe, found, width))
-        for _, probe, found, width in sorted(candidates, key=lambda c: -c[0]):
+                continue
             X_CT = pose_with_roll(ring.ring, self.outer, found.roll)
             polarities = {**ring.polarities, probe.name: found.polarity}
             full = self._refine_full(

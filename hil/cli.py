@@ -233,6 +233,12 @@ def matrix(
     distance: Annotated[str, typer.Option(help="Comma-separated distances (m).")] = "3,2,1.2",
     maneuver: Annotated[str, typer.Option(help="Comma-separated maneuvers, or 'all'.")] = "all",
     seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
+    acquire_every_frame: Annotated[
+        bool, typer.Option(help="Drop the prior before every frame (acquisition rate).")
+    ] = False,
+    blank: Annotated[
+        str, typer.Option(help="Comma-separated frame indices replaced by blank frames.")
+    ] = "",
     jobs: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 1,
     out_path: Annotated[
         Path | None, typer.Option("--out", help="Write the markdown table here.")
@@ -258,9 +264,11 @@ def matrix(
             noises=tuple(noise.split(",")),
             frames=frames,
             seed=seed,
+            acquire_every_frame=acquire_every_frame,
+            blank_frames=tuple(int(i) for i in blank.split(",") if i.strip()),
         )
     except ValueError as exc:
-        raise _fail(f"bad --distance: {exc}") from None
+        raise _fail(f"bad --distance or --blank: {exc}") from None
     for level in spec.noises:
         _noise_config(level)
     try:
