@@ -22,13 +22,16 @@ _MAX_SAMPLES = 2400
 @dataclass(frozen=True, slots=True, eq=False)
 class CurveSamples:
     """Points (N,2) on a projected circle (distorted pixels), unit outward normals (N,2), the
-    circle parameter t (N,) of each, and the projected centre (2,)."""
+    circle parameter t (N,) of each, the projected centre (2,), the whole projected perimeter
+    and the spacing of the samples (px)."""
 
     uv: np.ndarray
     normals: np.ndarray
     t: np.ndarray
     center_uv: np.ndarray
     perimeter_px: float
+
+    spacing_px: float  # distance between neighbouring samples along the curve
 
 
 def visible_pixels(
@@ -64,11 +67,12 @@ def sample_projected_circle(
     spacing_px: float,
     margin_px: float = 0.0,
     field_radius_xy: float | None = None,
+    max_samples: int = _MAX_SAMPLES,
 ) -> CurveSamples | None:
-    """Samples every ~``spacing_px`` along the image of a 3-D circle, keeping those at least
-    ``margin_px`` inside the image; None when the circle is not (safely) in front of the camera
-    or nothing of it is in view. ``field_radius_xy`` (``camera_field_radius``) saves its
-    recomputation when called often."""
+    """Samples every ~``spacing_px`` (or more, to stay within ``max_samples`` around the whole
+    circle) along the image of a 3-D circle, keeping those at least ``margin_px`` inside the
+    image; None when the circle is not (safely) in front of the camera or nothing of it is in
+    view. ``field_radius_xy`` (``camera_field_radius``) saves its recomputation."""
     if field_radius_xy is None:
         field_radius_xy = camera_field_radius(camera)
     center_C = np.asarray(center_C, dtype=float)
@@ -81,7 +85,7 @@ def sample_projected_circle(
     perimeter = float(
         np.linalg.norm(np.diff(np.vstack([coarse_uv, coarse_uv[:1]]), axis=0), axis=1).sum()
     )
-    count = int(np.clip(perimeter / max(spacing_px, 0.25), 16, _MAX_SAMPLES))
+    count = int(np.clip(perimeter / max(spacing_px, 0.25), 16, max_samples))
     t = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
     dt = 1e-4
     points = circle_points(center_C, normal_C, radius, angles=np.concatenate([t, t + dt, t - dt]))
@@ -96,7 +100,7 @@ def sample_projected_circle(
     center_uv = camera.project(center_C[None, :])[0]
     outward = np.einsum("ij,ij->i", normals, uv - center_uv) >= 0
     normals[~outward] *= -1.0
-    return CurveSamples(uv, normals, t[keep], center_uv, perimeter)
+    return CurveSamples(uv, normals, t[keep], center_uv, perimeter, perimeter / count)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -137,24 +141,33 @@ def find_circle_edges(
     min_snr: float = 3.0,
     prior_sigma_px: float | None = None,
 ) -> CircleEdges:
-    """Search the samples' normals for the circle's edge. ``polarity`` None tries both and
-    keeps the one with the larger total edge strength (the image decides which side is
-    brighter)."""
-    options = (1, -1) if polarity is None else (polarity,)
-    best: tuple[float, int, EdgeHits] | None = None
-    for p in options:
-        hits = search_edges(
-            field,
-            samples.uv,
-            samples.normals,
-            p,
-            half_width_px,
-            min_snr=min_snr,
-            prior_sigma_px=prior_sigma_px,
-        )
-        strength = float(hits.snr.sum())
-        if best is None or strength > best[0]:
-            best = (strength, p, hits)
-    assert best is not None
-    _, chosen, hits = best
-    return CircleEdges(samples, hits, to_ideal_pixels(hits.uv[hits.found], camera), chosen)
+    """Search the samples' normals for the circle's edge. ``polarity`` None lets the image
+    decide which side is brighter: both polarities are tried on every fourth sample and the
+    one with the larger total edge strength is searched on all of them."""
+    if polarity is None:
+        probe = slice(None, None, 4)
+        strengths = {
+            p: float(
+                search_edges(
+                    field,
+                    samples.uv[probe],
+                    samples.normals[probe],
+                    p,
+                    half_width_px,
+                    min_snr=min_snr,
+                    prior_sigma_px=prior_sigma_px,
+                ).snr.sum()
+            )
+            for p in (1, -1)
+        }
+        polarity = max(strengths, key=strengths.get)
+    hits = search_edges(
+        field,
+        samples.uv,
+        samples.normals,
+        polarity,
+        half_width_px,
+        min_snr=min_snr,
+        prior_sigma_px=prior_sigma_px,
+    )
+    return CircleEdges(samples, hits, to_ideal_pixels(hits.uv[hits.found], camera), polarity)

@@ -176,7 +176,7 @@ def search_edges(
         field.gxy,
         px.astype(np.float32),
         py.astype(np.float32),
-        cv2.INTER_LINEAR,
+        cv2.INTER_CUBIC,
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=0,
     )  # (n, L, 2)
@@ -206,9 +206,19 @@ def search_edges(
     interior = (best > 0) & (best < len(offsets) - 1)
     b = np.clip(best, 1, len(offsets) - 2)
     s_minus, s0, s_plus = score[rows, b - 1], score[rows, b], score[rows, b + 1]
-    curvature = s_minus - 2.0 * s0 + s_plus
+    # The peak of a Gaussian-smoothed step's derivative is a Gaussian: a parabola through the
+    # logarithms of the three samples around it locates it exactly (Fisher & Naidu's Gaussian
+    # peak interpolation); samples that are not all positive fall back to a plain parabola.
+    positive = (s_minus > 0) & (s0 > 0) & (s_plus > 0)
+    l_minus = np.log(np.where(positive, s_minus, 1.0))
+    l0 = np.log(np.where(positive, s0, 1.0))
+    l_plus = np.log(np.where(positive, s_plus, 1.0))
+    v_minus = np.where(positive, l_minus, s_minus)
+    v0 = np.where(positive, l0, s0)
+    v_plus = np.where(positive, l_plus, s_plus)
+    curvature = v_minus - 2.0 * v0 + v_plus
     delta = np.where(
-        curvature < 0, 0.5 * (s_minus - s_plus) / np.where(curvature < 0, curvature, -1), 0.0
+        curvature < 0, 0.5 * (v_minus - v_plus) / np.where(curvature < 0, curvature, -1), 0.0
     )
     delta = np.clip(delta, -0.5, 0.5)
     offset = offsets[b] + delta * step_px

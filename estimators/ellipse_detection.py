@@ -304,6 +304,17 @@ def search_roll(
     step = max(0.5 * radius_px / max(lever_px, 1e-6), np.radians(0.5))
     coarse = rolls is None
     tried = np.arange(-np.pi, np.pi, step) if coarse else np.asarray(rolls, dtype=float)
+    # Only rolls that put the circle's centre in view (or nearly) are worth scoring.
+    offset = center_zero - ring.center_C
+    n = ring.normal_C
+    cos, sin = np.cos(tried)[:, None], np.sin(tried)[:, None]
+    centers = (
+        ring.center_C + offset * cos + np.cross(n, offset) * sin + (offset @ n) * n * (1.0 - cos)
+    )
+    in_view, _ = visible_pixels(centers, camera, -radius_px, field_radius_xy)
+    tried = tried[in_view]
+    if len(tried) == 0:
+        return None
     best: RollSearch | None = None
     for p in (1, -1) if polarity is None else (polarity,):
         score = _score_rolls(

@@ -87,6 +87,9 @@ class EllipseSettings:
     fine_sigma_px: float = 1.0
     fine_sigma_max_px: float = 1.6
     sample_spacing_px: float = 2.0
+    #: At most this many samples around a circle (large rings at close range are sampled
+    #: more sparsely: plenty for sub-0.1° there, and the cost stays bounded).
+    max_samples_per_circle: int = 320
     fine_half_width_px: float = 3.0
     min_outer_support: float = 0.35
     min_inner_support: float = 0.25
@@ -136,6 +139,7 @@ class _Fit:
     edges: dict[str, CircleEdges]
     cost: float
     sigma_px: float  # smoothing of the final edge search
+    spacing_px: float  # spacing of the reference circle's edge samples
 
     @property
     def polarities(self) -> dict[str, int]:
@@ -230,12 +234,14 @@ class EllipseEstimator:
                 return None
             fit = self._find_thruster(image, ring, prior) or ring
         if fit.X_CT is None:  # the ring alone: keep the pose nearer the prior's normal
-            mirror = self._mirror(image, fit)
             prior_normal = prior.R @ self.outer.normal_T
-            if mirror is not None and normal_angle(
-                mirror.ring.normal_C, prior_normal
+            mirror_pose = self._mirror_pose(fit)
+            if mirror_pose is not None and normal_angle(
+                mirror_pose.normal_C, prior_normal
             ) < normal_angle(fit.ring.normal_C, prior_normal):
-                fit = self._find_thruster(image, mirror, None) or mirror
+                mirror = self._mirror(image, fit)
+                if mirror is not None:
+                    fit = self._find_thruster(image, mirror, None) or mirror
         return fit, False
 
     def _track_by_extraction(self, image: _Image, prior: Pose, ring0: CirclePose, predicted):
@@ -255,7 +261,7 @@ class EllipseEstimator:
             settings=self.settings.extractor,
             field=image.field(self.settings.extractor.fine_sigma_px, box),
         )
-        expected = {"ring_outer": (predicted, None)}
+        inner = None
         if self.inner is not None:
             inner = projected_ellipse(
                 prior.apply(self.inner.center_T),
@@ -263,9 +269,18 @@ class EllipseEstimator:
                 self.inner.radius,
                 self.camera,
             )
+        # The ring's edges have opposite polarities: label under both assignments, keep the
+        # one that labels more edges at the lower cost.
+        best_labels: dict = {}
+        for p in (1, -1):
+            expected = {self.outer.name: (predicted, p)}
             if inner is not None:
-                expected["ring_inner"] = (inner, None)
-        labels = label_with_prior(extracted, expected)
+                expected[self.inner.name] = (inner, -p)
+            labels = label_with_prior(extracted, expected)
+            rank = (len(labels), -sum(cost for _, cost in labels.values()))
+            if not best_labels or rank > best_labels["rank"]:
+                best_labels = {"rank": rank, "labels": labels}
+        labels = best_labels["labels"]
         for name, (labeled, _) in sorted(labels.items(), key=lambda item: item[1][1]):
             circle = self.target.circle(name)
             candidates = sorted(
@@ -450,6 +465,8 @@ class EllipseEstimator:
         ring = CirclePose(X_CT.apply(self.outer.center_T), X_CT.R @ self.outer.normal_T)
         for sigma, width in stages:
             edges = {}
+            if self.inner is not None and not polarities:
+                polarities.update(self._ring_polarities(image, X_CT, sigma, width))
             for circle in circles:
                 circle_width = width
                 if circle in self.off_axis:
@@ -470,7 +487,7 @@ class EllipseEstimator:
             sets = self._edge_sets(edges)
             try:
                 # The first stage only needs to land within the second's window.
-                iterations = 3 if (sigma, width) != stages[-1] else 6
+                iterations = 2 if (sigma, width) != stages[-1] else 5
                 if full:
                     result = fit_target_pose(sets, X_CT, self.camera.K, iterations=iterations)
                     X_CT = result.pose
@@ -491,8 +508,31 @@ class EllipseEstimator:
         if full:
             ring = CirclePose(X_CT.apply(self.outer.center_T), X_CT.R @ self.outer.normal_T)
         return _Fit(
-            ring, X_CT if full else None, result, edges, self._cost(edges, X_CT), stages[-1][0]
+            ring,
+            X_CT if full else None,
+            result,
+            edges,
+            self._cost(edges, X_CT),
+            stages[-1][0],
+            edges[self.outer.name].samples.spacing_px,
         )
+
+    def _ring_polarities(
+        self, image: _Image, X_CT: Pose, sigma: float, width: float
+    ) -> dict[str, int]:
+        """The ring's edge polarities when unknown: the two edges of an annulus have opposite
+        ones, so both assignments are scored together (edge strength on a few samples of each
+        edge) — a window wide enough to hold both edges cannot then take one for the other."""
+        strengths = {}
+        assert self.inner is not None
+        for p in (1, -1):
+            total = 0.0
+            for circle, polarity in ((self.outer, p), (self.inner, -p)):
+                found = self._circle_edges(image, X_CT, circle, sigma, width, polarity, probe=True)
+                total += 0.0 if found is None else float(found.hits.snr.sum())
+            strengths[p] = total
+        p = max(strengths, key=strengths.get)
+        return {self.outer.name: p, self.inner.name: -p}
 
     def _ring_supported(self, edges: dict[str, CircleEdges]) -> bool:
         s = self.settings
@@ -568,7 +608,11 @@ class EllipseEstimator:
         sigma: float,
         half_width: float,
         polarity: int | None,
+        *,
+        probe: bool = False,
     ) -> CircleEdges | None:
+        """Edges of one model circle near its projection with ``X_CT``; ``probe`` searches
+        only every fourth sample (a quick look)."""
         samples = sample_projected_circle(
             X_CT.apply(circle.center_T),
             X_CT.R @ circle.normal_T,
@@ -577,9 +621,18 @@ class EllipseEstimator:
             spacing_px=self.settings.sample_spacing_px * max(1.0, sigma),
             margin_px=half_width + 2.0,
             field_radius_xy=self._field_radius,
+            max_samples=self.settings.max_samples_per_circle,
         )
         if samples is None or len(samples.uv) < 8:
             return None
+        if probe:
+            samples = replace(
+                samples,
+                uv=samples.uv[::4],
+                normals=samples.normals[::4],
+                t=samples.t[::4],
+                spacing_px=4 * samples.spacing_px,
+            )
         lo = samples.uv.min(axis=0) - half_width - 4.0 * sigma - 4.0
         hi = samples.uv.max(axis=0) + half_width + 4.0 * sigma + 4.0
         grad = image.field(sigma, (lo[0], lo[1], hi[0], hi[1]))
@@ -687,7 +740,7 @@ class EllipseEstimator:
     ) -> Measurement:
         """5-DOF always (the ring's centre and normal); 6-DOF ``X_CT`` when the thruster was
         found; otherwise a full-pose hint with the roll carried over from the prior."""
-        inflation = _correlation_inflation(self.settings, fit.sigma_px)
+        inflation = _correlation_inflation(fit.sigma_px, fit.spacing_px)
         X_CT = covariance = hint = None
         if fit.X_CT is not None:
             X_CT = fit.X_CT
@@ -765,14 +818,13 @@ def _five_from_six(covariance: np.ndarray, X_CT: Pose, circle: Circle3D) -> np.n
     return 0.5 * (out + out.T)
 
 
-def _correlation_inflation(settings: EllipseSettings, sigma_px: float) -> float:
+def _correlation_inflation(sigma_px: float, spacing_px: float) -> float:
     """Neighbouring edge samples share pixels through the smoothing, so they are not
     independent: the fit's covariance (which assumes they are) is scaled by the number of
     samples per correlation length, 2√π·σ_eff (the width of the smoothing's autocorrelation;
     σ_eff includes the Sobel kernel's own smoothing)."""
     sigma_eff = np.hypot(sigma_px, 0.7)
-    spacing = settings.sample_spacing_px * max(1.0, sigma_px)
-    return float(max(1.0, 2.0 * np.sqrt(np.pi) * sigma_eff / spacing))
+    return float(max(1.0, 2.0 * np.sqrt(np.pi) * sigma_eff / spacing_px))
 
 
 def _subsample(points: np.ndarray, count: int) -> np.ndarray:

@@ -233,6 +233,8 @@ def matrix(
     distance: Annotated[str, typer.Option(help="Comma-separated distances (m).")] = "3,2,1.2",
     maneuver: Annotated[str, typer.Option(help="Comma-separated maneuvers, or 'all'.")] = "all",
     seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
+    camera: CameraOpt = "reference",
+    mockup: MockupOpt = "default",
     acquire_every_frame: Annotated[
         bool, typer.Option(help="Drop the prior before every frame (acquisition rate).")
     ] = False,
@@ -264,6 +266,8 @@ def matrix(
             noises=tuple(noise.split(",")),
             frames=frames,
             seed=seed,
+            camera=camera,
+            mockup=mockup,
             acquire_every_frame=acquire_every_frame,
             blank_frames=tuple(int(i) for i in blank.split(",") if i.strip()),
         )
@@ -273,7 +277,7 @@ def matrix(
         _noise_config(level)
     try:
         rows = run_matrix(spec, jobs=jobs, progress=lambda text: console.print(text))
-    except (ValueError, NotImplementedError) as exc:
+    except (ValueError, NotImplementedError, ConfigError) as exc:
         raise _fail(str(exc)) from None
     table = markdown_table(summarize(rows))
     out.print(table, markup=False, highlight=False)
