@@ -153,3 +153,33 @@ def markdown_approach(results: list[ApproachFrame], bins: tuple[float, ...]) -> 
             )
         )
     return "\n".join(lines) + "\n"
+
+
+def markdown_visible(results: list[ApproachFrame], bins: tuple[float, ...]) -> str:
+    """Errors of the frames whose circle is partly out of view, binned by the fraction of its
+    circumference in view (``bins`` edges, descending, e.g. 1.0, 0.9, …)."""
+    lines = [
+        "| circle in view | frames | valid | position mean / max | normal (or attitude) mean / max |",
+        "|---|---|---|---|---|",
+    ]
+    for hi, lo in itertools.pairwise(bins):
+        rows = [r for r in results if lo <= r.ring_visible < hi]
+        if not rows:
+            continue
+        valid = [r for r in rows if r.status != "lost"]
+        pos = np.array([r.error.position_m for r in valid]) * 100
+        att = np.degrees(
+            [
+                r.error.normal_rad if not math.isnan(r.error.normal_rad) else r.error.attitude_rad
+                for r in valid
+            ]
+        )
+        lines.append(
+            f"| {100 * lo:.0f}–{100 * hi:.0f} % | {len(rows)} | {len(valid)} "
+            + (
+                f"| {pos.mean():.3f} / {pos.max():.3f} cm | {att.mean():.3f} / {att.max():.3f}° |"
+                if valid
+                else "| – | – |"
+            )
+        )
+    return "\n".join(lines) + "\n"

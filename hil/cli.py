@@ -291,6 +291,50 @@ def matrix(
                 f.write(json.dumps(asdict(row), allow_nan=True) + "\n")
 
 
+@app.command()
+def approach(
+    system: Annotated[str, typer.Option(help="Estimator: corners | lines | ellipses.")],
+    frames: Annotated[int, typer.Option(min=2, help="Frames from 2.5 m to 0.5 m.")] = 120,
+    noise: NoiseOpt = "low",
+    camera: CameraOpt = "reference",
+    mockup: MockupOpt = "default",
+    seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
+    out_path: Annotated[
+        Path | None, typer.Option("--out", help="Write the markdown tables here.")
+    ] = None,
+) -> None:
+    """Track the target along the reference's approach (2.5 m → 0.5 m, re-centring an
+    off-centre, rotated start) and print errors by distance and by the fraction of the ring
+    in view."""
+    from hil.approach import markdown_approach, markdown_visible, run_approach
+
+    _noise_config(noise)
+    try:
+        results = run_approach(
+            system, frames=frames, noise=noise, camera=camera, mockup=mockup, seed=seed
+        )
+    except (ConfigError, ValueError, NotImplementedError) as exc:
+        raise _fail(str(exc)) from None
+    text = (
+        markdown_approach(results, (2.5, 2.0, 1.5, 1.0, 0.75, 0.6, 0.49))
+        + "\n"
+        + markdown_visible(results, (1.01, 0.95, 0.9, 0.8, 0.7, 0.6, 0.5, 0.0))
+    )
+    lost = sum(r.status == "lost" for r in results)
+    text += (
+        f"\n{len(results)} frames, {lost} lost, statuses after the first: "
+        + ", ".join(
+            f"{s} {sum(r.status == s for r in results[1:])}"
+            for s in ("tracking", "acquired", "lost")
+        )
+        + "\n"
+    )
+    out.print(text, markup=False, highlight=False)
+    if out_path is not None:
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        out_path.write_text(text, encoding="utf-8")
+
+
 @bench_app.command("estimate")
 def bench_estimate(
     system: Annotated[list[str], typer.Option(help="Estimator(s); repeat for several.")],

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from hil.approach import ApproachPath, markdown_approach, run_approach
+from hil.approach import ApproachPath, markdown_approach, markdown_visible, run_approach
 
 
 def test_approach_path_closes_and_recentres():
@@ -31,3 +31,5 @@ def test_ellipses_track_the_approach_to_partial_rings():
         assert r.error.center_m < 0.002 and math.degrees(r.error.normal_rad) < 0.5
     table = markdown_approach(results, (2.5, 1.5, 0.8, 0.4))
     assert table.count("\n") == 5 and "| 2.50–1.50 m |" in table
+    partial = markdown_visible(results, (1.01, 0.9, 0.5))
+    assert f"| 50–90 % | {sum(r.ring_visible < 0.9 for r in results)} |" in partial
