@@ -142,19 +142,7 @@ class _ConicModel:
         return np.vstack(blocks)
 
 
-def fit_circle_pose(
-    edge_sets: Sequence[EdgeSet],
-    initial: CirclePose,
-    reference: Circle3D,
-    K: np.ndarray,
-    *,
-    iterations: int = 6,
-) -> FitResult:
-    """5-DOF pose (centre, normal) of ``reference`` from edge sets on circles coaxial with it.
-
-    ValueError if a circle is not coaxial (its centre off the reference axis or its normal not
-    parallel) — such circles need the 6-DOF ``fit_target_pose``.
-    """
+def _coaxial_heights(edge_sets: Sequence[EdgeSet], reference: Circle3D) -> np.ndarray:
     heights = []
     for s in edge_sets:
         offset = s.circle.center_T - reference.center_T
@@ -166,16 +154,20 @@ def fit_circle_pose(
                 "use the 6-DOF fit"
             )
         heights.append(height)
-    heights = np.array(heights)
+    return np.array(heights)
+
+
+def _circle_problem(edge_sets, reference, K, center, normal, radius_offsets=None):
+    """The 5-DOF model at (centre, normal): (model, state, commit)."""
+    heights = _coaxial_heights(edge_sets, reference)
     radii = np.array([s.circle.radius for s in edge_sets])
     free = [i for i, s in enumerate(edge_sets) if s.free_radius]
-    n_params = 5 + len(free)
     state = {
-        "c": np.asarray(initial.center_C, dtype=float).copy(),
-        "n": np.asarray(initial.normal_C, dtype=float).copy(),
-        "dr": np.zeros(len(free)),
+        "c": np.asarray(center, dtype=float).copy(),
+        "n": np.asarray(normal, dtype=float).copy(),
+        "dr": np.zeros(len(free)) if radius_offsets is None else np.array(radius_offsets),
     }
-    if state["n"] @ state["c"] > 0:  # start on the camera side, so the fit stays there
+    if state["n"] @ state["c"] > 0:  # on the camera side, so the fit stays there
         state["n"] = -state["n"]
     state["basis"] = np.array(circle_plane_basis(state["n"]))
 
@@ -201,9 +193,27 @@ def fit_circle_pose(
         state["c"], state["n"], state["dr"] = c[0], n[0], dr[0]
         state["basis"] = np.array(circle_plane_basis(state["n"]))
 
-    model = _ConicModel(edge_sets, geometry, n_params, K)
+    return _ConicModel(edge_sets, geometry, 5 + len(free), K), state, commit
+
+
+def fit_circle_pose(
+    edge_sets: Sequence[EdgeSet],
+    initial: CirclePose,
+    reference: Circle3D,
+    K: np.ndarray,
+    *,
+    iterations: int = 6,
+) -> FitResult:
+    """5-DOF pose (centre, normal) of ``reference`` from edge sets on circles coaxial with it.
+
+    ValueError if a circle is not coaxial (its centre off the reference axis or its normal not
+    parallel) — such circles need the 6-DOF ``fit_target_pose``.
+    """
+    model, state, commit = _circle_problem(
+        edge_sets, reference, K, initial.center_C, initial.normal_C
+    )
     solution = gauss_newton(
-        model.residuals, n_params, commit, iterations=iterations, jacobian=model.jacobian
+        model.residuals, model.n_params, commit, iterations=iterations, jacobian=model.jacobian
     )
     return _finish(CirclePose(state["c"], state["n"]), solution, 5, state["dr"])
 
@@ -221,20 +231,17 @@ def _exp_so3(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
 
 
-def fit_target_pose(
-    edge_sets: Sequence[EdgeSet],
-    initial: Pose,
-    K: np.ndarray,
-    *,
-    iterations: int = 6,
-) -> FitResult:
-    """6-DOF pose ``X_CT`` from edge sets on any circles of the target."""
+def _target_problem(edge_sets, K, X_CT: Pose, radius_offsets=None):
+    """The 6-DOF model at ``X_CT``: (model, state, commit)."""
     centers_T = np.array([s.circle.center_T for s in edge_sets])
     normals_T = np.array([s.circle.normal_T for s in edge_sets])
     radii = np.array([s.circle.radius for s in edge_sets])
     free = [i for i, s in enumerate(edge_sets) if s.free_radius]
-    n_params = 6 + len(free)
-    state = {"R": initial.R.copy(), "p": initial.p.copy(), "dr": np.zeros(len(free))}
+    state = {
+        "R": X_CT.R.copy(),
+        "p": X_CT.p.copy(),
+        "dr": np.zeros(len(free)) if radius_offsets is None else np.array(radius_offsets),
+    }
 
     def moved(deltas: np.ndarray):
         R = _exp_so3(deltas[:, :3]) @ state["R"]
@@ -252,8 +259,52 @@ def fit_target_pose(
         U, _, Vt = np.linalg.svd(R[0])
         state["R"], state["p"], state["dr"] = U @ Vt, p[0], dr[0]
 
-    model = _ConicModel(edge_sets, geometry, n_params, K)
+    return _ConicModel(edge_sets, geometry, 6 + len(free), K), state, commit
+
+
+def fit_target_pose(
+    edge_sets: Sequence[EdgeSet],
+    initial: Pose,
+    K: np.ndarray,
+    *,
+    iterations: int = 6,
+) -> FitResult:
+    """6-DOF pose ``X_CT`` from edge sets on any circles of the target."""
+    model, state, commit = _target_problem(edge_sets, K, initial)
     solution = gauss_newton(
-        model.residuals, n_params, commit, iterations=iterations, jacobian=model.jacobian
+        model.residuals, model.n_params, commit, iterations=iterations, jacobian=model.jacobian
     )
     return _finish(Pose(state["R"], state["p"]), solution, 6, state["dr"])
+
+
+def covariance_at(
+    edge_sets: Sequence[EdgeSet],
+    fit: FitResult,
+    pose: CirclePose | Pose,
+    K: np.ndarray,
+    *,
+    reference: Circle3D | None = None,
+) -> np.ndarray:
+    """The covariance of a fit (its noise scales and nuisance radii) linearised at another
+    ``pose`` — a ``CirclePose`` (5-DOF, with ``reference``) or a ``Pose`` (6-DOF).
+
+    Used where the linearisation at the solution is over-confident: near a head-on view a
+    circle's tilt enters its image only quadratically, so at a slightly tilted estimate the
+    tangent says the tilt is well known while the cost is nearly flat back to head-on; the
+    covariance at the head-on pose does not make that mistake.
+    """
+    if isinstance(pose, Pose):
+        model, _, _ = _target_problem(edge_sets, K, pose, fit.radius_offsets)
+        keep = 6
+    else:
+        if reference is None:
+            raise ValueError("a 5-DOF covariance needs the reference circle")
+        model, _, _ = _circle_problem(
+            edge_sets, reference, K, pose.center_C, pose.normal_C, fit.radius_offsets
+        )
+        keep = 5
+    J = model.jacobian()
+    weights = np.concatenate(
+        [np.full(len(h), 1.0 / sigma**2) for h, sigma in zip(model.h, fit.sigma_px, strict=True)]
+    )
+    return marginal_covariance(J.T @ (J * weights[:, None]), keep)

@@ -32,6 +32,10 @@ NOISE_LEVELS = ("none", "low", "high")
 #: A valid measurement this far from the truth is a wrong lock (position m, attitude rad).
 WRONG_LOCK_POSITION_M = 0.05
 WRONG_LOCK_ATTITUDE_RAD = math.radians(10.0)
+#: … unless its own covariance covers the error: 99.9 % quantiles of χ² with 6 and 5 degrees of
+#: freedom (a measurement without a covariance has NaN here, which never covers).
+WRONG_LOCK_NEES_POSE = 22.46
+WRONG_LOCK_NEES_CIRCLE = 20.52
 #: Intensity of a blank frame (a lens cap, a dropout): uniform grey, then the case's noise.
 BLANK_LEVEL = 0.35
 
@@ -181,7 +185,7 @@ class CaseSummary:
     Errors are over the frames with a valid estimate; ``position`` is the translation (6-DOF)
     or circle-centre (5-DOF) error, ``attitude`` the rotation or normal error; ``normal`` the
     circle normal's error when a circle pose is measured. ``wrong`` counts valid frames beyond
-    the wrong-lock gate and not flagged ambiguous (``ambiguous`` counts the flagged ones);
+    the wrong-lock gate, not covered by their own covariance and not flagged ambiguous (``ambiguous`` counts the flagged ones);
     ``recovery_max`` is the longest run of lost frames after a blank
     stretch (frames to re-acquire); blank frames are excluded from everything else but ``lost``.
     """
@@ -226,15 +230,19 @@ def _recovery(rows: Sequence[FrameResult]) -> int:
 
 
 def _wrong_lock(r: FrameResult) -> bool:
-    """A valid, unqualified answer beyond the gate (an answer flagged ambiguous is not)."""
-    return (
-        r.status != "lost"
-        and not r.ambiguous
-        and (
-            not r.error.position_m <= WRONG_LOCK_POSITION_M
-            or not r.error.attitude_rad <= WRONG_LOCK_ATTITUDE_RAD
-        )
+    """A valid, unqualified answer beyond the gate that its own covariance does not cover
+    (normalised error beyond the 99.9 % χ² quantile): a lock on the wrong thing, not a noisy
+    answer that says it is noisy. An answer flagged ambiguous is not a wrong lock either."""
+    if r.status == "lost" or r.ambiguous:
+        return False
+    beyond = not r.error.position_m <= WRONG_LOCK_POSITION_M or not (
+        r.error.attitude_rad <= WRONG_LOCK_ATTITUDE_RAD
     )
+    if not math.isnan(r.error.nees_pose):
+        covered = r.error.nees_pose <= WRONG_LOCK_NEES_POSE
+    else:
+        covered = r.error.nees_circle <= WRONG_LOCK_NEES_CIRCLE
+    return beyond and not covered
 
 
 def _longest_run(flags: Sequence[bool]) -> int:
