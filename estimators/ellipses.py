@@ -53,6 +53,7 @@ from estimators.conics import (
     circle_cone,
     circle_image_conic,
     circle_plane_basis,
+    circle_points,
     fit_ellipse_direct,
     sampson_distances,
 )
@@ -241,6 +242,13 @@ class EllipseEstimator:
             # Small motion since the prior (the usual case): one fine stage settles it; a
             # larger one fails its verification and gets the coarse-to-fine search.
             fit = self._refine_full(image, prior, off_axis, None, None)
+            if (
+                fit is not None
+                and self._moved_px(prior, fit.X_CT) > self.settings.fine_half_width_px
+            ):
+                # The ring moved nearly as far as the window reaches: edges may have been
+                # beyond it (a neighbour taken instead); search coarse-to-fine.
+                fit = None
             if fit is None:
                 fit = self._refine_full(image, prior, off_axis, None, width)
         if fit is None:
@@ -680,6 +688,17 @@ class EllipseEstimator:
             polarity=polarity,
             half_width_px=half_width,
             prior_sigma_px=max(half_width / 2.0, 1.5),
+        )
+
+    def _moved_px(self, X_a: Pose, X_b: Pose) -> float:
+        """Largest image displacement (px) of the ring's outer edge between two poses."""
+        rim = circle_points(self.outer.center_T, self.outer.normal_T, self.outer.radius, 24)
+        a = X_a.apply(rim)
+        b = X_b.apply(rim)
+        if np.any(a[:, 2] <= 1e-3) or np.any(b[:, 2] <= 1e-3):
+            return np.inf
+        return float(
+            np.max(np.linalg.norm(self.camera.project(a) - self.camera.project(b), axis=1))
         )
 
     def _locus_in_view(self, ring: CirclePose, circle: Circle3D, radius_px: float) -> bool:
