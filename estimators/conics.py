@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimators.geometry import as_points
+from estimators.robust_lsq import gauss_newton
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,23 +99,52 @@ def ellipse_from_conic(Q: np.ndarray) -> Ellipse:
 
 def circle_plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors spanning the plane orthogonal to ``normal`` (any fixed choice)."""
-    n = np.asarray(normal, dtype=float)
-    n = n / np.linalg.norm(n)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(n, helper)
-    u /= np.linalg.norm(u)
-    return u, np.cross(n, u)
+    x, y, z = np.asarray(normal, dtype=float) / np.sqrt(np.dot(normal, normal))
+    # u = n × helper, v = n × u, written out (np.cross is slow on single vectors).
+    u = np.array([0.0, z, -y]) if abs(x) < 0.9 else np.array([-z, 0.0, x])  # helper x or y
+    u /= np.sqrt(u @ u)
+    v = np.array([y * u[2] - z * u[1], z * u[0] - x * u[2], x * u[1] - y * u[0]])
+    return u, v
 
 
-def circle_points(center: np.ndarray, normal: np.ndarray, radius: float, n: int = 64) -> np.ndarray:
-    """``n`` points (n,3) evenly spaced on a 3-D circle."""
+def circle_points(
+    center: np.ndarray,
+    normal: np.ndarray,
+    radius: float,
+    n: int = 64,
+    *,
+    angles: np.ndarray | None = None,
+) -> np.ndarray:
+    """``n`` points (n,3) evenly spaced on a 3-D circle, or the points at ``angles`` (rad,
+    measured in the ``circle_plane_basis`` of the normal)."""
     u, v = circle_plane_basis(normal)
-    t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False) if angles is None else np.asarray(angles)
     return (
         np.asarray(center, dtype=float)
         + radius * np.outer(np.cos(t), u)
         + radius * np.outer(np.sin(t), v)
     )
+
+
+def circle_cone(center_C: np.ndarray, normal_C: np.ndarray, radius: float) -> np.ndarray:
+    """The cone Xᵀ A X = 0 of the rays from the camera centre through a 3-D circle (frame C).
+
+    A ray X meets the circle's plane n·Y = n·c at Y = X (n·c)/(n·X); requiring ‖Y − c‖ = r and
+    multiplying by (n·X)² gives ‖(n·c) X − (n·X) c‖² = r² (n·X)², i.e.
+
+        A = (n·c)² I − (n·c)(c nᵀ + n cᵀ) + (‖c‖² − r²) n nᵀ,
+
+    negative inside the cone (at X = c it is −r²(n·c)²). Basis-free, so it is also an
+    independent check of the plane-homography form below.
+    """
+    c = np.asarray(center_C, dtype=float)
+    n = np.asarray(normal_C, dtype=float)
+    n = n / np.sqrt(n @ n)
+    nc = float(n @ c)
+    cn = c[:, None] * n[None, :]
+    A = (c @ c - radius * radius) * (n[:, None] * n[None, :]) - nc * (cn + cn.T)
+    A[np.diag_indices(3)] += nc * nc
+    return A
 
 
 def circle_image_conic(
@@ -141,3 +171,129 @@ def conic_residuals(Q: np.ndarray, uv: np.ndarray) -> np.ndarray:
     uv = as_points(uv, 2, "uv")
     h = np.column_stack([uv, np.ones(len(uv))])
     return np.einsum("ni,ij,nj->n", h, Q, h)
+
+
+def sampson_distances(Q: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Signed Sampson distances (px) of points (N,2) to the conic Q: the algebraic value divided
+    by the norm of its gradient, a first-order approximation of the geometric distance that is
+    exact to O(d²/R) for points near the curve (Kanatani, "Statistical optimization for
+    geometric computation", 1996). Negative inside a normalised ellipse."""
+    uv = as_points(uv, 2, "uv")
+    h = np.column_stack([uv, np.ones(len(uv))])
+    Qh = h @ np.asarray(Q, dtype=float)  # Q symmetric: rows are (Q h)ᵀ
+    value = np.einsum("ni,ni->n", Qh, h)
+    gradient_norm = 2.0 * np.hypot(Qh[:, 0], Qh[:, 1])
+    return value / np.maximum(gradient_norm, 1e-300)
+
+
+def fit_ellipse_direct(uv: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Direct least-squares ellipse fit of points (N,2), N ≥ 5; returns the normalised conic.
+
+    Fitzgibbon, Pilu & Fisher, "Direct least square fitting of ellipses" (IEEE PAMI 1999):
+    minimise the algebraic distance subject to 4ac − b² = 1, which always yields an ellipse;
+    solved in the numerically stable block form of Halíř & Flusser (WSCG 1998). Points are
+    first centred and scaled (Hartley normalisation) so the fit is independent of pixel scale.
+    ``weights`` (N,) weight each point's algebraic residual. ValueError if the points do not
+    determine an ellipse (fewer than 5, collinear, ...).
+    """
+    uv = as_points(uv, 2, "uv")
+    if len(uv) < 5:
+        raise ValueError(f"an ellipse fit needs at least 5 points; got {len(uv)}")
+    mean = uv.mean(axis=0)
+    scale = np.sqrt(2.0) / max(np.sqrt(((uv - mean) ** 2).sum(axis=1).mean()), 1e-12)
+    x = (uv[:, 0] - mean[0]) * scale
+    y = (uv[:, 1] - mean[1]) * scale
+    D1 = np.column_stack([x * x, x * y, y * y])
+    D2 = np.column_stack([x, y, np.ones_like(x)])
+    if weights is not None:
+        w = np.sqrt(np.clip(np.asarray(weights, dtype=float).reshape(-1), 0.0, None))
+        if w.shape != (len(uv),):
+            raise ValueError(f"weights must have shape ({len(uv)},); got {np.shape(weights)}")
+        D1 = D1 * w[:, None]
+        D2 = D2 * w[:, None]
+    S1 = D1.T @ D1
+    S2 = D1.T @ D2
+    S3 = D2.T @ D2
+    try:
+        T = -np.linalg.solve(S3, S2.T)
+    except np.linalg.LinAlgError as exc:
+        raise ValueError("points do not determine an ellipse (degenerate layout)") from exc
+    M = S1 + S2 @ T
+    # Premultiply by the inverse of the constraint matrix C1 = [[0,0,2],[0,-1,0],[2,0,0]].
+    M = np.array([M[2] / 2.0, -M[1], M[0] / 2.0])
+    eigenvalues, eigenvectors = np.linalg.eig(M)
+    eigenvectors = np.real(eigenvectors)
+    condition = 4.0 * eigenvectors[0] * eigenvectors[2] - eigenvectors[1] ** 2
+    candidates = np.flatnonzero((condition > 0) & np.isfinite(np.real(eigenvalues)))
+    if len(candidates) == 0:
+        raise ValueError("points do not determine an ellipse (no elliptical solution)")
+    a1 = eigenvectors[:, candidates[np.argmin(np.abs(np.real(eigenvalues[candidates])))]]
+    a2 = T @ a1
+    A, B, C = a1
+    Dx, Ey, F = a2
+    Q_normalised = np.array([[A, B / 2, Dx / 2], [B / 2, C, Ey / 2], [Dx / 2, Ey / 2, F]])
+    # Normalised coordinates: x_n = H x with H = [[s, 0, −s·mx], [0, s, −s·my], [0, 0, 1]].
+    H = np.array([[scale, 0.0, -scale * mean[0]], [0.0, scale, -scale * mean[1]], [0, 0, 1.0]])
+    Q = H.T @ Q_normalised @ H
+    if not np.all(np.isfinite(Q)):
+        raise ValueError("points do not determine an ellipse (non-finite fit)")
+    return normalize_conic(Q)
+
+
+def ellipse_angles(e: Ellipse, uv: np.ndarray) -> np.ndarray:
+    """Parametric angles (rad, in (−π, π]) of points (N,2) about an ellipse: the angle t with
+    the point ≈ centre + R(angle)·[a cos t, b sin t]."""
+    uv = as_points(uv, 2, "uv")
+    d = uv - e.center
+    c, s = np.cos(e.angle), np.sin(e.angle)
+    return np.arctan2((-s * d[:, 0] + c * d[:, 1]) / e.b, (c * d[:, 0] + s * d[:, 1]) / e.a)
+
+
+def covered_angle(angles: np.ndarray) -> float:
+    """Angular extent (rad, in [0, 2π]) of a set of angles on the circle: 2π minus the largest
+    gap between neighbours."""
+    angles = np.sort(np.mod(np.asarray(angles, dtype=float).reshape(-1), 2.0 * np.pi))
+    if len(angles) < 2:
+        return 0.0
+    gaps = np.diff(np.concatenate([angles, [angles[0] + 2.0 * np.pi]]))
+    return float(2.0 * np.pi - gaps.max())
+
+
+def _conic_from_parameters(cx: float, cy: float, a: float, b: float, angle: float) -> np.ndarray:
+    """Conic of an ellipse given by parameters without the a ≥ b ordering (for fitting)."""
+    c, s = np.cos(angle), np.sin(angle)
+    R = np.array([[c, -s], [s, c]])
+    A = R @ np.diag([1.0 / a**2, 1.0 / b**2]) @ R.T
+    centre = np.array([cx, cy])
+    Q = np.empty((3, 3))
+    Q[:2, :2] = A
+    Q[:2, 2] = Q[2, :2] = -A @ centre
+    Q[2, 2] = centre @ A @ centre - 1.0
+    return Q
+
+
+def refine_ellipse(
+    uv: np.ndarray, initial: Ellipse, *, iterations: int = 6
+) -> tuple[Ellipse, np.ndarray, float]:
+    """Geometric refinement of an ellipse on points (N,2): robust Gauss–Newton on (centre,
+    log-axes, angle) minimising Sampson distances (Kanatani 1996) with Huber weights — the
+    step after a direct algebraic fit, which is biased toward small ellipses on short arcs.
+
+    Returns (ellipse, residuals (N,) px, robust noise scale px).
+    """
+    uv = as_points(uv, 2, "uv")
+    state = np.array([initial.cx, initial.cy, np.log(initial.a), np.log(initial.b), initial.angle])
+
+    def conic(delta: np.ndarray) -> np.ndarray:
+        cx, cy, log_a, log_b, angle = state + delta
+        return _conic_from_parameters(cx, cy, np.exp(log_a), np.exp(log_b), angle)
+
+    def residuals(delta: np.ndarray) -> list[np.ndarray]:
+        return [sampson_distances(conic(delta), uv)]
+
+    def commit(delta: np.ndarray) -> None:
+        state[:] = state + delta
+
+    solution = gauss_newton(residuals, 5, commit, iterations=iterations, sigma_floor=0.02)
+    ellipse = ellipse_from_conic(conic(np.zeros(5)))
+    return ellipse, solution.residuals[0], solution.sigmas[0]

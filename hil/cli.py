@@ -233,6 +233,14 @@ def matrix(
     distance: Annotated[str, typer.Option(help="Comma-separated distances (m).")] = "3,2,1.2",
     maneuver: Annotated[str, typer.Option(help="Comma-separated maneuvers, or 'all'.")] = "all",
     seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
+    camera: CameraOpt = "reference",
+    mockup: MockupOpt = "default",
+    acquire_every_frame: Annotated[
+        bool, typer.Option(help="Drop the prior before every frame (acquisition rate).")
+    ] = False,
+    blank: Annotated[
+        str, typer.Option(help="Comma-separated frame indices replaced by blank frames.")
+    ] = "",
     jobs: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 1,
     out_path: Annotated[
         Path | None, typer.Option("--out", help="Write the markdown table here.")
@@ -258,14 +266,18 @@ def matrix(
             noises=tuple(noise.split(",")),
             frames=frames,
             seed=seed,
+            camera=camera,
+            mockup=mockup,
+            acquire_every_frame=acquire_every_frame,
+            blank_frames=tuple(int(i) for i in blank.split(",") if i.strip()),
         )
     except ValueError as exc:
-        raise _fail(f"bad --distance: {exc}") from None
+        raise _fail(f"bad --distance or --blank: {exc}") from None
     for level in spec.noises:
         _noise_config(level)
     try:
         rows = run_matrix(spec, jobs=jobs, progress=lambda text: console.print(text))
-    except (ValueError, NotImplementedError) as exc:
+    except (ValueError, NotImplementedError, ConfigError) as exc:
         raise _fail(str(exc)) from None
     table = markdown_table(summarize(rows))
     out.print(table, markup=False, highlight=False)
@@ -277,6 +289,50 @@ def matrix(
         with results.open("w", encoding="utf-8") as f:
             for row in rows:
                 f.write(json.dumps(asdict(row), allow_nan=True) + "\n")
+
+
+@app.command()
+def approach(
+    system: Annotated[str, typer.Option(help="Estimator: corners | lines | ellipses.")],
+    frames: Annotated[int, typer.Option(min=2, help="Frames from 2.5 m to 0.5 m.")] = 120,
+    noise: NoiseOpt = "low",
+    camera: CameraOpt = "reference",
+    mockup: MockupOpt = "default",
+    seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
+    out_path: Annotated[
+        Path | None, typer.Option("--out", help="Write the markdown tables here.")
+    ] = None,
+) -> None:
+    """Track the target along the reference's approach (2.5 m → 0.5 m, re-centring an
+    off-centre, rotated start) and print errors by distance and by the fraction of the ring
+    in view."""
+    from hil.approach import markdown_approach, markdown_visible, run_approach
+
+    _noise_config(noise)
+    try:
+        results = run_approach(
+            system, frames=frames, noise=noise, camera=camera, mockup=mockup, seed=seed
+        )
+    except (ConfigError, ValueError, NotImplementedError) as exc:
+        raise _fail(str(exc)) from None
+    text = (
+        markdown_approach(results, (2.5, 2.0, 1.5, 1.0, 0.75, 0.6, 0.49))
+        + "\n"
+        + markdown_visible(results, (1.01, 0.95, 0.9, 0.8, 0.7, 0.6, 0.5, 0.0))
+    )
+    lost = sum(r.status == "lost" for r in results)
+    text += (
+        f"\n{len(results)} frames, {lost} lost, statuses after the first: "
+        + ", ".join(
+            f"{s} {sum(r.status == s for r in results[1:])}"
+            for s in ("tracking", "acquired", "lost")
+        )
+        + "\n"
+    )
+    out.print(text, markup=False, highlight=False)
+    if out_path is not None:
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        out_path.write_text(text, encoding="utf-8")
 
 
 @bench_app.command("estimate")

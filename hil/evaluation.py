@@ -6,7 +6,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
+from estimators.conics import circle_plane_basis
 from estimators.geometry import (
     Pose,
     normal_angle,
@@ -27,7 +29,9 @@ class MeasurementError:
     6-DOF: ``translation_m`` (‖p_true − p_est‖), ``rotation_rad`` (norm of the roll/pitch/yaw
     of R_true·R_estᵀ, the reference's metric) and ``rotation_geodesic_rad``. 5-DOF: the circle's
     ``center_m`` and ``normal_rad``. When both exist, ``roll_rad`` is the 6-DOF rotation error
-    about the circle's normal.
+    about the circle's normal. ``nees_pose`` and ``nees_circle`` are the normalised estimation
+    errors squared under the measurement's own covariances (χ² with 6 and 5 degrees of freedom
+    when the covariances are honest).
     """
 
     translation_m: float = NAN
@@ -36,6 +40,8 @@ class MeasurementError:
     center_m: float = NAN
     normal_rad: float = NAN
     roll_rad: float = NAN
+    nees_pose: float = NAN
+    nees_circle: float = NAN
 
     @property
     def position_m(self) -> float:
@@ -57,15 +63,33 @@ def measurement_error(m: Measurement, X_CT_true: Pose, target: TargetModel) -> M
         values["translation_m"] = translation_error(X_CT_true, m.X_CT)
         values["rotation_rad"] = rotation_error_rpy_norm(X_CT_true, m.X_CT)
         values["rotation_geodesic_rad"] = rotation_error_geodesic(X_CT_true, m.X_CT)
+        if m.covariance is not None:
+            # Conventions of estimators.measurement: R_true = Exp(δθ)·R_est, p_true = p_est + δp.
+            delta = np.concatenate(
+                [Rotation.from_matrix(X_CT_true.R @ m.X_CT.R.T).as_rotvec(), X_CT_true.p - m.X_CT.p]
+            )
+            values["nees_pose"] = _nees(delta, m.covariance)
     if m.center_C is not None and m.normal_C is not None and m.circle is not None:
         circle = target.circle(m.circle)
         center_true = X_CT_true.apply(circle.center_T)
         normal_true = X_CT_true.R @ circle.normal_T
         values["center_m"] = float(np.linalg.norm(m.center_C - center_true))
         values["normal_rad"] = normal_angle(normal_true, m.normal_C)
+        if m.covariance_5dof is not None:
+            u, v = circle_plane_basis(m.normal_C)
+            dn = normal_true - m.normal_C
+            delta = np.concatenate([center_true - m.center_C, [dn @ u, dn @ v]])
+            values["nees_circle"] = _nees(delta, m.covariance_5dof)
         if m.X_CT is not None:
             values["roll_rad"] = roll_error(X_CT_true, m.X_CT, circle.normal_T)
     return MeasurementError(**values)
+
+
+def _nees(delta: np.ndarray, covariance: np.ndarray) -> float:
+    try:
+        return float(delta @ np.linalg.solve(covariance, delta))
+    except np.linalg.LinAlgError:
+        return math.inf
 
 
 def roll_error(X_CT_true: Pose, X_CT_est: Pose, axis_T: np.ndarray) -> float:

@@ -29,11 +29,25 @@ from sim_backends.scene import MockupScene
 from sim_backends.sensor import expose, frame_rng
 
 NOISE_LEVELS = ("none", "low", "high")
+#: A valid measurement this far from the truth is a wrong lock (position m, attitude rad).
+WRONG_LOCK_POSITION_M = 0.05
+WRONG_LOCK_ATTITUDE_RAD = math.radians(10.0)
+#: … unless its own covariance covers the error: 99.9 % quantiles of χ² with 6 and 5 degrees of
+#: freedom (a measurement without a covariance has NaN here, which never covers).
+WRONG_LOCK_NEES_POSE = 22.46
+WRONG_LOCK_NEES_CIRCLE = 20.52
+#: Intensity of a blank frame (a lens cap, a dropout): uniform grey, then the case's noise.
+BLANK_LEVEL = 0.35
 
 
 @dataclass(frozen=True, slots=True)
 class MatrixSpec:
-    """What to run. ``estimator_options`` go to every estimator factory."""
+    """What to run. ``estimator_options`` go to every estimator factory.
+
+    ``acquire_every_frame`` drops the prior before every frame (measures acquisition alone);
+    ``blank_frames`` replaces those frame indices by blank frames (a forced loss, to measure
+    re-acquisition).
+    """
 
     systems: tuple[str, ...]
     distances_m: tuple[float, ...] = REFERENCE_DISTANCES_M
@@ -45,6 +59,8 @@ class MatrixSpec:
     mockup: str = "default"
     supersample: int = 1
     estimator_options: dict = field(default_factory=dict)
+    acquire_every_frame: bool = False
+    blank_frames: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,6 +76,8 @@ class FrameResult:
     residual_px: float
     time_ms: float
     had_prior: bool
+    blank: bool = False
+    ambiguous: bool = False
 
 
 def _maneuver(name: str) -> Maneuver:
@@ -96,13 +114,17 @@ def run_case_group(spec: MatrixSpec, distance_m: float, maneuver_name: str) -> l
             for s in spec.systems
         }
         for i, rendering in enumerate(renderings):
+            blank = i in spec.blank_frames
+            scene_image = np.full_like(rendering.image, BLANK_LEVEL) if blank else rendering.image
             image = expose(
-                rendering.image, rendering.depth_m, camera.K, noise_config, frame_rng(seed, i)
+                scene_image, rendering.depth_m, camera.K, noise_config, frame_rng(seed, i)
             )
             frame = Frame(
                 image, float(i) / 30.0, camera, i, GroundTruth(rendering.X_CT, rendering.X_WC)
             )
             for system, tracker in trackers.items():
+                if spec.acquire_every_frame:
+                    tracker.reset()
                 had_prior = tracker.prior_X_CT is not None
                 m = tracker.update(frame)
                 results.append(
@@ -118,6 +140,8 @@ def run_case_group(spec: MatrixSpec, distance_m: float, maneuver_name: str) -> l
                         m.residual_px,
                         m.time_ms,
                         had_prior,
+                        blank,
+                        m.ambiguous,
                     )
                 )
     return results
@@ -159,7 +183,11 @@ class CaseSummary:
     """Statistics of one (system, distance, maneuver, noise) case over its frames.
 
     Errors are over the frames with a valid estimate; ``position`` is the translation (6-DOF)
-    or circle-centre (5-DOF) error, ``attitude`` the rotation or normal error.
+    or circle-centre (5-DOF) error, ``attitude`` the rotation or normal error; ``normal`` the
+    circle normal's error when a circle pose is measured. ``wrong`` counts valid frames beyond
+    the wrong-lock gate, not covered by their own covariance and not flagged ambiguous (``ambiguous`` counts the flagged ones);
+    ``recovery_max`` is the longest run of lost frames after a blank
+    stretch (frames to re-acquire); blank frames are excluded from everything else but ``lost``.
     """
 
     system: str
@@ -179,6 +207,42 @@ class CaseSummary:
     acquired_tries: int
     time_median_ms: float
     time_p95_ms: float
+    normal_mean_rad: float = math.nan
+    normal_std_rad: float = math.nan
+    wrong: int = 0
+    recovery_max: int = 0
+    blank: int = 0
+    ambiguous: int = 0
+
+
+def _recovery(rows: Sequence[FrameResult]) -> int:
+    """Longest run of lost frames right after a blank stretch (0 when valid at once)."""
+    longest = 0
+    for k, r in enumerate(rows):
+        if r.blank and (k + 1 < len(rows) and not rows[k + 1].blank):
+            run = 0
+            for after in rows[k + 1 :]:
+                if after.status != "lost" or after.blank:
+                    break
+                run += 1
+            longest = max(longest, run)
+    return longest
+
+
+def _wrong_lock(r: FrameResult) -> bool:
+    """A valid, unqualified answer beyond the gate that its own covariance does not cover
+    (normalised error beyond the 99.9 % χ² quantile): a lock on the wrong thing, not a noisy
+    answer that says it is noisy. An answer flagged ambiguous is not a wrong lock either."""
+    if r.status == "lost" or r.ambiguous:
+        return False
+    beyond = not r.error.position_m <= WRONG_LOCK_POSITION_M or not (
+        r.error.attitude_rad <= WRONG_LOCK_ATTITUDE_RAD
+    )
+    if not math.isnan(r.error.nees_pose):
+        covered = r.error.nees_pose <= WRONG_LOCK_NEES_POSE
+    else:
+        covered = r.error.nees_circle <= WRONG_LOCK_NEES_CIRCLE
+    return beyond and not covered
 
 
 def _longest_run(flags: Sequence[bool]) -> int:
@@ -196,49 +260,81 @@ def summarize(results: Iterable[FrameResult]) -> list[CaseSummary]:
     summaries = []
     for (system, distance, maneuver, noise), rows in cases.items():
         rows.sort(key=lambda r: r.index)
-        valid = [r for r in rows if r.status != "lost"]
+        seen = [r for r in rows if not r.blank]
+        valid = [r for r in seen if r.status != "lost"]
         pos = np.array([r.error.position_m for r in valid])
         att = np.array([r.error.attitude_rad for r in valid])
         roll = np.array([r.error.roll_rad for r in valid if not math.isnan(r.error.roll_rad)])
-        no_prior = [r for r in rows if not r.had_prior]
-        times = np.array([r.time_ms for r in rows])
+        normal = np.array([r.error.normal_rad for r in valid if not math.isnan(r.error.normal_rad)])
+        no_prior = [r for r in seen if not r.had_prior]
+        times = np.array([r.time_ms for r in seen])
         summaries.append(
             CaseSummary(
                 system,
                 distance,
                 maneuver,
                 noise,
-                len(rows),
+                len(seen),
                 len(valid),
                 float(pos.mean()) if len(pos) else math.nan,
                 float(pos.std()) if len(pos) else math.nan,
                 float(att.mean()) if len(att) else math.nan,
                 float(att.std()) if len(att) else math.nan,
                 float(roll.mean()) if len(roll) else math.nan,
-                len(rows) - len(valid),
+                len(seen) - len(valid),
                 _longest_run([r.status == "lost" for r in rows]),
                 sum(r.status == "acquired" for r in no_prior),
                 len(no_prior),
                 float(np.median(times)),
                 float(np.percentile(times, 95)),
+                float(normal.mean()) if len(normal) else math.nan,
+                float(normal.std()) if len(normal) else math.nan,
+                sum(_wrong_lock(r) for r in valid),
+                _recovery(rows),
+                len(rows) - len(seen),
+                sum(r.ambiguous for r in valid),
             )
         )
     return summaries
 
 
 def markdown_table(summaries: Sequence[CaseSummary]) -> str:
-    """One row per case: our mean ± std beside the reference's low-noise range."""
-    lines = [
-        "| system | distance | maneuver | noise | valid | position mean ± std | attitude mean ± std "
-        "| reference (low noise) | longest loss | median / p95 ms |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
+    """One row per case: our mean ± std beside the reference's low-noise range, wrong locks,
+    and — when a system measures circles — the circle normal's error and the roll error; with
+    blank frames, the frames needed to re-acquire after them."""
+    circles = any(not math.isnan(s.normal_mean_rad) for s in summaries)
+    blanks = any(s.blank for s in summaries)
+    header = (
+        "| system | distance | maneuver | noise | valid | wrong | position mean ± std "
+        "| attitude mean ± std "
+    )
+    rule = "|---|---|---|---|---|---|---|---|"
+    if circles:
+        header += "| normal mean ± std | roll mean "
+        rule += "---|---|"
+    header += "| reference (low noise) | longest loss "
+    rule += "---|---|"
+    if blanks:
+        header += "| re-acquired after "
+        rule += "---|"
+    header += "| median / p95 ms |"
+    rule += "---|"
+    lines = [header, rule]
     for s in sorted(summaries, key=lambda s: (s.system, -s.distance_m, s.noise, s.maneuver)):
-        lines.append(
+        row = (
             f"| {s.system} | {s.distance_m:.1f} m | {s.maneuver} | {s.noise} | {s.valid}/{s.frames} "
+            f"| {s.wrong}{f' ({s.ambiguous} amb.)' if s.ambiguous else ''} "
             f"| {100 * s.position_mean_m:.2f} ± {100 * s.position_std_m:.2f} cm "
             f"| {math.degrees(s.attitude_mean_rad):.2f} ± {math.degrees(s.attitude_std_rad):.2f}° "
-            f"| {reference_text(s.system, s.distance_m)} | {s.longest_loss} "
-            f"| {s.time_median_ms:.1f} / {s.time_p95_ms:.1f} |"
         )
+        if circles:
+            row += (
+                f"| {math.degrees(s.normal_mean_rad):.2f} ± {math.degrees(s.normal_std_rad):.2f}° "
+                f"| {math.degrees(s.roll_mean_rad):.2f}° "
+            )
+        row += f"| {reference_text(s.system, s.distance_m)} | {s.longest_loss} "
+        if blanks:
+            row += f"| {s.recovery_max + 1 if s.blank else '–'} "
+        row += f"| {s.time_median_ms:.1f} / {s.time_p95_ms:.1f} |"
+        lines.append(row)
     return "\n".join(lines) + "\n"

@@ -1,0 +1,964 @@
+"""The ellipse estimator: the marman ring's circle pose (5-DOF) and, with the thruster, 6-DOF.
+
+Pipeline (FEDALPE: extract → detect/label → pose), see DESIGN.md:
+
+* **Tracking** (a prior ``X_CT`` is given): the model's circles — the ring's two edges and the
+  thruster's — are projected with the prior and their edges searched along the normals, first
+  smoothed more in a window sized to the image (coarse), then in a narrow window (fine): the
+  predicted ellipses verified by their edge support, a region-of-interest search. Should the
+  ring not verify, the arc-based extractor runs in a region around the prediction and its
+  ellipses are labeled against the predicted ones (``ellipse_detection.label_with_prior``).
+* **Acquisition** (no prior, or tracking failed): the extractor runs on the whole frame; the
+  ring is hypothesised from concentric pairs of ellipses of opposite polarity in the ratio of
+  its radii (then lone ellipses); each hypothesis gives two closed-form circle poses
+  (``circle_pose``), refined and verified by the support of both ring edges. The thruster is
+  then found by a 1-D search over the roll about the ring's axis
+  (``ellipse_detection.search_roll``).
+* **Pose**: robust least squares of the sub-pixel edge points' distances to the projected
+  circles (``circle_fit``): 5-DOF from the ring's coaxial edges, 6-DOF ``X_CT`` when the
+  thruster is found.
+* **Ambiguity**: one circle has two poses. A prior picks the one nearer its normal; without a
+  prior the thruster (found for only one of them) or the lower cost decides, and when nothing
+  decides the measurement says ``ambiguous``.
+
+Bad frames (wrong size, blank, no ring) come back ``lost`` with a reason, never an exception.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+
+from drivers.base import CameraInfo, Frame, frame_problem
+from estimators.circle_edges import (
+    CircleEdges,
+    camera_field_radius,
+    find_circle_edges,
+    sample_projected_circle,
+    to_ideal_pixels,
+    visible_pixels,
+)
+from estimators.circle_fit import (
+    EdgeSet,
+    FitResult,
+    covariance_at,
+    fit_circle_pose,
+    fit_target_pose,
+)
+from estimators.circle_pose import CirclePose, circle_poses_from_conic
+from estimators.conics import (
+    circle_cone,
+    circle_image_conic,
+    circle_plane_basis,
+    circle_points,
+    fit_ellipse_direct,
+    sampson_distances,
+)
+from estimators.edge_search import (
+    GradientField,
+    estimate_noise_sigma,
+    smoothed_gradient,
+    to_gray_float,
+)
+from estimators.ellipse_detection import (
+    label_with_prior,
+    pose_with_roll,
+    projected_ellipse,
+    ring_hypotheses,
+    roll_of,
+    search_roll,
+)
+from estimators.ellipse_extraction import ExtractedEllipse, ExtractorSettings, extract_ellipses
+from estimators.geometry import Pose, normal_angle, skew
+from estimators.measurement import Measurement
+from estimators.target import Circle3D, TargetModel
+
+SYSTEM = "ellipses"
+#: Roll search: the best roll's mean edge SNR per sample (each clipped at 8) must reach this,
+#: and stand this many times above the median over all rolls (a real circle, not clutter).
+_ROLL_SCORE_MIN = 3.0
+_ROLL_DISTINCTNESS = 4.0
+
+
+@dataclass(frozen=True, slots=True)
+class EllipseSettings:
+    """Tuning of the ellipse estimator (pixels at full resolution)."""
+
+    extractor: ExtractorSettings = field(default_factory=ExtractorSettings)
+    coarse_sigma_px: float = 2.0
+    #: Smoothing of the final edge search: this at low noise, growing with the noise (σ_n × 5)
+    #: up to ``fine_sigma_max_px`` so that edges stay well above the noise.
+    fine_sigma_px: float = 1.0
+    fine_sigma_max_px: float = 1.6
+    sample_spacing_px: float = 2.0
+    #: At most this many samples around a circle (large rings at close range are sampled
+    #: more sparsely: plenty for sub-0.1° there, and the cost stays bounded).
+    max_samples_per_circle: int = 320
+    fine_half_width_px: float = 3.0
+    min_outer_support: float = 0.35
+    min_inner_support: float = 0.25
+    min_thruster_support: float = 0.45
+    max_hypotheses: int = 6
+    #: Operating range of the ring's centre (m): a ring "found" beyond it is a smaller look-alike
+    #: (the thruster's lip is a bright annulus too) and is rejected.
+    min_range_m: float = 0.2
+    max_range_m: float = 5.0
+    #: Scale on the covariances, measured against ground truth: with the model-based terms
+    #: alone (edge noise, sample correlation, head-on linearisation) the mean NEES over the
+    #: matrix's frames was 1.1–1.7× its degrees of freedom (small biases of the rendered edges
+    #: — pixel quantisation, the thin lip, the wall — that no noise model holds). See
+    #: docs/ellipses.md, "Covariance".
+    covariance_scale: float = 1.5
+    #: The inner edge joins the fit (free radius) when its image lies this far inside the outer
+    #: one: closer, the unresolved inner wall biases it (the wall's shading is unknown).
+    inner_edge_min_gap_px: float = 15.0
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Image:
+    """One frame prepared for the stages, with a per-call cache of gradient fields."""
+
+    gray: np.ndarray
+    noise: float
+    camera: CameraInfo
+    fine_sigma: float
+    fields: dict = field(default_factory=dict)
+
+    def field(self, sigma_px: float, roi=None) -> GradientField:
+        """The smoothed gradient at ``sigma_px`` over ``roi`` (x0, y0, x1, y1) or the frame."""
+        if (sigma_px, None) in self.fields:  # a full-frame field covers any region
+            return self.fields[(sigma_px, None)]
+        if roi is not None:
+            h, w = self.gray.shape
+            x0, y0, x1, y1 = roi
+            roi = (max(0, int(x0)), max(0, int(y0)), min(w, int(x1) + 1), min(h, int(y1) + 1))
+        key = (sigma_px, roi)
+        if key not in self.fields:
+            self.fields[key] = smoothed_gradient(self.gray, sigma_px, self.noise, roi)
+        return self.fields[key]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Fit:
+    """A refined pose: 5-DOF (``ring``) or 6-DOF (``X_CT`` too), the least-squares result, the
+    edges found per circle, and a cost that compares candidates on the same footing."""
+
+    ring: CirclePose
+    X_CT: Pose | None
+    result: FitResult
+    edges: dict[str, CircleEdges]
+    cost: float
+    sigma_px: float  # smoothing of the final edge search
+    spacing_px: float  # spacing of the reference circle's edge samples
+
+    @property
+    def polarities(self) -> dict[str, int]:
+        return {name: e.polarity for name, e in self.edges.items()}
+
+
+class EllipseEstimator:
+    """Ring (and thruster) pose from ellipses; see the module docstring."""
+
+    system = SYSTEM
+
+    def __init__(
+        self, target: TargetModel, camera: CameraInfo, settings: EllipseSettings | None = None
+    ):
+        if not target.has_circle("ring_outer"):
+            raise ValueError(f"target {target.name!r} has no 'ring_outer' circle to track")
+        self.target = target
+        self.camera = camera
+        self.settings = settings or EllipseSettings()
+        self.outer = target.circle("ring_outer")
+        self.inner = target.circle("ring_inner") if target.has_circle("ring_inner") else None
+        if self.inner is not None and not _coaxial(self.inner, self.outer):
+            raise ValueError("target circle 'ring_inner' must be coaxial with 'ring_outer'")
+        self.off_axis = tuple(c for c in target.circles if not _coaxial(c, self.outer))
+        self._K_inv = np.linalg.inv(camera.K)
+        self._field_radius = camera_field_radius(camera)  # a property of the camera
+
+    # --- entry point ----------------------------------------------------------------------
+    def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
+        started = time.perf_counter()
+        problem = frame_problem(frame)
+        if problem is not None:
+            return Measurement.lost(SYSTEM, frame, f"unusable frame: {problem}", started=started)
+        if frame.info.K.shape != self.camera.K.shape or not np.allclose(
+            frame.info.K, self.camera.K
+        ):
+            return Measurement.lost(
+                SYSTEM,
+                frame,
+                "frame intrinsics differ from the estimator's camera",
+                started=started,
+            )
+        gray = to_gray_float(frame.image)
+        noise = estimate_noise_sigma(gray)
+        if _blank(gray, noise):
+            return Measurement.lost(SYSTEM, frame, "blank image (no contrast)", started=started)
+        noise = max(noise, 0.5 / 255.0)
+        s = self.settings
+        fine_sigma = float(np.clip(5.0 * noise, s.fine_sigma_px, s.fine_sigma_max_px))
+        image = _Image(gray, noise, self.camera, fine_sigma)
+        found = self._track(image, prior_X_CT) if prior_X_CT is not None else None
+        status = "tracking"
+        extracted: list[ExtractedEllipse] = []
+        if found is None:
+            status = "acquired"
+            extracted = extract_ellipses(
+                gray,
+                image.noise,
+                settings=self.settings.extractor,
+                field=image.field(image.fine_sigma),
+            )
+            found = self._acquire(image, extracted)
+        if found is None:
+            reason = (
+                f"no ring among {len(extracted)} extracted ellipses"
+                if extracted
+                else "no ellipse extracted"
+            )
+            return Measurement.lost(SYSTEM, frame, reason, started=started)
+        fit, ambiguous = found
+        return self._measurement(frame, status, fit, ambiguous, prior_X_CT, extracted, started)
+
+    # --- tracking -------------------------------------------------------------------------
+    def _track(self, image: _Image, prior: Pose):
+        """Refine from the prior (ring and thruster together); fall back to the ring alone and
+        a roll search, then to an extraction around the predicted ring."""
+        ring0 = CirclePose(prior.apply(self.outer.center_T), prior.R @ self.outer.normal_T)
+        predicted = projected_ellipse(
+            ring0.center_C, ring0.normal_C, self.outer.radius, self.camera
+        )
+        if predicted is None:
+            return None
+        width = float(np.clip(0.1 * predicted.a + 4.0, 6.0, 30.0))
+        fit = None
+        off_axis = self._visible_off_axis(prior)
+        if off_axis:
+            # Small motion since the prior (the usual case): one fine stage settles it; a
+            # larger one fails its verification and gets the coarse-to-fine search.
+            fit = self._refine_full(image, prior, off_axis, None, None)
+            if (
+                fit is not None
+                and self._moved_px(prior, fit.X_CT) > self.settings.fine_half_width_px
+            ):
+                # The ring moved nearly as far as the window reaches: edges may have been
+                # beyond it (a neighbour taken instead); search coarse-to-fine.
+                fit = None
+            if fit is None:
+                fit = self._refine_full(image, prior, off_axis, None, width)
+        if fit is None:
+            ring = self._refine_ring(image, ring0, None, coarse_half_width=width)
+            if ring is None:
+                ring = self._track_by_extraction(image, prior, ring0, predicted)
+            if ring is None:
+                return None
+            fit = self._find_thruster(image, ring, prior) or ring
+        if fit.X_CT is None:  # the ring alone: keep the pose nearer the prior's normal
+            prior_normal = prior.R @ self.outer.normal_T
+            mirror_pose = self._mirror_pose(fit)
+            if mirror_pose is not None and normal_angle(
+                mirror_pose.normal_C, prior_normal
+            ) < normal_angle(fit.ring.normal_C, prior_normal):
+                mirror = self._mirror(image, fit)
+                if mirror is not None:
+                    fit = self._find_thruster(image, mirror, None) or mirror
+        return fit, False
+
+    def _track_by_extraction(self, image: _Image, prior: Pose, ring0: CirclePose, predicted):
+        """Extract ellipses around the prediction, label them against the predicted ring edges
+        and refine from the best labeled one (its closed-form pose nearer the prior)."""
+        margin = 0.3 * predicted.a + 20.0
+        box = (
+            int(predicted.cx - predicted.a - margin),
+            int(predicted.cy - predicted.a - margin),
+            int(predicted.cx + predicted.a + margin),
+            int(predicted.cy + predicted.a + margin),
+        )
+        extracted = extract_ellipses(
+            image.gray,
+            image.noise,
+            roi=box,
+            settings=self.settings.extractor,
+            field=image.field(image.fine_sigma, box),
+        )
+        inner = None
+        if self.inner is not None:
+            inner = projected_ellipse(
+                prior.apply(self.inner.center_T),
+                prior.R @ self.inner.normal_T,
+                self.inner.radius,
+                self.camera,
+            )
+        # The ring's edges have opposite polarities: label under both assignments, keep the
+        # one that labels more edges at the lower cost.
+        best_labels: dict = {}
+        for p in (1, -1):
+            expected = {self.outer.name: (predicted, p)}
+            if inner is not None:
+                expected[self.inner.name] = (inner, -p)
+            labels = label_with_prior(extracted, expected)
+            rank = (len(labels), -sum(cost for _, cost in labels.values()))
+            if not best_labels or rank > best_labels["rank"]:
+                best_labels = {"rank": rank, "labels": labels}
+        labels = best_labels["labels"]
+        for name, (labeled, _) in sorted(labels.items(), key=lambda item: item[1][1]):
+            circle = self.target.circle(name)
+            candidates = sorted(
+                self._closed_form(labeled, circle),
+                key=lambda c: normal_angle(c.normal_C, ring0.normal_C),
+            )
+            if candidates:
+                ring = self._refine_ring(image, candidates[0], {name: labeled.polarity})
+                if ring is not None:
+                    return ring
+        return None
+
+    # --- acquisition ----------------------------------------------------------------------
+    def _acquire(self, image: _Image, extracted: list[ExtractedEllipse]):
+        """Verify ring hypotheses in order; resolve the first that verifies."""
+        hypotheses = ring_hypotheses(
+            extracted, self.outer, self.inner, max_count=self.settings.max_hypotheses
+        )
+        for hypothesis in hypotheses:
+            labeled = hypothesis.outer if hypothesis.outer is not None else hypothesis.inner
+            circle = self.outer if hypothesis.outer is not None else self.inner
+            assert labeled is not None and circle is not None
+            polarities = {}
+            if hypothesis.outer is not None:
+                polarities[self.outer.name] = hypothesis.outer.polarity
+            if hypothesis.inner is not None and self.inner is not None:
+                polarities[self.inner.name] = hypothesis.inner.polarity
+            ring = None
+            for candidate in self._closed_form(labeled, circle):
+                ring = self._refine_ring(image, candidate, polarities)
+                if ring is not None:
+                    break
+            if ring is not None:
+                return self._resolve(image, ring)
+        return None
+
+    def _closed_form(self, labeled: ExtractedEllipse, circle: Circle3D) -> list[CirclePose]:
+        """The two closed-form poses of the ring's reference circle from one labeled ellipse
+        (its conic refitted on the undistorted support points)."""
+        try:
+            Q = fit_ellipse_direct(to_ideal_pixels(labeled.points, self.camera))
+            poses = circle_poses_from_conic(Q, circle.radius, self.camera.K)
+        except ValueError:
+            return []
+        # The labeled circle is coaxial with the reference: move its centre along the axis.
+        height = float((circle.center_T - self.outer.center_T) @ self.outer.normal_T)
+        return [CirclePose(p.center_C - height * p.normal_C, p.normal_C) for p in poses]
+
+    def _resolve(self, image: _Image, ring: _Fit):
+        """Without a prior: add the thruster (6-DOF) and settle the two-fold ambiguity of the
+        ring's pose with it or with the costs. Returns (fit, ambiguous)."""
+        full = self._find_thruster(image, ring, None)
+        mirror_pose = self._mirror_pose(ring)
+        if mirror_pose is None:  # both poses are one (near head-on)
+            return full or ring, False
+        if full is not None:
+            # The thruster fixes the roll; start the 6-DOF fit once more from the mirror's
+            # normal with that roll. It usually converges back (the thruster pulls it): no
+            # ambiguity. Otherwise the lower cost wins.
+            roll = roll_of(full.X_CT, mirror_pose, self.outer)
+            X0 = pose_with_roll(mirror_pose, self.outer, roll)
+            other = self._refine_full(image, X0, self._visible_off_axis(X0), full.polarities, None)
+            if other is None or self._same_normal(full, other):
+                return full, False
+            best, second = sorted((full, other), key=lambda f: f.cost)
+            return best, second.cost <= 1.15 * best.cost
+        mirror = self._refine_ring(image, mirror_pose, ring.polarities)
+        if mirror is None or self._same_normal(ring, mirror):
+            return ring, False
+        mirror_full = self._find_thruster(image, mirror, None)
+        if mirror_full is not None:  # the thruster decides
+            return mirror_full, False
+        best, second = sorted((ring, mirror), key=lambda f: f.cost)
+        return best, second.cost <= 1.15 * best.cost
+
+    def _same_normal(self, a: _Fit, b: _Fit) -> bool:
+        """Whether two fits' normals agree within 3σ (and 1°)."""
+        separation = max(np.radians(1.0), 3.0 * _normal_sigma(a.result.covariance[:5, :5]))
+        if a.X_CT is not None:
+            cov5 = _five_from_six(a.result.covariance, a.X_CT, self.outer)
+            separation = max(np.radians(1.0), 3.0 * _normal_sigma(cov5))
+        return normal_angle(a.ring.normal_C, b.ring.normal_C) < separation
+
+    def _mirror_pose(self, ring: _Fit) -> CirclePose | None:
+        """The ring's other closed-form pose, when it differs from ``ring`` by more than 3σ of
+        its normal (and 1°); None otherwise."""
+        Q = circle_image_conic(
+            ring.ring.center_C, ring.ring.normal_C, self.outer.radius, self.camera.K
+        )
+        try:
+            candidates = circle_poses_from_conic(Q, self.outer.radius, self.camera.K)
+        except ValueError:
+            return None
+        other = max(candidates, key=lambda c: normal_angle(c.normal_C, ring.ring.normal_C))
+        separation = max(np.radians(1.0), 3.0 * _normal_sigma(ring.result.covariance))
+        if normal_angle(other.normal_C, ring.ring.normal_C) < separation:
+            return None
+        return other
+
+    def _mirror(self, image: _Image, ring: _Fit) -> _Fit | None:
+        """The ring's other pose, refined, when distinct and verified; None otherwise."""
+        pose = self._mirror_pose(ring)
+        if pose is None:
+            return None
+        mirror = self._refine_ring(image, pose, ring.polarities)
+        if mirror is None or self._same_normal(ring, mirror):
+            return None
+        return mirror
+
+    # --- refinement -----------------------------------------------------------------------
+    def _ring_circles(self) -> list[Circle3D]:
+        return [self.outer] if self.inner is None else [self.outer, self.inner]
+
+    def _refine_ring(
+        self,
+        image: _Image,
+        ring: CirclePose,
+        polarities: dict[str, int] | None,
+        *,
+        coarse_half_width: float | None = None,
+    ) -> _Fit | None:
+        """5-DOF: edge search around the projected ring edges and fit, coarse-to-fine when the
+        start may be several pixels off; None unless both edges are supported."""
+        s = self.settings
+        if coarse_half_width is None:  # a start from a fitted ellipse: within a pixel or two
+            stages = ((image.fine_sigma, s.fine_half_width_px + 1.0),)
+        else:
+            stages = (
+                (s.coarse_sigma_px, coarse_half_width),
+                (image.fine_sigma, s.fine_half_width_px),
+            )
+        X_CT = pose_with_roll(ring, self.outer, 0.0)
+        refined = self._refine(image, X_CT, self._ring_circles(), stages, polarities, full=False)
+        if refined is None or not self._ring_supported(refined.edges):
+            return None
+        return refined
+
+    def _refine_full(
+        self,
+        image: _Image,
+        X_CT: Pose,
+        off_axis: list[Circle3D],
+        polarities: dict[str, int] | None,
+        coarse_half_width: float | None,
+        off_axis_width: float | None = None,
+    ) -> _Fit | None:
+        """6-DOF: ring and off-axis circles searched coarse then fine around ``X_CT`` (fine
+        only, in a slightly wider window, when ``coarse_half_width`` is None; the off-axis
+        circles in ``off_axis_width`` when given) and fitted together; None unless the ring and
+        an off-axis circle are supported and the off-axis circles' nuisance radii are
+        plausible."""
+        s = self.settings
+        if not off_axis:
+            return None
+        if coarse_half_width is None:
+            stages = ((image.fine_sigma, s.fine_half_width_px + 2.0),)
+        else:
+            stages = (
+                (s.coarse_sigma_px, coarse_half_width),
+                (image.fine_sigma, s.fine_half_width_px),
+            )
+        refined = self._refine(
+            image,
+            X_CT,
+            self._ring_circles() + off_axis,
+            stages,
+            polarities,
+            full=True,
+            off_axis_width=off_axis_width,
+        )
+        if refined is None or not self._ring_supported(refined.edges):
+            return None
+        supported = [
+            c.name
+            for c in off_axis
+            if c.name in refined.edges and refined.edges[c.name].support >= s.min_thruster_support
+        ]
+        if not supported:
+            return None
+        free = [e.circle.name for e in self._edge_sets(refined.edges) if e.free_radius]
+        for name, offset in zip(free, refined.result.radius_offsets, strict=True):
+            if abs(offset) > 0.3 * self.target.circle(name).radius:
+                return None
+        return refined
+
+    def _refine(
+        self,
+        image: _Image,
+        X_CT: Pose,
+        circles: list[Circle3D],
+        stages,
+        polarities: dict[str, int] | None,
+        *,
+        full: bool,
+        off_axis_width: float | None = None,
+    ) -> _Fit | None:
+        """Search every circle's edges at each (σ, window) stage and refit the pose."""
+        polarities = dict(polarities or {})
+        edges: dict[str, CircleEdges] = {}
+        result = None
+        ring = CirclePose(X_CT.apply(self.outer.center_T), X_CT.R @ self.outer.normal_T)
+        for sigma, width in stages:
+            edges = {}
+            if self.inner is not None and not polarities:
+                polarities.update(self._ring_polarities(image, X_CT, sigma, width))
+            for circle in circles:
+                circle_width = width
+                if circle in self.off_axis:
+                    # Small circles get at most a window of about their own size.
+                    radius_px = self._radius_px(X_CT, circle)
+                    circle_width = min(
+                        width if off_axis_width is None else off_axis_width,
+                        max(self.settings.fine_half_width_px, 0.5 * radius_px),
+                    )
+                found = self._circle_edges(
+                    image, X_CT, circle, sigma, circle_width, polarities.get(circle.name)
+                )
+                if found is not None and found.hits.count >= 8:
+                    edges[circle.name] = found
+                    polarities.setdefault(circle.name, found.polarity)
+            edges = self._drop_blurred(edges, X_CT, sigma)
+            if self.outer.name not in edges or edges[self.outer.name].hits.count < 12:
+                return None
+            sets = self._edge_sets(edges)
+            try:
+                # The first stage only needs to land within the second's window.
+                iterations = 2 if (sigma, width) != stages[-1] else 5
+                if full:
+                    result = fit_target_pose(sets, X_CT, self.camera.K, iterations=iterations)
+                    X_CT = result.pose
+                else:
+                    result = fit_circle_pose(
+                        sets, ring, self.outer, self.camera.K, iterations=iterations
+                    )
+                    ring = result.pose
+                    X_CT = pose_with_roll(ring, self.outer, 0.0)
+            except (ValueError, np.linalg.LinAlgError):
+                return None
+            if not np.all(np.isfinite(X_CT.p)) or X_CT.p[2] <= 0:
+                return None
+        assert result is not None
+        distance = float(np.linalg.norm(X_CT.apply(self.outer.center_T)))
+        if not self.settings.min_range_m <= distance <= self.settings.max_range_m:
+            return None
+        if full:
+            ring = CirclePose(X_CT.apply(self.outer.center_T), X_CT.R @ self.outer.normal_T)
+        return _Fit(
+            ring,
+            X_CT if full else None,
+            result,
+            edges,
+            self._cost(edges, X_CT),
+            stages[-1][0],
+            edges[self.outer.name].samples.spacing_px,
+        )
+
+    def _ring_polarities(
+        self, image: _Image, X_CT: Pose, sigma: float, width: float
+    ) -> dict[str, int]:
+        """The ring's edge polarities when unknown: the two edges of an annulus have opposite
+        ones, so both assignments are scored together (edge strength on a few samples of each
+        edge) — a window wide enough to hold both edges cannot then take one for the other."""
+        strengths = {}
+        assert self.inner is not None
+        for p in (1, -1):
+            total = 0.0
+            for circle, polarity in ((self.outer, p), (self.inner, -p)):
+                found = self._circle_edges(image, X_CT, circle, sigma, width, polarity, probe=True)
+                total += 0.0 if found is None else float(found.hits.snr.sum())
+            strengths[p] = total
+        p = max(strengths, key=strengths.get)
+        return {self.outer.name: p, self.inner.name: -p}
+
+    def _ring_supported(self, edges: dict[str, CircleEdges]) -> bool:
+        s = self.settings
+        if (
+            edges.get(self.outer.name) is None
+            or edges[self.outer.name].support < s.min_outer_support
+        ):
+            return False
+        if self.inner is None:
+            return True
+        inner = edges.get(self.inner.name)
+        return inner is not None and inner.support >= s.min_inner_support
+
+    def _radius_px(self, X_CT: Pose, circle: Circle3D) -> float:
+        return float(
+            self.camera.K[0, 0] * circle.radius / max(X_CT.apply(circle.center_T)[2], 1e-3)
+        )
+
+    def _drop_blurred(
+        self, edges: dict[str, CircleEdges], X_CT: Pose, sigma: float
+    ) -> dict[str, CircleEdges]:
+        """Of two concentric off-axis circles whose images are closer than ~3σ (a thin lip at
+        long range), keep the one with the stronger edges: the other is blurred into it."""
+        names = [c.name for c in self.off_axis if c.name in edges]
+        drop = set()
+        for i, a in enumerate(names):
+            for b in names[i + 1 :]:
+                ca, cb = self.target.circle(a), self.target.circle(b)
+                if np.linalg.norm(ca.center_T - cb.center_T) > 1e-6:
+                    continue
+                gap = abs(self._radius_px(X_CT, ca) - self._radius_px(X_CT, cb))
+                if gap < 3.0 * sigma + 1.0:
+                    weaker = min((a, b), key=lambda n: float(edges[n].hits.snr.sum()))
+                    drop.add(weaker)
+        return {name: e for name, e in edges.items() if name not in drop}
+
+    def _edge_sets(self, edges: dict[str, CircleEdges]) -> list[EdgeSet]:
+        """Edge sets for the fit: the ring's outer edge fixes the scale; the others (inner
+        edge, thruster) have free radii — their apparent size is biased by neighbours (the
+        ring's inner wall, the nozzle's thin lip) while their position and shape are not. The
+        inner edge joins only when it is far enough inside the outer one (see the settings)."""
+        use_inner = False
+        if self.inner is not None and self.inner.name in edges:
+            outer = edges[self.outer.name].samples
+            inner = edges[self.inner.name].samples
+            gap = 0.5 * (outer.perimeter_px - inner.perimeter_px) / np.pi
+            use_inner = gap >= self.settings.inner_edge_min_gap_px
+        return [
+            EdgeSet(self.target.circle(name), e.uv_ideal, free_radius=name != self.outer.name)
+            for name, e in edges.items()
+            if len(e.uv_ideal) >= 8 and (self.inner is None or name != self.inner.name or use_inner)
+        ]
+
+    def _cost(self, edges: dict[str, CircleEdges], X_CT: Pose) -> float:
+        """Truncated quadratic cost per searched sample, misses included: compares candidate
+        poses on the same footing whatever their supports (residuals in px, capped at 2)."""
+        total, count = 0.0, 0
+        for name, e in edges.items():
+            circle = self.target.circle(name)
+            cone = circle_cone(X_CT.apply(circle.center_T), X_CT.R @ circle.normal_T, circle.radius)
+            r = sampson_distances(self._K_inv.T @ cone @ self._K_inv, e.uv_ideal)
+            if name != self.outer.name and len(r):
+                r = r - np.median(r)  # a free radius: only the shape counts
+            total += float(np.sum(np.minimum(r**2, 4.0))) + 4.0 * (len(e.samples.uv) - len(r))
+            count += len(e.samples.uv)
+        return total / max(count, 1)
+
+    def _circle_edges(
+        self,
+        image: _Image,
+        X_CT: Pose,
+        circle: Circle3D,
+        sigma: float,
+        half_width: float,
+        polarity: int | None,
+        *,
+        probe: bool = False,
+    ) -> CircleEdges | None:
+        """Edges of one model circle near its projection with ``X_CT``; ``probe`` searches
+        only every fourth sample (a quick look)."""
+        samples = sample_projected_circle(
+            X_CT.apply(circle.center_T),
+            X_CT.R @ circle.normal_T,
+            circle.radius,
+            self.camera,
+            spacing_px=self.settings.sample_spacing_px * max(1.0, sigma),
+            margin_px=half_width + 2.0,
+            field_radius_xy=self._field_radius,
+            max_samples=self.settings.max_samples_per_circle,
+        )
+        if samples is None or len(samples.uv) < 8:
+            return None
+        if probe:
+            samples = replace(
+                samples,
+                uv=samples.uv[::4],
+                normals=samples.normals[::4],
+                t=samples.t[::4],
+                spacing_px=4 * samples.spacing_px,
+            )
+        lo = samples.uv.min(axis=0) - half_width - 4.0 * sigma - 4.0
+        hi = samples.uv.max(axis=0) + half_width + 4.0 * sigma + 4.0
+        grad = image.field(sigma, (lo[0], lo[1], hi[0], hi[1]))
+        return find_circle_edges(
+            grad,
+            samples,
+            self.camera,
+            polarity=polarity,
+            half_width_px=half_width,
+            prior_sigma_px=max(half_width / 2.0, 1.5),
+        )
+
+    def _moved_px(self, X_a: Pose, X_b: Pose) -> float:
+        """Largest image displacement (px) of the ring's outer edge between two poses."""
+        rim = circle_points(self.outer.center_T, self.outer.normal_T, self.outer.radius, 24)
+        a = X_a.apply(rim)
+        b = X_b.apply(rim)
+        if np.any(a[:, 2] <= 1e-3) or np.any(b[:, 2] <= 1e-3):
+            return np.inf
+        return float(
+            np.max(np.linalg.norm(self.camera.project(a) - self.camera.project(b), axis=1))
+        )
+
+    def _locus_in_view(self, ring: CirclePose, circle: Circle3D, radius_px: float) -> bool:
+        """Whether the off-axis circle's centre can be in view at some roll."""
+        rolls = np.linspace(-np.pi, np.pi, 72, endpoint=False)
+        axis_point = ring.center_C
+        zero = pose_with_roll(ring, self.outer, 0.0).apply(circle.center_T) - axis_point
+        n = ring.normal_C
+        along = (zero @ n) * n
+        radial = zero - along
+        ortho = np.cross(n, radial)
+        locus = (
+            axis_point + along + np.outer(np.cos(rolls), radial) + np.outer(np.sin(rolls), ortho)
+        )
+        return bool(np.any(visible_pixels(locus, self.camera, -radius_px, self._field_radius)[0]))
+
+    def _visible_off_axis(self, X_CT: Pose) -> list[Circle3D]:
+        """Off-axis circles the pose puts in view and large enough to find (radius ≥ 3 px)."""
+        out = []
+        for c in self.off_axis:
+            center = X_CT.apply(c.center_T)
+            if center[2] <= 0 or self._radius_px(X_CT, c) < 3.0:
+                continue
+            if visible_pixels(center[None, :], self.camera, 0.0, self._field_radius)[0][0]:
+                out.append(c)
+        return out
+
+    # --- the thruster -----------------------------------------------------------------------
+    def _find_thruster(self, image: _Image, ring: _Fit, prior: Pose | None) -> _Fit | None:
+        """Search the roll about the ring's axis for the off-axis circles, largest first (near
+        the prior's roll first when there is a prior), refine the best roll to a 6-DOF pose
+        and verify it; the first circle that verifies settles it."""
+        zero = pose_with_roll(ring.ring, self.outer, 0.0)
+        for probe in sorted(self.off_axis, key=lambda c: -c.radius):
+            radius_px = self._radius_px(zero, probe)
+            if radius_px < 3.0 or not self._locus_in_view(ring.ring, probe, radius_px):
+                continue
+            # Smooth and search in proportion to the circle's image: a small one must not be
+            # blurred away, a large one is displaced by the ring's tilt error times its lever.
+            # (Two scales only, so the fields are shared with the other stages.)
+            sigma = self.settings.coarse_sigma_px * (1.0 if radius_px <= 20.0 else 2.0)
+            width = float(max(2.5, 0.3 * radius_px))
+            grad = image.field(sigma, None)
+            found = None
+            if prior is not None:
+                local = roll_of(prior, ring.ring, self.outer) + np.radians(
+                    np.arange(-12.0, 12.5, 1.0)
+                )
+                found = search_roll(
+                    grad,
+                    ring.ring,
+                    self.outer,
+                    probe,
+                    self.camera,
+                    polarity=None,
+                    rolls=local,
+                    half_width_px=width,
+                    field_radius_xy=self._field_radius,
+                )
+                if found is not None and found.score < _ROLL_SCORE_MIN:
+                    found = None
+            if found is None:
+                found = search_roll(
+                    grad,
+                    ring.ring,
+                    self.outer,
+                    probe,
+                    self.camera,
+                    polarity=None,
+                    half_width_px=width,
+                    field_radius_xy=self._field_radius,
+                )
+            if found is None or found.score < max(
+                _ROLL_DISTINCTNESS * found.median_score, _ROLL_SCORE_MIN
+            ):
+                continue
+            X_CT = pose_with_roll(ring.ring, self.outer, found.roll)
+            polarities = {**ring.polarities, probe.name: found.polarity}
+            # The ring is refined already; the circle is off by the ring's tilt error times its
+            # lever: one fine stage with a window of ~0.4 of its radius for it.
+            full = self._refine_full(
+                image,
+                X_CT,
+                self._visible_off_axis(X_CT),
+                polarities,
+                None,
+                off_axis_width=float(max(4.0, 0.4 * radius_px)),
+            )
+            if full is not None:
+                return full
+        return None
+
+    def _honest_covariance(self, fit: _Fit, inflation: float) -> np.ndarray:
+        """The fit's covariance (scaled by ``inflation``), blended toward its linearisation at
+        the head-on pose when the estimate is near head-on.
+
+        A circle's tilt from the line of sight enters its image quadratically, so at a small
+        estimated tilt θ̂ the tangent (the fit's own covariance) is over-confident about the
+        tilt; at head-on the linearisation is as pessimistic as the edges allow. The weight
+        exp(−½ (θ̂ / 1.5σ₀)²), with σ₀ the head-on weak-axis tilt sd, keeps the fit's
+        covariance when the tilt is clearly measured and moves to the head-on one when the
+        estimate cannot be told from head-on (noise pushes such estimates away from it).
+        """
+        sets = self._edge_sets(fit.edges)
+        center = fit.ring.center_C
+        head_on = -center / np.linalg.norm(center)
+        tilt = normal_angle(fit.ring.normal_C, head_on)
+        turn = _rotation_between(fit.ring.normal_C, head_on)
+        try:
+            if fit.X_CT is not None:
+                R = turn @ fit.X_CT.R
+                X0 = Pose(R, center - R @ self.outer.center_T)
+                cov0 = covariance_at(sets, fit.result, X0, self.camera.K)
+                sigma0 = _normal_sigma(_five_from_six(cov0, X0, self.outer), weak=True)
+            else:
+                cov0 = covariance_at(
+                    sets,
+                    fit.result,
+                    CirclePose(center, head_on),
+                    self.camera.K,
+                    reference=self.outer,
+                )
+                sigma0 = _normal_sigma(cov0, weak=True)
+        except (ValueError, np.linalg.LinAlgError):
+            return inflation * fit.result.covariance
+        sigma0 *= np.sqrt(inflation)
+        weight = float(np.exp(-0.5 * (tilt / max(1.5 * sigma0, 1e-9)) ** 2))
+        blended = inflation * ((1.0 - weight) * fit.result.covariance + weight * cov0)
+        return 0.5 * (blended + blended.T)
+
+    # --- the measurement ------------------------------------------------------------------
+    def _measurement(
+        self,
+        frame: Frame,
+        status: str,
+        fit: _Fit,
+        ambiguous: bool,
+        prior: Pose | None,
+        extracted: list[ExtractedEllipse],
+        started: float,
+    ) -> Measurement:
+        """5-DOF always (the ring's centre and normal); 6-DOF ``X_CT`` when the thruster was
+        found; otherwise a full-pose hint with the roll carried over from the prior."""
+        inflation = self.settings.covariance_scale * _correlation_inflation(
+            fit.sigma_px, fit.spacing_px
+        )
+        X_CT = covariance = hint = None
+        if fit.X_CT is not None:
+            X_CT = fit.X_CT
+            covariance = self._honest_covariance(fit, inflation)
+            cov5 = _five_from_six(covariance, X_CT, self.outer)
+        else:
+            cov5 = self._honest_covariance(fit, inflation)
+            roll = roll_of(prior, fit.ring, self.outer) if prior is not None else 0.0
+            hint = pose_with_roll(fit.ring, self.outer, roll)
+        labeled = np.vstack([e.hits.uv[e.hits.found] for e in fit.edges.values()])
+        extracted_points = (
+            np.vstack([e.points for e in extracted]) if extracted else np.zeros((0, 2))
+        )
+        return Measurement(
+            system=SYSTEM,
+            status=status,
+            stamp=frame.stamp,
+            seq=frame.seq,
+            X_CT=X_CT,
+            covariance=covariance,
+            circle=self.outer.name,
+            center_C=fit.ring.center_C,
+            normal_C=fit.ring.normal_C,
+            covariance_5dof=cov5,
+            X_CT_hint=hint,
+            residual_px=fit.result.rms_px,
+            ambiguous=ambiguous,
+            features={
+                "extracted": _subsample(extracted_points, 400),
+                "labeled": _subsample(labeled, 160),
+            },
+            time_ms=1000.0 * (time.perf_counter() - started),
+        )
+
+
+# --- helpers ----------------------------------------------------------------------------------
+
+
+def _blank(gray: np.ndarray, noise: float) -> bool:
+    """True when the frame holds nothing but noise: 16×16 block means vary no more than the
+    noise averaged over a block would make them."""
+    h, w = gray.shape
+    if h < 32 or w < 32:
+        return True
+    blocks = cv2.resize(gray, (w // 16, h // 16), interpolation=cv2.INTER_AREA)
+    return float(blocks.std()) < max(3.0 * noise / 16.0, 0.004)
+
+
+def _coaxial(circle: Circle3D, reference: Circle3D) -> bool:
+    """True when ``circle`` shares the reference's axis (parallel normal, centre on the axis):
+    such circles are fixed by the 5-DOF pose; others need the roll."""
+    offset = circle.center_T - reference.center_T
+    lateral = offset - (offset @ reference.normal_T) * reference.normal_T
+    parallel = abs(float(circle.normal_T @ reference.normal_T)) > 1.0 - 1e-9
+    return bool(np.linalg.norm(lateral) <= 1e-6 and parallel)
+
+
+def _normal_sigma(covariance5: np.ndarray, *, weak: bool = False) -> float:
+    """Root of the normal's total variance, or of its larger principal variance (``weak``)."""
+    block = covariance5[3:5, 3:5]
+    if weak:
+        return float(np.sqrt(max(np.linalg.eigvalsh(block)[-1], 0.0)))
+    return float(np.sqrt(max(np.trace(block), 0.0)))
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit vector a onto unit vector b."""
+    v = np.cross(a, b)
+    c = float(a @ b)
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3)  # (b = −a does not occur here: both face the camera)
+    vx = skew(v)
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def _five_from_six(covariance: np.ndarray, X_CT: Pose, circle: Circle3D) -> np.ndarray:
+    """5×5 covariance of a circle's (centre, normal) from the 6×6 covariance of X_CT.
+
+    With R_true = Exp(δθ)·R and p_true = p + δp: δc = δp − [R·c_T]ₓ·δθ and δn = δθ × n, whose
+    components on (u, v) = circle_plane_basis(n) are (α, β)."""
+    n = X_CT.R @ circle.normal_T
+    u, v = circle_plane_basis(n)
+    J = np.zeros((5, 6))
+    J[:3, :3] = -skew(X_CT.R @ circle.center_T)
+    J[:3, 3:] = np.eye(3)
+    J[3, :3] = u @ -skew(n)  # δθ × n = −[n]ₓ δθ
+    J[4, :3] = v @ -skew(n)
+    out = J @ covariance @ J.T
+    return 0.5 * (out + out.T)
+
+
+def _correlation_inflation(sigma_px: float, spacing_px: float) -> float:
+    """Neighbouring edge samples share pixels through the smoothing, so they are not
+    independent: the fit's covariance (which assumes they are) is scaled by the number of
+    samples per correlation length, 2√π·σ_eff (the width of the smoothing's autocorrelation;
+    σ_eff includes the Sobel kernel's own smoothing)."""
+    sigma_eff = np.hypot(sigma_px, 0.7)
+    return float(max(1.0, 2.0 * np.sqrt(np.pi) * sigma_eff / spacing_px))
+
+
+def _subsample(points: np.ndarray, count: int) -> np.ndarray:
+    if len(points) <= count:
+        return points
+    return points[np.linspace(0, len(points) - 1, count).astype(int)]
+
+
+def build(target: TargetModel, camera: CameraInfo, **options) -> EllipseEstimator:
+    """Factory for ``estimators.registry``: options override ``EllipseSettings`` fields."""
+    extractor_options = options.pop("extractor", None)
+    settings = EllipseSettings()
+    unknown = set(options) - set(EllipseSettings.__dataclass_fields__)
+    if unknown:
+        raise ValueError(f"unknown ellipse estimator option(s): {', '.join(sorted(unknown))}")
+    settings = replace(settings, **options)
+    if extractor_options:
+        settings = replace(settings, extractor=replace(settings.extractor, **extractor_options))
+    return EllipseEstimator(target, camera, settings)
