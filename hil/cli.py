@@ -291,8 +291,8 @@ def matrix(
                 f.write(json.dumps(asdict(row), allow_nan=True) + "\n")
 
 
-@app.command()
-def approach(
+@app.command("path")
+def approach_path(
     system: Annotated[str, typer.Option(help="Estimator: corners | lines | ellipses.")],
     frames: Annotated[int, typer.Option(min=2, help="Frames from 2.5 m to 0.5 m.")] = 120,
     noise: NoiseOpt = "low",
@@ -303,10 +303,10 @@ def approach(
         Path | None, typer.Option("--out", help="Write the markdown tables here.")
     ] = None,
 ) -> None:
-    """Track the target along the reference's approach (2.5 m → 0.5 m, re-centring an
-    off-centre, rotated start) and print errors by distance and by the fraction of the ring
-    in view."""
-    from hil.approach import markdown_approach, markdown_visible, run_approach
+    """Open loop: one estimator tracks the target along a scripted approach path (2.5 m →
+    0.5 m, re-centring an off-centre, rotated start); print errors by distance and by the
+    fraction of the ring in view. (The closed loop is `satgrasp approach`.)"""
+    from hil.approach_path import markdown_approach, markdown_visible, run_approach
 
     _noise_config(noise)
     try:
@@ -559,11 +559,21 @@ def campaign(
 
 @app.command()
 def demo(
-    out_dir: Annotated[Path, typer.Option(help="Directory for the trial log and its report.")] = Path("runs"),
+    out_dir: Annotated[
+        Path, typer.Option(help="Directory for the trial log and its report.")
+    ] = Path("runs"),
 ) -> None:
     """The simulated demo on the embedded default configuration (configs/sim.yaml): one full
     approach with low noise — 2.5 m start, stand-off, grasp, retreat — its trial log and report."""
-    approach(config="sim", noise="low", seed=1, systems=None, links=None, log_dir=out_dir, report_too=True)
+    approach(
+        config="sim",
+        noise="low",
+        seed=1,
+        systems=None,
+        links=None,
+        log_dir=out_dir,
+        report_too=True,
+    )
 
 
 def main() -> None:

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from hil.approach import ApproachPath, markdown_approach, markdown_visible, run_approach
+from hil.approach_path import ApproachPath, markdown_approach, markdown_visible, run_approach
 
 
 def test_approach_path_closes_and_recentres():
