@@ -192,23 +192,46 @@ def measurement_covariance(m: Measurement) -> np.ndarray:
 # --- process and measurement models (pure) --------------------------------------------------
 
 
-def predict_nominal(X_MT: Pose, V_MT: np.ndarray, dt: float) -> Pose:
-    """Constant-velocity prediction: R ← Exp(ω·Δt)·R, p ← p + v·Δt (V_MT = [ω, v] in M)."""
+def _integration_time(dt: float, tau: float) -> tuple[float, float]:
+    """(h, a) of the damped velocity model: the velocity decays as a = exp(−Δt/τ) and the pose
+    moves by the velocity times h = ∫₀^Δt exp(−s/τ) ds = τ(1 − a); τ = ∞ is constant velocity."""
+    if math.isinf(tau):
+        return dt, 1.0
+    a = math.exp(-dt / tau)
+    return tau * (1.0 - a), a
+
+
+def predict_nominal(X_MT: Pose, V_MT: np.ndarray, dt: float, tau: float = math.inf) -> Pose:
+    """Velocity-model prediction: R ← Exp(ω·h)·R, p ← p + v·h (V_MT = [ω, v] in M), with
+    h = Δt for constant velocity (τ = ∞) or τ(1 − e^(−Δt/τ)) for a damped velocity."""
+    h, _ = _integration_time(dt, tau)
     omega, v = V_MT[:3], V_MT[3:]
-    return Pose(exp_so3(omega * dt) @ X_MT.R, X_MT.p + v * dt)
+    return Pose(exp_so3(omega * h) @ X_MT.R, X_MT.p + v * h)
 
 
-def process_jacobian(V_MT: np.ndarray, dt: float) -> np.ndarray:
-    """F = ∂δx(t+Δt)/∂δx(t) (12×12) of the constant-velocity model with left rotation error.
+def predict_velocity(V_MT: np.ndarray, dt: float, tau: float = math.inf) -> np.ndarray:
+    """The velocity after Δt: unchanged (τ = ∞) or decayed by e^(−Δt/τ)."""
+    return np.asarray(V_MT, dtype=float) * _integration_time(dt, tau)[1]
 
-    Exp(δθ') = Exp((ω̂+δω)Δt)·Exp(δθ)·Exp(−ω̂Δt) ≈ Exp(J_l(ω̂Δt)·δω·Δt)·Exp(Exp(ω̂Δt)·δθ), so
-    δθ' = Exp(ω̂Δt)·δθ + J_l(ω̂Δt)·Δt·δω; δp' = δp + Δt·δv; δω, δv constant.
+
+def process_jacobian(V_MT: np.ndarray, dt: float, tau: float = math.inf) -> np.ndarray:
+    """F = ∂δx(t+Δt)/∂δx(t) (12×12) of the (damped) velocity model with left rotation error.
+
+    Exp(δθ') = Exp((ω̂+δω)h)·Exp(δθ)·Exp(−ω̂h) ≈ Exp(J_l(ω̂h)·δω·h)·Exp(Exp(ω̂h)·δθ), so
+    δθ' = Exp(ω̂h)·δθ + J_l(ω̂h)·h·δω; δp' = δp + h·δv; δω' = a·δω, δv' = a·δv (a = e^(−Δt/τ)).
+
+    Why damped: the target sits on its mount and drifts slowly if at all. A rate the filter
+    once believed in (from slightly biased measurements) would otherwise be integrated for
+    ever along directions no current measurement observes — a circle cannot see roll, and
+    with the ring alone the fused roll drifted by 30° in two minutes of a simulated approach.
     """
-    phi = np.asarray(V_MT[:3], dtype=float) * dt
+    h, a = _integration_time(dt, tau)
+    phi = np.asarray(V_MT[:3], dtype=float) * h
     F = np.eye(STATE_DIM)
     F[0:3, 0:3] = exp_so3(phi)
-    F[0:3, 6:9] = so3_left_jacobian(phi) * dt
-    F[3:6, 9:12] = np.eye(3) * dt
+    F[0:3, 6:9] = so3_left_jacobian(phi) * h
+    F[3:6, 9:12] = np.eye(3) * h
+    F[6:12, 6:12] *= a
     return F
 
 
@@ -357,6 +380,10 @@ class FusionParams:
     gate_probability: float = 0.999
     coast_timeout_s: float = 0.3
     lost_timeout_s: float = 2.0
+    #: The target's velocity decays with this time constant (s) between measurements (∞:
+    #: constant velocity). Keeps unobserved rates (roll under circle-only measurements) from
+    #: being integrated for ever; see ``process_jacobian``.
+    velocity_time_constant_s: float = 3.0
     confirm_measurements: int = 2
     max_stamp_skew_s: float = 0.1
     camera_pointing_sigma_rad: float = 0.0
@@ -380,6 +407,11 @@ class FusionParams:
             "max_stamp_skew_s",
         ):
             _check_positive(name, getattr(self, name))
+        if not self.velocity_time_constant_s > 0:  # math.inf: constant velocity
+            raise ValueError(
+                "FusionParams.velocity_time_constant_s must be > 0 (inf for constant velocity); "
+                f"got {self.velocity_time_constant_s!r}"
+            )
         if not 0.0 < self.gate_probability < 1.0:
             raise ValueError(
                 f"FusionParams.gate_probability must be in (0, 1); got {self.gate_probability}"
@@ -593,10 +625,12 @@ class PoseFusion:
         dt = stamp - track.stamp
         if not dt > 0.0:  # no prediction backwards in time (or to a NaN stamp)
             return track
-        F = process_jacobian(track.V_MT, dt)
+        tau = self.params.velocity_time_constant_s
+        F = process_jacobian(track.V_MT, dt, tau)
         Q = process_noise(dt, self.params.angular_accel_psd, self.params.linear_accel_psd)
         _, P = kf_predict(np.zeros(STATE_DIM), track.P, F, Q)  # P = F P Fᵀ + Q
-        return _Track(stamp, predict_nominal(track.X_MT, track.V_MT, dt), track.V_MT, _sym(P))
+        X_MT = predict_nominal(track.X_MT, track.V_MT, dt, tau)
+        return _Track(stamp, X_MT, predict_velocity(track.V_MT, dt, tau), _sym(P))
 
     def _health(self, stamp: float) -> Health:
         if self._track is None:
