@@ -1,0 +1,236 @@
+"""Acquisition without a prior: find the square panel, and rank the poses it allows.
+
+1. Quadrilateral hypotheses. The image is reduced (area averaging, which also lowers the
+   noise), smoothed to the noise level and cut at several grey levels (the panel is a region
+   brighter — or darker — than all around it, at some level). Outer contours whose convex hull
+   reduces to four corners (Douglas–Peucker), with the area they enclose close to the hull's,
+   are candidate panels; each is verified by edge support along all four sides (the gradient
+   across each side, with the polarity the model gives, as a z-score against the noise) and
+   kept only if its size and shape fit the model: the four corners must be the image of a
+   square of the panel's side at a plausible distance (IPPE residual small, pose in front).
+2. Pose hypotheses. A square has four rotations that map its corners onto the quad, and each
+   has the two planar-ambiguity poses: eight hypotheses. The reprojected *whole* model scores
+   each (``estimators.model_support``): the thruster (or any asymmetric feature) fixes the
+   rotation, the ring's parallax the planar flip.
+
+Shared by the corner and line systems; each then refines the best hypotheses with its own
+features and validates the result.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from drivers.base import CameraInfo
+from estimators.geometry import Pose
+from estimators.imaging import GrayImage, smooth
+from estimators.model_support import GradientImage, ModelSupport, Support
+from estimators.panel_edges import fit_panel_edges, strips_from_quad
+from estimators.planar_pose import ideal_pixels, ippe_poses, project_ideal
+from estimators.target import TargetModel
+
+#: Distances (m) at which a panel may plausibly be found.
+DISTANCE_RANGE_M = (0.15, 20.0)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Quad:
+    """Four image corners (4,2 px) in the order that matches the model's corner order up to a
+    cyclic shift, and the weakest side's edge support (z-score)."""
+
+    corners_uv: np.ndarray
+    support: float
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Hypothesis:
+    """A pose the panel quad allows, with the whole model's support at that pose."""
+
+    X_CT: Pose
+    support: Support
+    quad: Quad
+
+
+def _polarity(target: TargetModel) -> float:
+    """+1 if the panel is brighter than what surrounds it, else −1."""
+    corners = [f for f in target.point_features if f.kind == "corner"]
+    return 1.0 if (not corners or corners[0].brighter) else -1.0
+
+
+def _side_support(gradients: GradientImage, quad: np.ndarray, polarity: float) -> float:
+    """Smallest z-score over the four sides of mean(−polarity · g·n_out) (n_out outward),
+    each side taken at its best offset within ±3 px (quad corners are rough)."""
+    centre = quad.mean(axis=0)
+    worst = math.inf
+    h, w = gradients.smoothed.shape
+    for i in range(4):
+        a, b = quad[i], quad[(i + 1) % 4]
+        length = float(np.linalg.norm(b - a))
+        count = max(6, int(length / 3))
+        t = np.linspace(0.15, 0.85, count)[:, None]
+        normal = np.array([-(b - a)[1], (b - a)[0]]) / max(length, 1e-9)
+        if normal @ (0.5 * (a + b) - centre) < 0:
+            normal = -normal
+        best = -math.inf
+        for shift in (-3.0, -1.5, 0.0, 1.5, 3.0):
+            points = a + t * (b - a) + shift * normal
+            inside = (points[:, 0] >= 0) & (points[:, 0] <= w - 1) & (points[:, 1] >= 0)
+            inside &= points[:, 1] <= h - 1
+            if inside.sum() < 4:
+                continue
+            points = points[inside]
+            g = gradients.directional(points, normal)
+            # Samples ~3 px apart along a side are treated as independent.
+            z = float(-polarity * g.mean() / (gradients.gradient_noise / math.sqrt(len(g))))
+            best = max(best, z)
+        worst = min(worst, best)
+    return worst
+
+
+def find_panel_quads(
+    image: GrayImage,
+    gradients: GradientImage,
+    target: TargetModel,
+    *,
+    levels: int = 7,
+    min_side_px: float = 10.0,
+    min_support: float = 4.0,
+    max_quads: int = 6,
+) -> list[Quad]:
+    """Candidate panel quadrilaterals, best supported first (see module docstring)."""
+    pixels = image.pixels
+    h, w = pixels.shape
+    factor = max(1, round(min(h, w) / 240))
+    small = cv2.resize(pixels, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+    small = smooth(small, 1.0)
+    polarity = _polarity(target)
+    if polarity < 0:
+        small = 1.0 - small
+    low, high = np.percentile(small[::2, ::2], [30.0, 99.5])
+    min_area = (min_side_px / factor) ** 2
+    max_area = 0.6 * small.size
+    found: list[np.ndarray] = []
+    for level in np.linspace(low, high, levels + 2)[1:-1]:
+        binary = (small > level).astype(np.uint8)
+        contours, _ = cv2.findContours(binary, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+        for contour in contours:
+            area = cv2.contourArea(contour)
+            if not min_area <= area <= max_area:
+                continue
+            hull = cv2.convexHull(contour)
+            hull_area = cv2.contourArea(hull)
+            if hull_area <= 0 or area / hull_area < 0.8:
+                continue
+            approx = cv2.approxPolyDP(hull, 0.08 * cv2.arcLength(hull, True), True)
+            if len(approx) != 4 or not cv2.isContourConvex(approx):
+                continue
+            quad = approx.reshape(4, 2).astype(float)
+            # A disc also reduces to four points; a square's region fills its quad.
+            if abs(cv2.contourArea(approx) / area - 1.0) > 0.12:
+                continue
+            # Contour coordinates are pixel indices of the reduced image; map pixel centres.
+            quad = (quad + 0.5) * factor - 0.5
+            sides = np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)
+            if sides.min() < min_side_px or sides.max() > 4.0 * sides.min():
+                continue
+            found.append(quad)
+    unique: list[np.ndarray] = []
+    for quad in found:
+        scale = np.linalg.norm(quad - quad.mean(axis=0), axis=1).mean()
+        if all(_quad_distance(quad, other) > 0.15 * scale for other in unique):
+            unique.append(quad)
+    quads = []
+    for quad in unique:
+        support = _side_support(gradients, quad, polarity)
+        if support >= min_support:
+            quads.append(Quad(quad, support))
+    quads.sort(key=lambda q: -q.support)
+    return quads[:max_quads]
+
+
+def _quad_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest corner distance under the best cyclic matching of two quads."""
+    return min(float(np.max(np.linalg.norm(a - np.roll(b, k, axis=0), axis=1))) for k in range(4))
+
+
+def _model_orientation(target: TargetModel, camera: CameraInfo) -> float:
+    """Sign of the image orientation of the panel corners seen from the front (+z side)."""
+    X_CT = Pose(np.diag([1.0, -1.0, -1.0]), np.array([0.0, 0.0, 2.0]))
+    uv = project_ideal(X_CT, target.panel_corners_T, camera.K)
+    return float(np.sign(_signed_area(uv)))
+
+
+def _signed_area(quad: np.ndarray) -> float:
+    x, y = quad[:, 0], quad[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def poses_from_corners(
+    corners_ideal: np.ndarray, camera: CameraInfo, target: TargetModel
+) -> list[Pose]:
+    """The (up to) eight poses under which the model panel images onto the four corners
+    (4,2 ideal px, in order around the quad): four cyclic correspondences × the planar
+    two-fold ambiguity, kept if the panel faces the camera at a plausible distance and
+    reprojects onto the corners."""
+    uv = np.asarray(corners_ideal, dtype=float).reshape(4, 2)
+    if np.sign(_signed_area(uv)) != _model_orientation(target, camera):
+        uv = uv[::-1]
+    size = float(np.mean(np.linalg.norm(uv - np.roll(uv, -1, axis=0), axis=1)))
+    poses = []
+    for shift in range(4):
+        ordered = np.roll(uv, shift, axis=0)
+        for X_CT in ippe_poses(target.panel_corners_T, ordered, camera.K):
+            depth = X_CT.apply(target.panel_corners_T)[:, 2]
+            if depth.min() < DISTANCE_RANGE_M[0] or depth.max() > DISTANCE_RANGE_M[1]:
+                continue
+            normal_C = X_CT.R[:, 2]
+            centre_C = X_CT.apply(target.panel_corners_T.mean(axis=0))
+            if normal_C @ centre_C >= 0:  # the panel's front must face the camera
+                continue
+            projected = project_ideal(X_CT, target.panel_corners_T, camera.K)
+            if np.max(np.linalg.norm(projected - ordered, axis=1)) > 0.12 * size + 2.0:
+                continue
+            poses.append(X_CT)
+    return poses
+
+
+def pose_hypotheses(
+    image: GrayImage,
+    gradients: GradientImage,
+    camera: CameraInfo,
+    target: TargetModel,
+    support: ModelSupport,
+    *,
+    max_quads: int = 3,
+    strip_px: float = 6.0,
+    shift_px: float = 3.0,
+) -> list[Hypothesis]:
+    """Every pose hypothesis from the panel quads, ranked by the whole model's support (each
+    contour at its best offset within ``shift_px``). Each quad's sides are first refined to
+    sub-pixel edges, so that the hypotheses are accurate enough for the model's other contours
+    to tell them apart."""
+    polarity = _polarity(target)
+    hypotheses = []
+    for quad in find_panel_quads(image, gradients, target, max_quads=max_quads):
+        edges = fit_panel_edges(
+            image.pixels,
+            strips_from_quad(quad.corners_uv, strip_px),
+            camera,
+            search_px=3.0,
+            polarity=polarity,
+        )
+        corners = (
+            edges.corners_ideal
+            if edges.all_found
+            else ideal_pixels(quad.corners_uv, camera.K, camera.dist)
+        )
+        for X_CT in poses_from_corners(corners, camera, target):
+            hypotheses.append(
+                Hypothesis(X_CT, support.score(gradients, X_CT, shift_px=shift_px), quad)
+            )
+    hypotheses.sort(key=lambda h: -h.support.total)
+    return hypotheses
