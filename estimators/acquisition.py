@@ -46,6 +46,68 @@ class Quad:
     support: float
 
 
+def quarter_turns(target: TargetModel) -> tuple[Pose, ...]:
+    """The square panel's symmetries: X_TT' for turns of 0, 90, 180 and 270° about the panel's
+    axis (the panel alone cannot tell ``X_CT`` from ``X_CT @ turn``)."""
+    centre = target.panel_corners_T.mean(axis=0)
+    normal = np.cross(
+        target.panel_corners_T[1] - target.panel_corners_T[0],
+        target.panel_corners_T[2] - target.panel_corners_T[1],
+    )
+    normal /= np.linalg.norm(normal)
+    turns = []
+    for k in range(4):
+        R = Pose.from_rotvec(normal * k * math.pi / 2, np.zeros(3)).R
+        turns.append(Pose(R, centre - R @ centre))
+    return tuple(turns)
+
+
+@dataclass(frozen=True, slots=True)
+class TurnCheck:
+    """Support of the four quarter turns of a pose from the parts of the model that tell them
+    apart: the best turn (0 = the pose itself) and by how much its support beats the
+    runner-up (z units; infinite when only one turn is possible, NaN when no part can tell)."""
+
+    best: int
+    margin: float
+
+
+class TurnChecker:
+    """Decides the panel's quarter turn with the model's asymmetric parts (the thruster, an
+    irregular fastener layout), each contour at its best offset within ``shift_px`` so that a
+    pose with a few degrees of tilt error can still be judged."""
+
+    def __init__(self, target: TargetModel, support: ModelSupport, *, shift_px: float = 3.0):
+        self.turns = quarter_turns(target)
+        self.support = support
+        self.shift_px = shift_px
+        symmetric, discs_symmetric = support.symmetric_under(self.turns[1])
+        self.parts = frozenset(n for n in support.names if n not in symmetric)
+        self.use_discs = not discs_symmetric
+
+    @property
+    def decidable(self) -> bool:
+        return bool(self.parts) or self.use_discs
+
+    def check(self, gradients: GradientImage, X_CT: Pose) -> TurnCheck:
+        if not self.decidable:
+            return TurnCheck(0, math.nan)
+        totals = np.array(
+            [
+                self.support.score(
+                    gradients,
+                    X_CT @ turn,
+                    shift_px=self.shift_px,
+                    only=self.parts,
+                    discs=self.use_discs,
+                ).total
+                for turn in self.turns
+            ]
+        )
+        order = np.argsort(-totals)
+        return TurnCheck(int(order[0]), float(totals[order[0]] - totals[order[1]]))
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class Hypothesis:
     """A pose the panel quad allows, with the whole model's support at that pose."""

@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from drivers.base import CameraInfo, Frame
-from estimators.acquisition import pose_hypotheses
+from estimators.acquisition import TurnChecker, pose_hypotheses
 from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
 from estimators.measurement import Measurement
@@ -72,8 +72,8 @@ class CornerOptions:
     min_edge_support: float = 4.0
     min_disc_snr: float = 3.0
     pose_method: str = "gauss_newton"
-    rounds: int = 3
     max_hypotheses: int = 3
+    turn_margin: float = 8.0
 
     def __post_init__(self) -> None:
         if self.pose_method not in POSE_METHODS:
@@ -167,14 +167,7 @@ class CornerEstimator:
         self._ring_inner = (
             target.circle("ring_inner").radius if target.has_circle("ring_inner") else math.inf
         )
-        # The model's symmetry about the panel's axis: quarter turns (a square panel).
-        centre = target.panel_corners_T.mean(axis=0)
-        self._quarter_turns = [
-            Pose(np.eye(3), centre)
-            @ Pose.from_rpy(0.0, 0.0, k * math.pi / 2, np.zeros(3))
-            @ Pose(np.eye(3), -centre)
-            for k in range(4)
-        ]
+        self.turns = TurnChecker(target, self.support)
 
     # --- entry point ----------------------------------------------------------------------
     def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
@@ -534,7 +527,13 @@ class CornerEstimator:
         return (choice, keep) if keep.sum() >= self.options.min_features else None
 
     def _solve(
-        self, image: GrayImage, gradients: GradientImage, X0: Pose, *, tracking: bool
+        self,
+        image: GrayImage,
+        gradients: GradientImage,
+        X0: Pose,
+        *,
+        tracking: bool,
+        retry: bool = True,
     ) -> _Solution:
         """Label, refine and fit from the pose guess ``X0`` (the prior when ``tracking``, an
         acquisition hypothesis otherwise), in rounds with shrinking gates; a disc refined in
@@ -608,11 +607,26 @@ class CornerEstimator:
         choice, keep = fitted
         fit = choice.fit
         support = self.support.score(gradients, fit.X_CT)
-        if not tracking:
-            fit_X, support = self._best_turn(gradients, fit.X_CT, support)
-            if fit_X is not fit.X_CT:  # another quarter turn explains the image better: refit
-                return self._solve(image, gradients, fit_X, tracking=True)
         reason = self._validate(fit, int(keep.sum()), support)
+        if not reason:
+            # The panel and a symmetric fastener layout look the same after a quarter turn;
+            # the model's asymmetric parts (the thruster) decide, in tracking too, so that a
+            # wrong lock cannot survive.
+            turn = self.turns.check(gradients, fit.X_CT)
+            if turn.best != 0 and turn.margin >= options.turn_margin:
+                if tracking or not retry:
+                    return self._failure(
+                        "a quarter turn of the pose fits the image better", candidates
+                    )
+                return self._solve(
+                    image,
+                    gradients,
+                    fit.X_CT @ self.turns.turns[turn.best],
+                    tracking=False,
+                    retry=False,
+                )
+            if not tracking and self.turns.decidable and not turn.margin >= options.turn_margin:
+                reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
         return _Solution(
             fit.X_CT,
             fit.covariance,
@@ -625,16 +639,6 @@ class CornerEstimator:
             support,
             reason,
         )
-
-    def _best_turn(self, gradients, X_CT: Pose, support: Support) -> tuple[Pose, Support]:
-        """Among the model's quarter turns of ``X_CT``, the one the image supports best."""
-        best_X, best_support = X_CT, support
-        for turn in self._quarter_turns[1:]:
-            candidate = X_CT @ turn
-            s = self.support.score(gradients, candidate)
-            if s.total > best_support.total + 6.0:
-                best_X, best_support = candidate, s
-        return best_X, best_support
 
     def _validate(self, fit, count: int, support: Support) -> str:
         """Why the fit is not a valid pose ('' if it is): too few or inconsistent features,

@@ -143,10 +143,49 @@ class ModelSupport:
         ok &= (uv[:, 1] >= margin_px) & (uv[:, 1] <= camera.height - 1 - margin_px)
         return uv, ok
 
-    def score(self, gradients: GradientImage, X_CT: Pose, *, shift_px: float = 0.0) -> Support:
-        """Support of every contour and of the discs at ``X_CT`` (see module docstring)."""
+    def symmetric_under(self, turn: Pose, tolerance_m: float = 1e-3) -> tuple[set[str], bool]:
+        """Which contours map onto the model's own contours under ``turn`` (X_TT'), and whether
+        the disc layout does — parts that cannot tell ``X_CT`` from ``X_CT @ turn``."""
+        symmetric = set()
+        for i, name in enumerate(self.names):
+            moved = turn.apply(self.points_T[self.contour_of == i])
+            gap = np.min(
+                np.linalg.norm(moved[:, None, :] - self.points_T[None, :, :], axis=2), axis=1
+            )
+            if np.max(gap) < tolerance_m + 0.05 * np.max(
+                np.linalg.norm(np.diff(self.points_T, axis=0), axis=1)
+            ):
+                symmetric.add(name)
+        discs_symmetric = True
+        if len(self.disc_centres_T):
+            moved = turn.apply(self.disc_centres_T)
+            for p, r, sign in zip(moved, self.disc_radius_m, self.disc_signs, strict=True):
+                match = (
+                    (np.linalg.norm(self.disc_centres_T - p, axis=1) < tolerance_m)
+                    & (np.abs(self.disc_radius_m - r) < tolerance_m)
+                    & (self.disc_signs == sign)
+                )
+                discs_symmetric &= bool(np.any(match))
+        return symmetric, discs_symmetric
+
+    def score(
+        self,
+        gradients: GradientImage,
+        X_CT: Pose,
+        *,
+        shift_px: float = 0.0,
+        only: frozenset[str] | None = None,
+        discs: bool = True,
+    ) -> Support:
+        """Support of every contour (or of those named in ``only``) and of the discs (unless
+        ``discs`` is False) at ``X_CT`` (see module docstring)."""
         margin = 4.0 + shift_px
+        selected = np.ones(len(self.points_T), bool)
+        if only is not None:
+            chosen = [i for i, name in enumerate(self.names) if name in only]
+            selected = np.isin(self.contour_of, chosen)
         uv, visible = self._project(X_CT, self.points_T, margin)
+        visible &= selected
         depth = np.maximum(np.abs(X_CT.apply(self.points_T)[:, 2]), 1e-3)
         ahead_uv, ahead_ok = self._project(
             X_CT, self.points_T + (0.002 * depth)[:, None] * self.across_T, 0.0
@@ -182,7 +221,8 @@ class ModelSupport:
             for i, name in enumerate(self.names):
                 if counts[i] >= _MIN_SAMPLES:
                     scores[name] = float(best[i])
-        return Support(scores, self._disc_polarity(gradients, X_CT, shift_px))
+        polarity = self._disc_polarity(gradients, X_CT, shift_px) if discs else math.nan
+        return Support(scores, polarity)
 
     def _disc_polarity(self, gradients: GradientImage, X_CT: Pose, shift_px: float) -> float:
         """z-score of Σ sign·(disc centre − ring around it) over the discs in view."""
