@@ -89,17 +89,16 @@ class TurnChecker:
     def decidable(self) -> bool:
         return bool(self.parts) or self.use_discs
 
-    def check(self, gradients: GradientImage, X_CT: Pose) -> TurnCheck:
+    def check(self, gradients: GradientImage, X_CT: Pose, *, tolerant: bool = True) -> TurnCheck:
+        """Compare the quarter turns of ``X_CT``; ``tolerant`` lets each part take its best
+        offset within ``shift_px`` (for rough poses; a tracked pose is checked as it is)."""
         if not self.decidable:
             return TurnCheck(0, math.nan)
+        shift = self.shift_px if tolerant else 0.0
         totals = np.array(
             [
                 self.support.score(
-                    gradients,
-                    X_CT @ turn,
-                    shift_px=self.shift_px,
-                    only=self.parts,
-                    discs=self.use_discs,
+                    gradients, X_CT @ turn, shift_px=shift, only=self.parts, discs=self.use_discs
                 ).total
                 for turn in self.turns
             ]

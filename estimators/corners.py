@@ -47,6 +47,7 @@ from estimators.planar_pose import (
     ideal_pixel_jacobians,
     ideal_pixels,
     ippe_poses,
+    refine_pose_robust,
 )
 from estimators.point_fit import PointFits, fit_corners, fit_discs
 from estimators.target import TargetModel
@@ -480,30 +481,22 @@ class CornerEstimator:
     def _fit_pose(self, index, uv, cov, X_start: Pose, prior: Pose | None, *, final: bool):
         """Robust pose from labeled features; returns (choice, inlier mask) or None.
 
-        Iteratively reweighted least squares with Cauchy weights 1/(1 + χ²ᵢ/9) on each
-        feature's whitened χ² (2 dof) from ``X_start`` tolerates a good share of wrong labels;
-        features with χ²ᵢ > 16 (p ≈ 3·10⁻⁴) times a robust variance factor (median χ² / 1.386,
-        within [1, 4]) are then dropped and the pose refitted on the inliers — from both IPPE
-        poses too in the final round (the planar two-fold ambiguity)."""
+        Gauss–Newton with Cauchy weights 1/(1 + χ²ᵢ/9) on each feature's whitened χ² (2 dof)
+        from ``X_start`` tolerates a good share of wrong labels; features with χ²ᵢ > 16
+        (p ≈ 3·10⁻⁴) times a robust variance factor (median χ² / 1.386, within [1, 4]) are then
+        dropped and the pose refitted on the inliers by plain least squares (covariance) —
+        from both IPPE poses too in the final round (the planar two-fold ambiguity)."""
         if len(index) < self.options.min_features:
             return None
         K = self.camera.K
         method = self.options.pose_method
-        X = X_start
         obs_all = self._observations(index, uv, cov)
-        weights = np.ones(len(index))
-        for _ in range(5):
-            obs = PointObservations(
-                obs_all.points_T, obs_all.uv, obs_all.covariance / weights[:, None, None]
-            )
-            fits = fit_from_starts([obs], [X], K, method=method)  # type: ignore[arg-type]
-            if not fits:
-                return None
-            X = fits[0].X_CT
-            _, r_w, _ = obs_all.linearize(X, K)
-            chi2 = np.sum(r_w.reshape(-1, 2) ** 2, axis=1)
-            weights = 1.0 / (1.0 + chi2 / 9.0)
+        try:
+            X, chi2 = refine_pose_robust(obs_all, X_start, K)
+        except (ValueError, np.linalg.LinAlgError):
+            return None
         keep = chi2 <= 16.0 * float(np.clip(np.median(chi2) / 1.386, 1.0, 4.0))
+        choice = None
         for _ in range(3):
             if keep.sum() < self.options.min_features:
                 return None
@@ -522,9 +515,11 @@ class CornerEstimator:
             chi2 = np.sum(r_w.reshape(-1, 2) ** 2, axis=1)
             new_keep = chi2 <= 16.0 * float(np.clip(np.median(chi2[keep]) / 1.386, 1.0, 4.0))
             if np.array_equal(new_keep, keep):
-                return choice, keep
+                break
             keep = new_keep
-        return (choice, keep) if keep.sum() >= self.options.min_features else None
+        if choice is None or keep.sum() < self.options.min_features:
+            return None
+        return choice, keep
 
     def _solve(
         self,
@@ -612,7 +607,7 @@ class CornerEstimator:
             # The panel and a symmetric fastener layout look the same after a quarter turn;
             # the model's asymmetric parts (the thruster) decide, in tracking too, so that a
             # wrong lock cannot survive.
-            turn = self.turns.check(gradients, fit.X_CT)
+            turn = self.turns.check(gradients, fit.X_CT, tolerant=not tracking)
             if turn.best != 0 and turn.margin >= options.turn_margin:
                 if tracking or not retry:
                     return self._failure(

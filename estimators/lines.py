@@ -365,7 +365,7 @@ class LineEstimator:
         if not reason:
             # The square panel looks the same after a quarter turn: the model's asymmetric
             # parts (the thruster) decide — in tracking too, so that a wrong lock cannot last.
-            turn = self.turns.check(gradients, X)
+            turn = self.turns.check(gradients, X, tolerant=not tracking)
             if turn.best != 0 and turn.margin >= options.turn_margin:
                 if tracking:
                     reason = "a quarter turn of the pose fits the image better"

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 import cv2
@@ -131,6 +131,7 @@ class PointObservations:
     points_T: np.ndarray
     uv: np.ndarray
     covariance: np.ndarray
+    _whitening: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
         points = as_points(self.points_T, 3, "points_T")
@@ -144,6 +145,7 @@ class PointObservations:
         object.__setattr__(self, "points_T", points)
         object.__setattr__(self, "uv", uv)
         object.__setattr__(self, "covariance", cov)
+        object.__setattr__(self, "_whitening", _whitener(cov) if len(cov) else np.zeros((0, 2, 2)))
 
     @property
     def size(self) -> int:
@@ -158,7 +160,7 @@ class PointObservations:
         """(residuals in px (2N,), whitened residuals (2N,), whitened Jacobian (2N,6))."""
         uv, J, _ = _projection_jacobian(X_CT, self.points_T, K)
         r = uv - self.uv
-        L = _whitener(self.covariance)
+        L = self._whitening
         r_w = np.einsum("nij,nj->ni", L, r).reshape(-1)
         J_w = np.einsum("nij,njk->nik", L, J).reshape(-1, 6)
         return r.reshape(-1), r_w, J_w
@@ -259,10 +261,23 @@ class PoseFit:
         return self.chi2 / max(self.dof, 1)
 
 
+def exp_so3(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix of an axis-angle vector (Rodrigues' formula)."""
+    theta = float(np.sqrt(rotvec @ rotvec))
+    W = np.array(
+        [[0.0, -rotvec[2], rotvec[1]], [rotvec[2], 0.0, -rotvec[0]], [-rotvec[1], rotvec[0], 0.0]]
+    )
+    if theta < 1e-8:
+        return np.eye(3) + W + 0.5 * W @ W
+    return np.eye(3) + (math.sin(theta) / theta) * W + ((1.0 - math.cos(theta)) / theta**2) * (W @ W)
+
+
 def retract(X_CT: Pose, delta: np.ndarray) -> Pose:
     """The pose moved by δ = [δθ, δp]: (Exp(δθ)·R, p + δp)."""
-    R = Rotation.from_rotvec(delta[:3]).as_matrix() @ X_CT.R
-    return Pose(nearest_rotation(R), X_CT.p + delta[3:])
+    R = exp_so3(np.asarray(delta[:3], dtype=float)) @ X_CT.R
+    if abs(float(np.linalg.det(R)) - 1.0) > 1e-9:
+        R = nearest_rotation(R)
+    return Pose(R, X_CT.p + delta[3:])
 
 
 def pose_difference(X_a: Pose, X_b: Pose) -> np.ndarray:
@@ -362,6 +377,38 @@ def refine_pose(
             converged = True
             break
     return _fit_at(observations, X, K, iteration, converged, "gauss_newton", min_scale2)
+
+
+def refine_pose_robust(
+    observations: PointObservations,
+    X0_CT: Pose,
+    K: np.ndarray,
+    *,
+    cauchy_scale2: float = 9.0,
+    iterations: int = 12,
+) -> tuple[Pose, np.ndarray]:
+    """Gauss–Newton with Cauchy reweighting per point (weight 1/(1 + χ²ᵢ/c²) on each point's
+    whitened χ², c² = ``cauchy_scale2``), re-weighted every step: an M-estimator that a good
+    share of wrong correspondences cannot pull far from a nearby start. Returns the pose and
+    each point's χ² there (for an inlier test); the covariance comes from ``refine_pose`` on
+    the inliers."""
+    X = X0_CT
+    n = len(observations.points_T)
+    chi2 = np.zeros(n)
+    for _ in range(iterations):
+        _, r_w, J_w = observations.linearize(X, K)
+        if not np.all(np.isfinite(r_w)):
+            raise ValueError("refine_pose_robust: model points behind the camera")
+        chi2 = np.sum(r_w.reshape(n, 2) ** 2, axis=1)
+        weight = np.repeat(np.sqrt(1.0 / (1.0 + chi2 / cauchy_scale2)), 2)
+        Jw = J_w * weight[:, None]
+        H = Jw.T @ Jw + 1e-9 * np.eye(6)
+        delta = -np.linalg.solve(H, Jw.T @ (r_w * weight))
+        X = retract(X, delta)
+        if np.linalg.norm(delta[:3]) < 1e-8 and np.linalg.norm(delta[3:]) < 1e-8 * (1 + np.linalg.norm(X.p)):
+            break
+    _, r_w, _ = observations.linearize(X, K)
+    return X, np.sum(r_w.reshape(n, 2) ** 2, axis=1)
 
 
 # --- closed-form starts ----------------------------------------------------------------------

@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from estimators.geometry import (
     Pose,
@@ -66,6 +67,21 @@ def measurement_error(m: Measurement, X_CT_true: Pose, target: TargetModel) -> M
         if m.X_CT is not None:
             values["roll_rad"] = roll_error(X_CT_true, m.X_CT, circle.normal_T)
     return MeasurementError(**values)
+
+
+def pose_nees(m: Measurement, X_CT_true: Pose) -> float:
+    """Normalised estimation error squared of a 6-DOF measurement: δᵀ·P⁻¹·δ with δ = [δθ, δp]
+    the true pose's offset from the estimate in the measurement's convention (R_true =
+    Exp(δθ)·R_est, p_true = p_est + δp). Its mean over many frames is 6 when the covariance is
+    honest. NaN without a 6-DOF pose."""
+    if not m.valid or m.X_CT is None or m.covariance is None:
+        return NAN
+    rotvec = Rotation.from_matrix(X_CT_true.R @ m.X_CT.R.T).as_rotvec()
+    delta = np.concatenate([rotvec, X_CT_true.p - m.X_CT.p])
+    try:
+        return float(delta @ np.linalg.solve(m.covariance, delta))
+    except np.linalg.LinAlgError:
+        return NAN
 
 
 def roll_error(X_CT_true: Pose, X_CT_est: Pose, axis_T: np.ndarray) -> float:

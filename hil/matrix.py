@@ -5,6 +5,12 @@ x / y / z and ±10° about x / y / z, each run as one sine period over the case'
 none / low / high; the reference camera. Each case starts without a prior (acquisition) and then
 tracks frame to frame, exactly as a running system would. Noise-free renderings are shared by
 all noise levels and systems of a case; each frame's noise depends only on (seed, case, frame).
+With ``acquisition`` every frame is also estimated without a prior (mode ``acquisition``), to
+measure how reliably each system finds the target from nothing.
+
+Every frame is judged against ground truth: its errors, its NEES (is the covariance honest?),
+whether it is *correct* (within 3× the accuracy target of ``hil.targets``) or a *wrong lock*
+(a valid pose with a gross error).
 """
 
 from __future__ import annotations
@@ -21,9 +27,10 @@ from drivers.base import Frame, GroundTruth
 from estimators.measurement import Tracker
 from estimators.registry import build_estimator
 from hil.config import NoiseConfig, RenderConfig, load_camera, load_mockup
-from hil.evaluation import MeasurementError, measurement_error
+from hil.evaluation import MeasurementError, measurement_error, pose_nees
 from hil.reference import reference_text
 from hil.scenarios import MANEUVERS, REFERENCE_DISTANCES_M, Maneuver, camera_pose_for
+from hil.targets import accuracy_target, is_correct, is_wrong_lock, target_text
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene
 from sim_backends.sensor import expose, frame_rng
@@ -45,6 +52,7 @@ class MatrixSpec:
     mockup: str = "default"
     supersample: int = 1
     estimator_options: dict = field(default_factory=dict)
+    acquisition: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,6 +68,8 @@ class FrameResult:
     residual_px: float
     time_ms: float
     had_prior: bool
+    nees: float = math.nan
+    mode: str = "tracking"  # or "acquisition": estimated without any prior
 
 
 def _maneuver(name: str) -> Maneuver:
@@ -106,21 +116,56 @@ def run_case_group(spec: MatrixSpec, distance_m: float, maneuver_name: str) -> l
                 had_prior = tracker.prior_X_CT is not None
                 m = tracker.update(frame)
                 results.append(
-                    FrameResult(
+                    _frame_result(
+                        m,
                         system,
                         distance_m,
                         maneuver_name,
                         noise,
                         i,
-                        m.status,
-                        m.reason,
-                        measurement_error(m, rendering.X_CT, target),
-                        m.residual_px,
-                        m.time_ms,
+                        rendering.X_CT,
+                        target,
                         had_prior,
+                        "tracking",
                     )
                 )
+                if spec.acquisition:
+                    m = Tracker(tracker.estimator).update(frame)  # no prior at all
+                    results.append(
+                        _frame_result(
+                            m,
+                            system,
+                            distance_m,
+                            maneuver_name,
+                            noise,
+                            i,
+                            rendering.X_CT,
+                            target,
+                            False,
+                            "acquisition",
+                        )
+                    )
     return results
+
+
+def _frame_result(
+    m, system, distance_m, maneuver, noise, index, X_CT_true, target, had_prior, mode
+):
+    return FrameResult(
+        system,
+        distance_m,
+        maneuver,
+        noise,
+        index,
+        m.status,
+        m.reason,
+        measurement_error(m, X_CT_true, target),
+        m.residual_px,
+        m.time_ms,
+        had_prior,
+        pose_nees(m, X_CT_true),
+        mode,
+    )
 
 
 def run_matrix(
@@ -156,10 +201,14 @@ def run_matrix(
 
 @dataclass(frozen=True, slots=True)
 class CaseSummary:
-    """Statistics of one (system, distance, maneuver, noise) case over its frames.
+    """Statistics of one (system, distance, maneuver, noise, mode) case over its frames.
 
     Errors are over the frames with a valid estimate; ``position`` is the translation (6-DOF)
-    or circle-centre (5-DOF) error, ``attitude`` the rotation or normal error.
+    or circle-centre (5-DOF) error, ``attitude`` the rotation or normal error. ``correct``:
+    frames with an estimate within 3× the case's accuracy target (-1 without a target);
+    ``wrong_locks``: valid frames with a gross error; ``longest_gap``: the longest run of
+    frames without a correct estimate (without a target: without a valid one);
+    ``nees_mean``: mean NEES of the 6-DOF estimates (6 for an honest covariance).
     """
 
     system: str
@@ -179,6 +228,23 @@ class CaseSummary:
     acquired_tries: int
     time_median_ms: float
     time_p95_ms: float
+    mode: str = "tracking"
+    correct: int = -1
+    wrong_locks: int = 0
+    longest_gap: int = 0
+    nees_mean: float = math.nan
+
+    @property
+    def target(self) -> tuple[float, float] | None:
+        return accuracy_target(self.system, self.distance_m, self.noise)
+
+    @property
+    def within_target(self) -> bool | None:
+        """Whether the mean errors meet the case's accuracy target (None without one)."""
+        target = self.target
+        if target is None or self.valid == 0:
+            return None
+        return self.position_mean_m <= target[0] and self.attitude_mean_rad <= target[1]
 
 
 def _longest_run(flags: Sequence[bool]) -> int:
@@ -192,16 +258,23 @@ def _longest_run(flags: Sequence[bool]) -> int:
 def summarize(results: Iterable[FrameResult]) -> list[CaseSummary]:
     cases: dict[tuple, list[FrameResult]] = {}
     for r in results:
-        cases.setdefault((r.system, r.distance_m, r.maneuver, r.noise), []).append(r)
+        cases.setdefault((r.system, r.distance_m, r.maneuver, r.noise, r.mode), []).append(r)
     summaries = []
-    for (system, distance, maneuver, noise), rows in cases.items():
+    for (system, distance, maneuver, noise, mode), rows in cases.items():
         rows.sort(key=lambda r: r.index)
         valid = [r for r in rows if r.status != "lost"]
         pos = np.array([r.error.position_m for r in valid])
         att = np.array([r.error.attitude_rad for r in valid])
         roll = np.array([r.error.roll_rad for r in valid if not math.isnan(r.error.roll_rad)])
+        nees = np.array([r.nees for r in valid if not math.isnan(r.nees)])
         no_prior = [r for r in rows if not r.had_prior]
         times = np.array([r.time_ms for r in rows])
+        target = accuracy_target(system, distance, noise)
+        judged = [
+            r.status != "lost" and is_correct(r.error.position_m, r.error.attitude_rad, target)
+            for r in rows
+        ]
+        good = judged if target is not None else [r.status != "lost" for r in rows]
         summaries.append(
             CaseSummary(
                 system,
@@ -221,24 +294,78 @@ def summarize(results: Iterable[FrameResult]) -> list[CaseSummary]:
                 len(no_prior),
                 float(np.median(times)),
                 float(np.percentile(times, 95)),
+                mode,
+                sum(bool(j) for j in judged) if target is not None else -1,
+                sum(
+                    is_wrong_lock(r.error.position_m, r.error.attitude_rad, distance) for r in valid
+                ),
+                _longest_run([not g for g in good]),
+                float(nees.mean()) if len(nees) else math.nan,
             )
         )
     return summaries
 
 
+def _fmt_mean_std(mean: float, std: float, scale: float, unit: str) -> str:
+    if math.isnan(mean):
+        return "–"
+    return f"{scale * mean:.2f} ± {scale * std:.2f}{unit}"
+
+
 def markdown_table(summaries: Sequence[CaseSummary]) -> str:
-    """One row per case: our mean ± std beside the reference's low-noise range."""
+    """One row per tracking case: our mean ± std beside the target and the reference's
+    low-noise range; correct frames (within 3× target), wrong locks, the longest stretch
+    without a correct pose, NEES and time. Acquisition cases (if run) follow in their own
+    table."""
     lines = [
         "| system | distance | maneuver | noise | valid | position mean ± std | attitude mean ± std "
-        "| reference (low noise) | longest loss | median / p95 ms |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| target (low noise) | reference (low noise) | correct | wrong locks | longest gap "
+        "| NEES | median / p95 ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for s in sorted(summaries, key=lambda s: (s.system, -s.distance_m, s.noise, s.maneuver)):
+    tracking = [s for s in summaries if s.mode == "tracking"]
+    for s in sorted(tracking, key=lambda s: (s.system, -s.distance_m, s.noise, s.maneuver)):
+        meets = s.within_target
+        mark = "" if meets is None else (" ✓" if meets else " ✗")
+        correct = "–" if s.correct < 0 else f"{s.correct}/{s.frames}"
         lines.append(
             f"| {s.system} | {s.distance_m:.1f} m | {s.maneuver} | {s.noise} | {s.valid}/{s.frames} "
-            f"| {100 * s.position_mean_m:.2f} ± {100 * s.position_std_m:.2f} cm "
-            f"| {math.degrees(s.attitude_mean_rad):.2f} ± {math.degrees(s.attitude_std_rad):.2f}° "
-            f"| {reference_text(s.system, s.distance_m)} | {s.longest_loss} "
+            f"| {_fmt_mean_std(s.position_mean_m, s.position_std_m, 100, ' cm')} "
+            f"| {_fmt_mean_std(s.attitude_mean_rad, s.attitude_std_rad, 180 / math.pi, '°')}{mark} "
+            f"| {target_text(s.system, s.distance_m)} "
+            f"| {reference_text(s.system, s.distance_m)} | {correct} | {s.wrong_locks} "
+            f"| {s.longest_gap} | {s.nees_mean:.1f} "
             f"| {s.time_median_ms:.1f} / {s.time_p95_ms:.1f} |"
+        )
+    text = "\n".join(lines) + "\n"
+    acquisition = [s for s in summaries if s.mode == "acquisition"]
+    if acquisition:
+        text += "\n" + acquisition_table(acquisition)
+    return text
+
+
+def acquisition_table(summaries: Sequence[CaseSummary]) -> str:
+    """Acquisition without a prior, per system, noise and distance (all maneuvers pooled)."""
+    groups: dict[tuple, list[CaseSummary]] = {}
+    for s in summaries:
+        if s.mode == "acquisition":
+            groups.setdefault((s.system, s.noise, s.distance_m), []).append(s)
+    lines = [
+        "| system | noise | distance | acquired | correct | wrong locks | median / p95 ms |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for (system, noise, distance), rows in sorted(
+        groups.items(), key=lambda g: (g[0][0], g[0][1], -g[0][2])
+    ):
+        frames = sum(r.frames for r in rows)
+        valid = sum(r.valid for r in rows)
+        correct = sum(max(r.correct, 0) for r in rows)
+        wrong = sum(r.wrong_locks for r in rows)
+        median = float(np.median([r.time_median_ms for r in rows]))
+        p95 = float(max(r.time_p95_ms for r in rows))
+        correct_text = f"{correct}/{frames}" if rows[0].correct >= 0 else "–"
+        lines.append(
+            f"| {system} | {noise} | {distance:.1f} m | {valid}/{frames} ({100 * valid / frames:.1f} %) "
+            f"| {correct_text} | {wrong} | {median:.1f} / {p95:.1f} |"
         )
     return "\n".join(lines) + "\n"

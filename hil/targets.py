@@ -1,0 +1,73 @@
+"""Our accuracy targets per system and case (the issues' "must show" tables), and what counts
+as a correct pose and as a wrong lock when the matrix judges a frame.
+
+Targets are mean errors over a case's frames at low noise; high noise may be 1.5× larger.
+A frame is *correct* when its error is within 3× the target; a valid frame is a *wrong lock*
+when its error is gross — the estimator locked onto the wrong thing (a quarter turn of the
+panel, the planar flip of a tilted target, another quadrilateral) rather than measured noisily.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+_CM = 0.01
+_DEG = math.pi / 180.0
+
+#: system → distance (m) → (translation m, rotation rad): mean error at low noise.
+ACCURACY_TARGETS: dict[str, dict[float, tuple[float, float]]] = {
+    "corners": {
+        3.0: (1.5 * _CM, 2.0 * _DEG),
+        2.0: (0.8 * _CM, 1.0 * _DEG),
+        1.2: (0.3 * _CM, 0.4 * _DEG),
+    },
+    "lines": {
+        3.0: (1.5 * _CM, 2.0 * _DEG),
+        2.0: (0.8 * _CM, 1.0 * _DEG),
+        1.2: (0.3 * _CM, 0.4 * _DEG),
+    },
+}
+NOISE_FACTOR = {"none": 1.0, "low": 1.0, "high": 1.5}
+CORRECT_FACTOR = 3.0
+#: A valid pose this far off (rotation, or translation as a fraction of the range) is a wrong
+#: lock, not noise.
+WRONG_LOCK_ROTATION_RAD = 25.0 * _DEG
+WRONG_LOCK_RANGE_FRACTION = 0.10
+
+
+def accuracy_target(system: str, distance_m: float, noise: str) -> tuple[float, float] | None:
+    """(translation m, rotation rad) mean-error target of a case, or None if none is set."""
+    by_distance = ACCURACY_TARGETS.get(system)
+    if by_distance is None:
+        return None
+    for distance, (position, attitude) in by_distance.items():
+        if abs(distance - distance_m) < 1e-6:
+            factor = NOISE_FACTOR.get(noise, 1.0)
+            return position * factor, attitude * factor
+    return None
+
+
+def is_correct(
+    position_m: float, attitude_rad: float, target: tuple[float, float] | None
+) -> bool | None:
+    """Within ``CORRECT_FACTOR`` × the target (None without a target or an estimate)."""
+    if target is None or math.isnan(position_m) or math.isnan(attitude_rad):
+        return None
+    return position_m <= CORRECT_FACTOR * target[0] and attitude_rad <= CORRECT_FACTOR * target[1]
+
+
+def is_wrong_lock(position_m: float, attitude_rad: float, distance_m: float) -> bool:
+    """A valid estimate with a gross error (see module docstring)."""
+    if math.isnan(position_m):
+        return False
+    gross_attitude = not math.isnan(attitude_rad) and attitude_rad > WRONG_LOCK_ROTATION_RAD
+    return bool(gross_attitude or position_m > WRONG_LOCK_RANGE_FRACTION * distance_m)
+
+
+def target_text(system: str, distance_m: float) -> str:
+    target = accuracy_target(system, distance_m, "low")
+    if target is None:
+        return "–"
+    return f"{target[0] / _CM:.1f} cm / {np.degrees(target[1]):.1f}°"
