@@ -8,10 +8,11 @@
    across each side, with the polarity the model gives, as a z-score against the noise) and
    kept only if its size and shape fit the model: the four corners must be the image of a
    square of the panel's side at a plausible distance (IPPE residual small, pose in front).
-2. Pose hypotheses. A square has four rotations that map its corners onto the quad, and each
-   has the two planar-ambiguity poses: eight hypotheses. The reprojected *whole* model scores
-   each (``estimators.model_support``): the thruster (or any asymmetric feature) fixes the
-   rotation, the ring's parallax the planar flip.
+2. Pose hypotheses. A quad may be the panel or the outline of the face it sits on (large and
+   contrasted against the background). A square has four rotations that map its corners onto
+   the quad, and each has the two planar-ambiguity poses. The reprojected *whole* model
+   judges them (``estimators.model_support``): the ring's parallax the planar flip, the
+   thruster (or any asymmetric feature) the rotation (``TurnChecker``).
 
 Shared by the corner and line systems; each then refines the best hypotheses with its own
 features and validates the result.
@@ -30,7 +31,7 @@ from estimators.geometry import Pose
 from estimators.imaging import GrayImage, smooth
 from estimators.model_support import GradientImage, ModelSupport, Support
 from estimators.panel_edges import fit_panel_edges, strips_from_quad
-from estimators.planar_pose import ideal_pixels, ippe_poses, project_ideal
+from estimators.planar_pose import ippe_poses, project_ideal
 from estimators.target import TargetModel
 
 #: Distances (m) at which a panel may plausibly be found.
@@ -74,13 +75,13 @@ class TurnCheck:
 
 class TurnChecker:
     """Decides the panel's quarter turn with the model's asymmetric parts (the thruster, an
-    irregular fastener layout), each contour at its best offset within ``shift_px`` so that a
-    pose with a few degrees of tilt error can still be judged."""
+    irregular fastener layout). For a rough pose (a few degrees of tilt error) pass gradients
+    of a more strongly smoothed image (``coarse_gradients``): its edges are wide enough to be
+    met by a contour a few pixels off."""
 
-    def __init__(self, target: TargetModel, support: ModelSupport, *, shift_px: float = 3.0):
+    def __init__(self, target: TargetModel, support: ModelSupport):
         self.turns = quarter_turns(target)
         self.support = support
-        self.shift_px = shift_px
         symmetric, discs_symmetric = support.symmetric_under(self.turns[1])
         self.parts = frozenset(n for n in support.names if n not in symmetric)
         self.use_discs = not discs_symmetric
@@ -89,22 +90,29 @@ class TurnChecker:
     def decidable(self) -> bool:
         return bool(self.parts) or self.use_discs
 
-    def check(self, gradients: GradientImage, X_CT: Pose, *, tolerant: bool = True) -> TurnCheck:
-        """Compare the quarter turns of ``X_CT``; ``tolerant`` lets each part take its best
-        offset within ``shift_px`` (for rough poses; a tracked pose is checked as it is)."""
+    def check(self, gradients: GradientImage, X_CT: Pose) -> TurnCheck:
+        """Compare the quarter turns of ``X_CT``."""
         if not self.decidable:
             return TurnCheck(0, math.nan)
-        shift = self.shift_px if tolerant else 0.0
         totals = np.array(
             [
                 self.support.score(
-                    gradients, X_CT @ turn, shift_px=shift, only=self.parts, discs=self.use_discs
+                    gradients, X_CT @ turn, only=self.parts, discs=self.use_discs
                 ).total
                 for turn in self.turns
             ]
         )
         order = np.argsort(-totals)
         return TurnCheck(int(order[0]), float(totals[order[0]] - totals[order[1]]))
+
+
+#: Smoothing (px) of the gradients that judge rough hypotheses.
+COARSE_SMOOTHING_PX = 4.0
+
+
+def coarse_gradients(image: GrayImage) -> GradientImage:
+    """Gradients smoothed enough (σ = 4 px) to judge a pose a few pixels off."""
+    return GradientImage.of(image.pixels, COARSE_SMOOTHING_PX, image.noise_sigma)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -159,7 +167,7 @@ def find_panel_quads(
     *,
     levels: int = 7,
     min_side_px: float = 10.0,
-    min_support: float = 4.0,
+    min_support: float = 2.5,
     max_quads: int = 6,
 ) -> list[Quad]:
     """Candidate panel quadrilaterals, best supported first (see module docstring)."""
@@ -231,67 +239,129 @@ def _signed_area(quad: np.ndarray) -> float:
 
 
 def poses_from_corners(
-    corners_ideal: np.ndarray, camera: CameraInfo, target: TargetModel
+    corners_ideal: np.ndarray,
+    camera: CameraInfo,
+    target: TargetModel,
+    shifts: tuple[int, ...] = (0, 1, 2, 3),
+    *,
+    square_T: np.ndarray | None = None,
 ) -> list[Pose]:
-    """The (up to) eight poses under which the model panel images onto the four corners
-    (4,2 ideal px, in order around the quad): four cyclic correspondences × the planar
-    two-fold ambiguity, kept if the panel faces the camera at a plausible distance and
-    reprojects onto the corners."""
+    """The (up to) eight poses under which a model rectangle — the panel, or ``square_T``
+    (e.g. the face outline) — images onto the four corners (4,2 ideal px, in order around the
+    quad): the cyclic correspondences ``shifts`` × the planar two-fold ambiguity, kept if the
+    rectangle faces the camera at a plausible distance and reprojects onto the corners."""
+    model = target.panel_corners_T if square_T is None else np.asarray(square_T, dtype=float)
     uv = np.asarray(corners_ideal, dtype=float).reshape(4, 2)
     if np.sign(_signed_area(uv)) != _model_orientation(target, camera):
         uv = uv[::-1]
     size = float(np.mean(np.linalg.norm(uv - np.roll(uv, -1, axis=0), axis=1)))
     poses = []
-    for shift in range(4):
+    for shift in shifts:
         ordered = np.roll(uv, shift, axis=0)
-        for X_CT in ippe_poses(target.panel_corners_T, ordered, camera.K):
+        for X_CT in ippe_poses(model, ordered, camera.K):
             depth = X_CT.apply(target.panel_corners_T)[:, 2]
             if depth.min() < DISTANCE_RANGE_M[0] or depth.max() > DISTANCE_RANGE_M[1]:
                 continue
             normal_C = X_CT.R[:, 2]
-            centre_C = X_CT.apply(target.panel_corners_T.mean(axis=0))
-            if normal_C @ centre_C >= 0:  # the panel's front must face the camera
+            centre_C = X_CT.apply(model.mean(axis=0))
+            if normal_C @ centre_C >= 0:  # the front must face the camera
                 continue
-            projected = project_ideal(X_CT, target.panel_corners_T, camera.K)
+            projected = project_ideal(X_CT, model, camera.K)
             if np.max(np.linalg.norm(projected - ordered, axis=1)) > 0.12 * size + 2.0:
                 continue
             poses.append(X_CT)
     return poses
 
 
+def refine_quad(
+    image: GrayImage,
+    corners_uv: np.ndarray,
+    camera: CameraInfo,
+    polarity: float,
+    strip_px: float = 6.0,
+    *,
+    passes: int = 3,
+) -> np.ndarray | None:
+    """Sub-pixel corners (4,2 ideal px) of a rough quad (image px) from its four edges, or
+    None if an edge is not found. A quad cut from a thresholded, reduced image may be several
+    pixels and degrees off: the first pass searches a wide band, later ones narrow it around
+    the lines just found, until the corners settle."""
+    schedule = [(5.0, 5.0), (4.0, 2.0), (3.0, 1.0)][:passes]
+    quad_uv = np.asarray(corners_uv, dtype=float)
+    corners = None
+    for band, search in schedule:
+        edges = fit_panel_edges(
+            image.pixels,
+            strips_from_quad(quad_uv, strip_px),
+            camera,
+            half_width_px=band,
+            search_px=search,
+            polarity=polarity,
+        )
+        if not edges.all_found:
+            return None
+        previous, corners = corners, edges.corners_ideal
+        assert corners is not None
+        quad_uv = camera.project(
+            np.column_stack(
+                [
+                    (corners[:, 0] - camera.K[0, 2]) / camera.K[0, 0],
+                    (corners[:, 1] - camera.K[1, 2]) / camera.K[1, 1],
+                    np.ones(4),
+                ]
+            )
+        )
+        if previous is not None and np.max(np.abs(corners - previous)) < 0.3:
+            break
+    return corners
+
+
 def pose_hypotheses(
     image: GrayImage,
     gradients: GradientImage,
+    coarse: GradientImage,
     camera: CameraInfo,
     target: TargetModel,
     support: ModelSupport,
+    turns: TurnChecker,
     *,
     max_quads: int = 3,
     strip_px: float = 6.0,
-    shift_px: float = 3.0,
 ) -> list[Hypothesis]:
-    """Every pose hypothesis from the panel quads, ranked by the whole model's support (each
-    contour at its best offset within ``shift_px``). Each quad's sides are first refined to
-    sub-pixel edges, so that the hypotheses are accurate enough for the model's other contours
-    to tell them apart."""
-    polarity = _polarity(target)
+    """One pose hypothesis per panel quad, best supported first.
+
+    Each quad's sides are refined to sub-pixel edges first, so that the hypotheses are accurate
+    enough for the model's other contours to judge them. Of the quad's poses, the planar flip
+    is chosen by the whole model's support and the quarter turn by the model's asymmetric parts
+    (``turns``), both on the ``coarse`` gradients (tolerant of a few pixels): the four
+    turns and two flips of one quad agree on the panel and the ring, so only those parts can
+    tell them apart, and scoring all eight poses in full would only repeat the same numbers.
+    """
+    # A quad may be the panel or, when the model has one, the outline of the face it sits on
+    # (larger, with far more contrast against the background: found at every noise level
+    # while it is in view). The face is taken to be brighter than the background.
+    squares: list[tuple[np.ndarray | None, float]] = [(None, _polarity(target))]
+    if target.outline_corners_T is not None:
+        squares.append((target.outline_corners_T, 1.0))
     hypotheses = []
     for quad in find_panel_quads(image, gradients, target, max_quads=max_quads):
-        edges = fit_panel_edges(
-            image.pixels,
-            strips_from_quad(quad.corners_uv, strip_px),
-            camera,
-            search_px=3.0,
-            polarity=polarity,
-        )
-        corners = (
-            edges.corners_ideal
-            if edges.all_found
-            else ideal_pixels(quad.corners_uv, camera.K, camera.dist)
-        )
-        for X_CT in poses_from_corners(corners, camera, target):
-            hypotheses.append(
-                Hypothesis(X_CT, support.score(gradients, X_CT, shift_px=shift_px), quad)
-            )
+        refined: dict[float, np.ndarray | None] = {}
+        for square_T, polarity in squares:
+            if polarity not in refined:
+                refined[polarity] = refine_quad(image, quad.corners_uv, camera, polarity, strip_px)
+            corners = refined[polarity]
+            if corners is None:
+                continue
+            # Both flips of one correspondence; the turn check chooses the correspondence.
+            flips = poses_from_corners(corners, camera, target, shifts=(0,), square_T=square_T)
+            if not flips:
+                continue
+            scored = [(support.score(coarse, X), X) for X in flips]
+            best_support, best_X = max(scored, key=lambda item: item[0].total)
+            turn = turns.check(coarse, best_X)
+            if turn.best != 0:
+                best_X = best_X @ turns.turns[turn.best]
+                best_support = support.score(coarse, best_X)
+            hypotheses.append(Hypothesis(best_X, best_support, quad))
     hypotheses.sort(key=lambda h: -h.support.total)
     return hypotheses

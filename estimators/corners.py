@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from drivers.base import CameraInfo, Frame
-from estimators.acquisition import TurnChecker, pose_hypotheses
+from estimators.acquisition import TurnChecker, coarse_gradients, pose_hypotheses
 from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
 from estimators.measurement import Measurement
@@ -208,7 +208,10 @@ class CornerEstimator:
 
     # --- acquisition ------------------------------------------------------------------------
     def _acquire(self, image: GrayImage, gradients: GradientImage) -> _Solution:
-        hypotheses = pose_hypotheses(image, gradients, self.camera, self.target, self.support)
+        coarse = coarse_gradients(image)
+        hypotheses = pose_hypotheses(
+            image, gradients, coarse, self.camera, self.target, self.support, self.turns
+        )
         if not hypotheses:
             return self._failure("no panel-like quadrilateral in the image")
         failures = []
@@ -536,7 +539,7 @@ class CornerEstimator:
         options = self.options
         X = X0
         # Gates in metres at the target: how far the features may be from their prediction.
-        gates_m = [options.gate_m, 0.0] if tracking else [options.gate_m, 0.5 * options.gate_m, 0.0]
+        gates_m = [options.gate_m, 0.0] if tracking else [2.0 * options.gate_m, options.gate_m, 0.0]
         pred, visible, A, radius_px = self._predict(X)
         if visible.sum() < options.min_features:
             return self._failure(f"only {int(visible.sum())} point features in view")
@@ -607,7 +610,7 @@ class CornerEstimator:
             # The panel and a symmetric fastener layout look the same after a quarter turn;
             # the model's asymmetric parts (the thruster) decide, in tracking too, so that a
             # wrong lock cannot survive.
-            turn = self.turns.check(gradients, fit.X_CT, tolerant=not tracking)
+            turn = self.turns.check(gradients, fit.X_CT)
             if turn.best != 0 and turn.margin >= options.turn_margin:
                 if tracking or not retry:
                     return self._failure(

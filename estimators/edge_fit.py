@@ -140,7 +140,7 @@ def fit_edge_points(
 
     # 1. One common offset for the whole edge: grid search of the step fit on a fixed band.
     best = (math.inf, 0.0, math.nan, math.nan)
-    grid = np.arange(-search_px, search_px + 1e-9, 0.5) if search_px > 0 else np.zeros(1)
+    grid = np.arange(-search_px, search_px + 1e-9, 1.0) if search_px > 0 else np.zeros(1)
     for delta in grid:
         step = ndtr((d - delta) / 1.2)
         a, b = _levels(values, step)
@@ -161,8 +161,8 @@ def fit_edge_points(
     # grey levels refreshed between scales.
     max_shift = max(1.0, half_width_px - 1.5)
     delta = np.full(k, delta0)
-    for s in (1.2, 0.7, EDGE_WIDTH_PX, EDGE_WIDTH_PX):
-        for _ in range(3):
+    for s, count in ((1.2, 2), (0.7, 2), (EDGE_WIDTH_PX, 3)):
+        for _ in range(count):
             z = (d - delta[strip]) / s
             r = values - b - (a - b) * ndtr(z)
             J = -(a - b) * np.exp(-0.5 * z * z) / (_SQRT_2PI * s)  # ∂model/∂δ
@@ -219,12 +219,16 @@ class Line2D:
 
 
 def _weighted_tls(points: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Weighted total least squares: the line through the weighted centroid along the major
+    axis of the weighted scatter (closed form for 2×2: θ = ½·atan2(2sxy, sxx − syy))."""
     total = weights.sum()
     centroid = (weights[:, None] * points).sum(axis=0) / total
     x = points - centroid
-    scatter = (weights[:, None, None] * np.einsum("ni,nj->nij", x, x)).sum(axis=0)
-    _, vectors = np.linalg.eigh(scatter)
-    normal = vectors[:, 0]
+    sxx = float(np.sum(weights * x[:, 0] * x[:, 0]))
+    syy = float(np.sum(weights * x[:, 1] * x[:, 1]))
+    sxy = float(np.sum(weights * x[:, 0] * x[:, 1]))
+    theta = 0.5 * math.atan2(2.0 * sxy, sxx - syy)  # direction of the major axis
+    normal = np.array([-math.sin(theta), math.cos(theta)])
     return normal, float(normal @ centroid), centroid
 
 

@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from drivers.base import CameraInfo, Frame
-from estimators.acquisition import TurnChecker, pose_hypotheses
+from estimators.acquisition import TurnChecker, coarse_gradients, pose_hypotheses
 from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
 from estimators.measurement import Measurement
@@ -80,7 +80,7 @@ class LineOptions:
     distance_gate_m: float = 0.04
     strip_px: float = 6.0
     band_px: float = 3.0
-    min_contrast_snr: float = 5.0
+    min_contrast_snr: float = 3.5
     max_reduced_chi2: float = 5.0
     min_edge_support: float = 4.0
     pose_method: str = "gauss_newton"
@@ -191,7 +191,10 @@ class LineEstimator:
 
     # --- acquisition ------------------------------------------------------------------------
     def _acquire(self, image: GrayImage, gradients: GradientImage) -> _Solution:
-        hypotheses = pose_hypotheses(image, gradients, self.camera, self.target, self.support)
+        coarse = coarse_gradients(image)
+        hypotheses = pose_hypotheses(
+            image, gradients, coarse, self.camera, self.target, self.support, self.turns
+        )
         if not hypotheses:
             return self._failure("no panel-like quadrilateral in the image")
         failures, tried = [], []
@@ -201,7 +204,7 @@ class LineEstimator:
             if any(rotation_error_geodesic(hypothesis.X_CT, X) < 0.05 for X in tried):
                 continue
             tried.append(hypothesis.X_CT)
-            solution = self._solve(image, gradients, hypothesis.X_CT, tracking=False)
+            solution = self._solve(image, gradients, hypothesis.X_CT, tracking=False, coarse=coarse)
             if not solution.reason:
                 return solution
             failures.append(solution.reason)
@@ -315,7 +318,13 @@ class LineEstimator:
 
     # --- the pipeline from a pose guess -----------------------------------------------------
     def _solve(
-        self, image: GrayImage, gradients: GradientImage, X0: Pose, *, tracking: bool
+        self,
+        image: GrayImage,
+        gradients: GradientImage,
+        X0: Pose,
+        *,
+        tracking: bool,
+        coarse: GradientImage | None = None,
     ) -> _Solution:
         options = self.options
         strips = strips_from_pose(X0, self.camera, self.target, options.strip_px)
@@ -340,10 +349,12 @@ class LineEstimator:
             search_strips,
             self.camera,
             half_width_px=options.band_px,
-            search_px=max(search),
+            search_px=search,
             min_contrast_snr=options.min_contrast_snr,
             polarity=self.polarity,
             keep=self._keep_mask(X0),
+            fallback=strips,  # a wrong segment must not hide an edge the prior predicts
+            fallback_search_px=min(gate_px, 2.0 * options.band_px),
         )
         if not edges.all_found:
             missing = [i for i, e in enumerate(edges.edges) if not e.found]
@@ -365,7 +376,9 @@ class LineEstimator:
         if not reason:
             # The square panel looks the same after a quarter turn: the model's asymmetric
             # parts (the thruster) decide — in tracking too, so that a wrong lock cannot last.
-            turn = self.turns.check(gradients, X, tolerant=not tracking)
+            # A pose from the panel's edges alone may be a few degrees off in tilt: out of
+            # tracking, judge the turns on the coarse gradients (tolerant of a few pixels).
+            turn = self.turns.check(coarse if coarse is not None else gradients, X)
             if turn.best != 0 and turn.margin >= options.turn_margin:
                 if tracking:
                     reason = "a quarter turn of the pose fits the image better"

@@ -1,6 +1,7 @@
 """How well a pose explains the image: edge support of the reprojected target model.
 
-For every contour of the model (the panel's four edges, each circle: ring rims, thruster exit)
+For every contour of the model (the panel's four edges, the outline of the face it sits on,
+each circle: ring rims, thruster exit)
 sample points are projected with the pose and the smoothed image gradient is read there. On a
 true edge the gradient is across the contour (|g·n| large); off any edge it is isotropic noise,
 so |g·n| and |g·t| (along the contour) have the same distribution. The support of a contour is
@@ -107,6 +108,17 @@ class ModelSupport:
             names.append(f"panel_edge_{i}")
             points.append(a + t * (b - a))
             across.append(np.broadcast_to(out / np.linalg.norm(out), (len(t), 3)))
+        outline = target.outline_corners_T
+        if outline is not None:
+            middle = outline.mean(axis=0)
+            for i in range(4):
+                a, b = outline[i], outline[(i + 1) % 4]
+                t = np.linspace(0.03, 0.97, 2 * _SAMPLES_PER_EDGE)[:, None]
+                out = 0.5 * (a + b) - middle
+                out -= out @ (b - a) / ((b - a) @ (b - a)) * (b - a)
+                names.append(f"outline_edge_{i}")
+                points.append(a + t * (b - a))
+                across.append(np.broadcast_to(out / np.linalg.norm(out), (len(t), 3)))
         for circle in target.circles:
             n = circle.normal_T
             u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])

@@ -150,51 +150,74 @@ class PanelEdges:
         return np.concatenate(parts) if parts else np.zeros((0, 2))
 
 
+def _fit_one_edge(
+    pixels, strip, camera, half_width_px, search_px, min_contrast_snr, polarity, keep
+):
+    points = fit_edge_points(
+        pixels,
+        strip.centers_uv,
+        strip.normals,
+        strip.half_length_px,
+        half_width_px,
+        search_px=search_px,
+        keep=keep,
+    )
+    ok = np.flatnonzero(points.ok)
+    empty = FittedEdge(points, np.zeros((0, 2)), np.zeros(0), None, np.zeros(0, int))
+    if len(ok) < 3 or polarity * points.contrast_snr < min_contrast_snr:
+        return empty
+    uv_ideal = ideal_pixels(points.uv[ok], camera.K, camera.dist)
+    sigma = points.sigma_px[ok]
+    if camera.has_distortion:
+        J = ideal_pixel_jacobians(points.uv[ok], camera.K, camera.dist)
+        across = np.einsum("nij,nj->ni", J, strip.normals[ok])
+        sigma = sigma * np.linalg.norm(across, axis=1)
+    line = fit_line_robust(uv_ideal, sigma)
+    if line is None:
+        return empty
+    full_uv = np.full((len(points.uv), 2), np.nan)
+    full_sigma = np.full(len(points.uv), np.inf)
+    full_uv[ok] = uv_ideal
+    full_sigma[ok] = sigma
+    return FittedEdge(points, full_uv, full_sigma, line, ok[line.inliers])
+
+
 def fit_panel_edges(
     pixels: np.ndarray,
     strips: list[EdgeStrips],
     camera: CameraInfo,
     *,
     half_width_px: float = 3.0,
-    search_px: float = 2.0,
-    min_contrast_snr: float = 5.0,
+    search_px: float | list[float] = 2.0,
+    min_contrast_snr: float = 3.5,
     polarity: float = 1.0,
     keep: Callable[[np.ndarray], np.ndarray] | None = None,
+    fallback: list[EdgeStrips] | None = None,
+    fallback_search_px: float = 4.0,
 ) -> PanelEdges:
-    """Fit the four edges from their strips. An edge counts as found when its grey levels
-    differ with the model's polarity (+1: the panel is brighter) by ``min_contrast_snr``
-    standard deviations and a robust line fits at least three points."""
+    """Fit the four edges from their strips (``search_px`` per edge or for all). An edge
+    counts as found when its grey levels differ with the model's polarity (+1: the panel is
+    brighter) by ``min_contrast_snr`` standard deviations and a robust line fits at least three
+    points; an edge not found from ``strips`` is tried again from ``fallback`` (e.g. the
+    prior's prediction when a labeled image line misled)."""
+    searches = list(search_px) if isinstance(search_px, list | tuple) else [search_px] * len(strips)
     fitted = []
-    for strip in strips:
-        points = fit_edge_points(
-            pixels,
-            strip.centers_uv,
-            strip.normals,
-            strip.half_length_px,
-            half_width_px,
-            search_px=search_px,
-            keep=keep,
+    for i, strip in enumerate(strips):
+        edge = _fit_one_edge(
+            pixels, strip, camera, half_width_px, searches[i], min_contrast_snr, polarity, keep
         )
-        ok = np.flatnonzero(points.ok)
-        empty = FittedEdge(points, np.zeros((0, 2)), np.zeros(0), None, np.zeros(0, int))
-        if len(ok) < 3 or polarity * points.contrast_snr < min_contrast_snr:
-            fitted.append(empty)
-            continue
-        uv_ideal = ideal_pixels(points.uv[ok], camera.K, camera.dist)
-        sigma = points.sigma_px[ok]
-        if camera.has_distortion:
-            J = ideal_pixel_jacobians(points.uv[ok], camera.K, camera.dist)
-            across = np.einsum("nij,nj->ni", J, strip.normals[ok])
-            sigma = sigma * np.linalg.norm(across, axis=1)
-        line = fit_line_robust(uv_ideal, sigma)
-        if line is None:
-            fitted.append(empty)
-            continue
-        full_uv = np.full((len(points.uv), 2), np.nan)
-        full_sigma = np.full(len(points.uv), np.inf)
-        full_uv[ok] = uv_ideal
-        full_sigma[ok] = sigma
-        fitted.append(FittedEdge(points, full_uv, full_sigma, line, ok[line.inliers]))
+        if not edge.found and fallback is not None:
+            edge = _fit_one_edge(
+                pixels,
+                fallback[i],
+                camera,
+                half_width_px,
+                fallback_search_px,
+                min_contrast_snr,
+                polarity,
+                keep,
+            )
+        fitted.append(edge)
     corners = None
     if all(e.found for e in fitted):
         found = []

@@ -269,7 +269,9 @@ def exp_so3(rotvec: np.ndarray) -> np.ndarray:
     )
     if theta < 1e-8:
         return np.eye(3) + W + 0.5 * W @ W
-    return np.eye(3) + (math.sin(theta) / theta) * W + ((1.0 - math.cos(theta)) / theta**2) * (W @ W)
+    return (
+        np.eye(3) + (math.sin(theta) / theta) * W + ((1.0 - math.cos(theta)) / theta**2) * (W @ W)
+    )
 
 
 def retract(X_CT: Pose, delta: np.ndarray) -> Pose:
@@ -405,7 +407,9 @@ def refine_pose_robust(
         H = Jw.T @ Jw + 1e-9 * np.eye(6)
         delta = -np.linalg.solve(H, Jw.T @ (r_w * weight))
         X = retract(X, delta)
-        if np.linalg.norm(delta[:3]) < 1e-8 and np.linalg.norm(delta[3:]) < 1e-8 * (1 + np.linalg.norm(X.p)):
+        if np.linalg.norm(delta[:3]) < 1e-8 and np.linalg.norm(delta[3:]) < 1e-8 * (
+            1 + np.linalg.norm(X.p)
+        ):
             break
     _, r_w, _ = observations.linearize(X, K)
     return X, np.sum(r_w.reshape(n, 2) ** 2, axis=1)
