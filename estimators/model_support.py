@@ -192,15 +192,17 @@ class ModelSupport:
         """Support of every contour (or of those named in ``only``) and of the discs (unless
         ``discs`` is False) at ``X_CT`` (see module docstring)."""
         margin = 4.0 + shift_px
-        selected = np.ones(len(self.points_T), bool)
-        if only is not None:
-            chosen = [i for i, name in enumerate(self.names) if name in only]
-            selected = np.isin(self.contour_of, chosen)
-        uv, visible = self._project(X_CT, self.points_T, margin)
-        visible &= selected
-        depth = np.maximum(np.abs(X_CT.apply(self.points_T)[:, 2]), 1e-3)
+        if only is None:
+            points_T, across_T, contour_of = self.points_T, self.across_T, self.contour_of
+        else:
+            chosen = np.isin(self.contour_of, [i for i, n in enumerate(self.names) if n in only])
+            points_T = self.points_T[chosen]
+            across_T = self.across_T[chosen]
+            contour_of = self.contour_of[chosen]
+        uv, visible = self._project(X_CT, points_T, margin)
+        depth = np.maximum(np.abs(X_CT.apply(points_T)[:, 2]), 1e-3)
         ahead_uv, ahead_ok = self._project(
-            X_CT, self.points_T + (0.002 * depth)[:, None] * self.across_T, 0.0
+            X_CT, points_T + (0.002 * depth)[:, None] * across_T, 0.0
         )
         visible &= ahead_ok
         normal = ahead_uv - uv
@@ -208,7 +210,7 @@ class ModelSupport:
         visible &= length > 1e-9
         normal = normal / np.where(length > 1e-9, length, 1.0)[:, None]
         scores: dict[str, float] = {}
-        counts = np.bincount(self.contour_of[visible], minlength=len(self.names))
+        counts = np.bincount(contour_of[visible], minlength=len(self.names))
         if np.any(counts >= _MIN_SAMPLES):
             shifts = [(0.0, 0.0)]
             if shift_px > 0:
@@ -216,7 +218,7 @@ class ModelSupport:
                 shifts = [(dx, dy) for dx in steps for dy in steps]
             points = uv[visible]
             n = normal[visible]
-            contour = self.contour_of[visible]
+            contour = contour_of[visible]
             best = np.full(len(self.names), -np.inf)
             tangent = np.column_stack([-n[:, 1], n[:, 0]])
             for dx, dy in shifts:

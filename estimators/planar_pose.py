@@ -255,6 +255,7 @@ class PoseFit:
     iterations: int
     converged: bool
     method: str = "gauss_newton"
+    unit_covariance: np.ndarray | None = None  # (JᵀJ)⁻¹: the covariance for s² = 1
 
     @property
     def reduced_chi2(self) -> float:
@@ -276,10 +277,27 @@ def exp_so3(rotvec: np.ndarray) -> np.ndarray:
 
 def retract(X_CT: Pose, delta: np.ndarray) -> Pose:
     """The pose moved by δ = [δθ, δp]: (Exp(δθ)·R, p + δp)."""
+    moved = _retract_raw(X_CT, delta)
+    return Pose(moved.R, moved.p)
+
+
+@dataclass(frozen=True, slots=True)
+class _RawPose:
+    """R and p without ``Pose``'s validation, for the inner loop of the least squares (the
+    result is validated once, when it becomes a ``Pose``)."""
+
+    R: np.ndarray
+    p: np.ndarray
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        return points @ self.R.T + self.p
+
+
+def _retract_raw(X_CT: Pose | _RawPose, delta: np.ndarray) -> _RawPose:
     R = exp_so3(np.asarray(delta[:3], dtype=float)) @ X_CT.R
     if abs(float(np.linalg.det(R)) - 1.0) > 1e-9:
         R = nearest_rotation(R)
-    return Pose(R, X_CT.p + delta[3:])
+    return _RawPose(R, X_CT.p + delta[3:])
 
 
 def pose_difference(X_a: Pose, X_b: Pose) -> np.ndarray:
@@ -311,9 +329,10 @@ def _fit_at(
     scale2 = max(chi2 / dof, min_scale2) if dof > 0 else 1.0
     count = sum(o.count for o in observations)
     rms = float(np.sqrt(np.sum(r_px**2) / count)) if count else math.nan
+    unit = _covariance(J_w, 1.0)
     return PoseFit(
         X_CT=X_CT,
-        covariance=_covariance(J_w, scale2),
+        covariance=unit * scale2,
         chi2=chi2,
         dof=dof,
         scale2=scale2,
@@ -321,6 +340,7 @@ def _fit_at(
         iterations=iterations,
         converged=converged,
         method=method,
+        unit_covariance=unit,
     )
 
 
@@ -358,8 +378,8 @@ def refine_pose(
                 delta = -np.linalg.solve(A, g)
             except np.linalg.LinAlgError:
                 delta = -np.linalg.lstsq(A, g, rcond=None)[0]
-            candidate = retract(X, delta)
-            _, r_new, J_new = _linearize_all(observations, candidate, K)
+            candidate = _retract_raw(X, delta)
+            _, r_new, J_new = _linearize_all(observations, candidate, K)  # type: ignore[arg-type]
             new_cost = float(r_new @ r_new) if np.all(np.isfinite(r_new)) else math.inf
             if new_cost <= cost:
                 step_taken = True
@@ -372,13 +392,13 @@ def refine_pose(
         if not step_taken:
             converged = True  # no step lowers the cost: at a minimum to numerical precision
             break
-        small_step = np.linalg.norm(delta[:3]) < 1e-9 and np.linalg.norm(delta[3:]) < 1e-9 * (
-            1.0 + np.linalg.norm(X.p)
-        )
-        if small_step or decrease <= 1e-12 * (1.0 + cost):
+        # Converged when the last step changed the cost by a negligible fraction of one unit
+        # of χ² (the noise moves it by ~√(2·dof)): further digits are not information.
+        if decrease <= 1e-6 * (1.0 + cost):
             converged = True
             break
-    return _fit_at(observations, X, K, iteration, converged, "gauss_newton", min_scale2)
+    X_final = Pose(nearest_rotation(X.R), X.p)
+    return _fit_at(observations, X_final, K, iteration, converged, "gauss_newton", min_scale2)
 
 
 def refine_pose_robust(
@@ -406,11 +426,12 @@ def refine_pose_robust(
         Jw = J_w * weight[:, None]
         H = Jw.T @ Jw + 1e-9 * np.eye(6)
         delta = -np.linalg.solve(H, Jw.T @ (r_w * weight))
-        X = retract(X, delta)
+        X = _retract_raw(X, delta)  # type: ignore[assignment]
         if np.linalg.norm(delta[:3]) < 1e-8 and np.linalg.norm(delta[3:]) < 1e-8 * (
             1 + np.linalg.norm(X.p)
         ):
             break
+    X = Pose(nearest_rotation(X.R), X.p)
     _, r_w, _ = observations.linearize(X, K)
     return X, np.sum(r_w.reshape(n, 2) ** 2, axis=1)
 
@@ -547,10 +568,19 @@ class PoseChoice:
         return self.decided_by in ("prior", "lower_residual")
 
 
+#: Floor of the variance factor when judging minima: noise-free data (χ² → 0) must not make
+#: two numerically equal solutions look distinct.
+_MIN_SCALE2 = 0.25
+
+
 def _distinct(a: PoseFit, b: PoseFit, mahalanobis2: float) -> bool:
     delta = pose_difference(b.X_CT, a.X_CT)
+    unit = (
+        a.unit_covariance if a.unit_covariance is not None else a.covariance / max(a.scale2, 1e-300)
+    )
+    covariance = unit * max(a.scale2, _MIN_SCALE2)
     try:
-        d2 = float(delta @ np.linalg.solve(a.covariance, delta))
+        d2 = float(delta @ np.linalg.solve(covariance, delta))
     except np.linalg.LinAlgError:
         d2 = math.inf
     return d2 > mahalanobis2
@@ -579,7 +609,7 @@ def choose_pose(
     if not distinct:
         return PoseChoice(best, None, "only")
     runner_up = distinct[0]
-    scale2 = max(best.scale2, 1e-12)
+    scale2 = max(best.scale2, _MIN_SCALE2)
     if (runner_up.chi2 - best.chi2) / scale2 >= decisive_chi2:
         return PoseChoice(best, runner_up, "residual")
     contenders = [best, *[f for f in distinct if (f.chi2 - best.chi2) / scale2 < decisive_chi2]]

@@ -81,22 +81,11 @@ def fit_discs(
     scale = np.sqrt(np.abs(np.linalg.det(A)))  # px per metre, geometric mean
     h, w = pixels.shape
     # Flat pixel list: every pixel within the window (plus the start's uncertainty) of a start.
-    reach = np.ceil(window * np.linalg.norm(A, ord=2, axis=(1, 2)) + 1.5).astype(int)
-    owner, us, vs = [], [], []
-    for i in range(n):
-        r = reach[i]
-        u0, v0 = round(centers[i, 0]), round(centers[i, 1])
-        dv, du = np.mgrid[-r : r + 1, -r : r + 1]
-        u = (u0 + du).ravel()
-        v = (v0 + dv).ravel()
-        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        us.append(u[inside])
-        vs.append(v[inside])
-        owner.append(np.full(int(inside.sum()), i))
-    owner = np.concatenate(owner)
-    u = np.concatenate(us).astype(float)
-    v = np.concatenate(vs).astype(float)
-    values = pixels[np.concatenate(vs), np.concatenate(us)].astype(float)
+    reach = window * np.linalg.norm(A, ord=2, axis=(1, 2)) + 1.5
+    owner, u_int, v_int = _pixels_within(centers, reach, h, w)
+    u = u_int.astype(float)
+    v = v_int.astype(float)
+    values = pixels[v_int, u_int].astype(float)
     a11, a12, a21, a22 = (A_inv[owner, i, j] for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)))
     sc = scale[owner]
     rad_px = radius[owner] * sc
@@ -192,6 +181,20 @@ def fit_discs(
     )
 
 
+def _pixels_within(centers: np.ndarray, reach: np.ndarray, height: int, width: int):
+    """(owner, u, v) of every in-image pixel within ``reach`` (N,) px of each centre (N,2),
+    as flat integer arrays — one vectorised pass over a common square."""
+    r = math.ceil(float(np.max(reach)))
+    dv, du = np.mgrid[-r : r + 1, -r : r + 1]
+    base = np.round(centers).astype(int)
+    u = base[:, 0:1] + du.reshape(1, -1)
+    v = base[:, 1:2] + dv.reshape(1, -1)
+    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    inside &= (u - centers[:, 0:1]) ** 2 + (v - centers[:, 1:2]) ** 2 <= reach[:, None] ** 2
+    owner = np.broadcast_to(np.arange(len(centers))[:, None], u.shape)
+    return owner[inside], u[inside], v[inside]
+
+
 def _empty_fits(n: int) -> PointFits:
     return PointFits(
         uv=np.full((n, 2), np.nan),
@@ -225,20 +228,7 @@ def fit_corners(
     dirs = np.asarray(edge_directions, dtype=float).reshape(n, 2, 2)
     window = np.asarray(window_px, dtype=float).reshape(n)
     h, w = pixels.shape
-    owner, us, vs = [], [], []
-    for i in range(n):
-        r = math.ceil(window[i])
-        u0, v0 = round(corners[i, 0]), round(corners[i, 1])
-        dv, du = np.mgrid[-r : r + 1, -r : r + 1]
-        u = (u0 + du).ravel()
-        v = (v0 + dv).ravel()
-        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        inside &= (u - corners[i, 0]) ** 2 + (v - corners[i, 1]) ** 2 <= window[i] ** 2
-        us.append(u[inside])
-        vs.append(v[inside])
-        owner.append(np.full(int(inside.sum()), i))
-    owner = np.concatenate(owner)
-    u_int, v_int = np.concatenate(us), np.concatenate(vs)
+    owner, u_int, v_int = _pixels_within(corners, window, h, w)
     coords = np.column_stack([u_int, v_int]).astype(float)
     if keep is not None and len(coords):
         kept = keep(coords)
@@ -283,7 +273,7 @@ def fit_corners(
 
     max_step = np.array([1.0, 1.0, 0.05, 0.05])
     converged = np.zeros(n, bool)
-    for s, count in ((1.2, 2), (0.7, 1), (EDGE_WIDTH_PX, iterations)):
+    for s, count in ((1.2, 1), (0.7, 1), (EDGE_WIDTH_PX, iterations)):
         for _ in range(count):
             inside, g = terms(params, s)
             a, b = levels(inside)

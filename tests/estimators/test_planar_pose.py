@@ -143,26 +143,36 @@ def test_refine_pose_robust_shrugs_off_wrong_correspondences():
 
 
 def test_choose_pose_decides_by_residual_then_prior():
+    # A panel tilted 15° at 3 m seen through its four corners at σ = 1 px: its planar flip,
+    # 25° away, fits them almost as well — the residuals cannot decide.
+    X_tilted = Pose.from_rpy(
+        math.radians(165), math.radians(3), math.radians(10), np.array([0.1, 0.05, 3.0])
+    )
     corners = TARGET.panel_corners_T
-    uv = project_ideal(X_TRUE, corners, K)
-    obs = PointObservations(corners, uv, _isotropic(4, 0.5))
+    uv = project_ideal(X_tilted, corners, K)
+    obs = PointObservations(corners, uv, _isotropic(4, 1.0))
     fits = fit_from_starts([obs], ippe_poses(corners, uv, K), K)
     assert len(fits) == 2
-    # Four noise-free corners cannot tell the flip apart: ambiguous without a prior...
+    assert rotation_error_geodesic(fits[0].X_CT, fits[1].X_CT) > math.radians(20)
     choice = choose_pose(fits)
     assert choice.ambiguous and choice.decided_by == "lower_residual"
-    # ...and the prior picks the right one.
-    for prior in (X_TRUE, fits[0].X_CT, fits[1].X_CT):
+    # The prior picks: the one nearest to it.
+    for prior in (fits[0].X_CT, fits[1].X_CT):
         chosen = choose_pose(fits, prior)
         assert chosen.decided_by == "prior"
         assert rotation_error_geodesic(prior, chosen.fit.X_CT) < math.radians(1)
-    # With all the (non-coplanar) features the residuals decide.
-    all_uv = project_ideal(X_TRUE, POINTS_T, K)
-    all_obs = PointObservations(POINTS_T, all_uv, _isotropic(len(POINTS_T), 0.2))
-    both = fit_from_starts([all_obs], [fits[0].X_CT, fits[1].X_CT], K)
-    decided = choose_pose(both)
-    assert not decided.ambiguous
-    assert rotation_error_geodesic(X_TRUE, decided.fit.X_CT) < 1e-6
+    # Precise corners make the flip's residual decisive.
+    precise = PointObservations(corners, uv, _isotropic(4, 0.3))
+    decided = choose_pose(fit_from_starts([precise], ippe_poses(corners, uv, K), K))
+    assert decided.decided_by == "residual"
+    assert rotation_error_geodesic(X_tilted, decided.fit.X_CT) < 1e-6
+    # So do the mock-up's features off the panel's plane (ring 6 cm in front of the bus face),
+    # even at σ = 1 px, from both flips as starts.
+    all_uv = project_ideal(X_tilted, POINTS_T, K)
+    all_obs = PointObservations(POINTS_T, all_uv, _isotropic(len(POINTS_T), 1.0))
+    both = choose_pose(fit_from_starts([all_obs], [fits[0].X_CT, fits[1].X_CT], K))
+    assert not both.ambiguous
+    assert rotation_error_geodesic(X_tilted, both.fit.X_CT) < 1e-6
 
 
 def test_observations_reject_mismatched_shapes():
