@@ -90,14 +90,20 @@ class TurnChecker:
     def decidable(self) -> bool:
         return bool(self.parts) or self.use_discs
 
-    def check(self, gradients: GradientImage, X_CT: Pose) -> TurnCheck:
-        """Compare the quarter turns of ``X_CT``."""
+    def check(self, gradients: GradientImage, X_CT: Pose, *, search_px: float = 0.0) -> TurnCheck:
+        """Compare the quarter turns of ``X_CT``; with ``search_px`` each turn's parts take
+        their best image offset within that many pixels (for a pose whose tilt is uncertain:
+        the parts lie far from the panel, where a tilt error moves them most)."""
         if not self.decidable:
             return TurnCheck(0, math.nan)
         totals = np.array(
             [
                 self.support.score(
-                    gradients, X_CT @ turn, only=self.parts, discs=self.use_discs
+                    gradients,
+                    X_CT @ turn,
+                    only=self.parts,
+                    discs=self.use_discs,
+                    shift_px=search_px,
                 ).total
                 for turn in self.turns
             ]

@@ -70,11 +70,11 @@ class CornerOptions:
     gate_m: float = 0.04
     min_features: int = 5
     max_reduced_chi2: float = 5.0
-    min_edge_support: float = 4.0
+    min_edge_support: float = 3.0
     min_disc_snr: float = 3.0
     pose_method: str = "gauss_newton"
     max_hypotheses: int = 3
-    turn_margin: float = 8.0
+    turn_margin: float = 6.0
 
     def __post_init__(self) -> None:
         if self.pose_method not in POSE_METHODS:

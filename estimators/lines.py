@@ -82,10 +82,10 @@ class LineOptions:
     band_px: float = 3.0
     min_contrast_snr: float = 3.5
     max_reduced_chi2: float = 5.0
-    min_edge_support: float = 4.0
+    min_edge_support: float = 3.0
     pose_method: str = "gauss_newton"
     max_hypotheses: int = 3
-    turn_margin: float = 8.0
+    turn_margin: float = 6.0
 
     def __post_init__(self) -> None:
         if self.pose_method not in POSE_METHODS:
@@ -204,7 +204,7 @@ class LineEstimator:
             if any(rotation_error_geodesic(hypothesis.X_CT, X) < 0.05 for X in tried):
                 continue
             tried.append(hypothesis.X_CT)
-            solution = self._solve(image, gradients, hypothesis.X_CT, tracking=False, coarse=coarse)
+            solution = self._solve(image, gradients, hypothesis.X_CT, tracking=False)
             if not solution.reason:
                 return solution
             failures.append(solution.reason)
@@ -324,7 +324,6 @@ class LineEstimator:
         X0: Pose,
         *,
         tracking: bool,
-        coarse: GradientImage | None = None,
     ) -> _Solution:
         options = self.options
         strips = strips_from_pose(X0, self.camera, self.target, options.strip_px)
@@ -376,9 +375,9 @@ class LineEstimator:
         if not reason:
             # The square panel looks the same after a quarter turn: the model's asymmetric
             # parts (the thruster) decide — in tracking too, so that a wrong lock cannot last.
-            # A pose from the panel's edges alone may be a few degrees off in tilt: out of
-            # tracking, judge the turns on the coarse gradients (tolerant of a few pixels).
-            turn = self.turns.check(coarse if coarse is not None else gradients, X)
+            # A pose from the panel's edges alone may be degrees off in tilt, which moves the
+            # asymmetric parts (far from the panel) by pixels: out of tracking, let them search.
+            turn = self.turns.check(gradients, X, search_px=0.0 if tracking else 6.0)
             if turn.best != 0 and turn.margin >= options.turn_margin:
                 if tracking:
                     reason = "a quarter turn of the pose fits the image better"

@@ -5,8 +5,9 @@ each circle: ring rims, thruster exit)
 sample points are projected with the pose and the smoothed image gradient is read there. On a
 true edge the gradient is across the contour (|g·n| large); off any edge it is isotropic noise,
 so |g·n| and |g·t| (along the contour) have the same distribution. The support of a contour is
-the z-score of mean|g·n| − mean|g·t| over its samples — near 0 for a wrong pose, large for a
-right one, and independent of contrast calibration. Point discs contribute a polarity test
+the z-score of mean|g·n| − mean|g·t| over its samples (counting as independent only samples a
+correlation length, 2σ of the smoothing, apart) — near 0 for a wrong pose, large for a right
+one, and independent of contrast calibration. Point discs contribute a polarity test
 (darker or brighter than their surroundings, as the model says).
 
 This is the validation of every pose an estimator returns (a wrong lock is reported ``lost``)
@@ -41,6 +42,7 @@ class GradientImage:
     smoothed: np.ndarray
     noise_sigma: float
     gradient_noise: float
+    sigma_px: float = 1.0
 
     @staticmethod
     def of(pixels: np.ndarray, sigma_px: float, noise_sigma: float) -> GradientImage:
@@ -51,7 +53,7 @@ class GradientImage:
         # derivative along one direction has deviation σ_s / (√2 σ_b). The floor keeps
         # noise-free images from dividing by zero.
         residual = noise_sigma / (2.0 * math.sqrt(math.pi) * sigma_px) + 0.002
-        return GradientImage(smoothed, residual, residual / (math.sqrt(2.0) * sigma_px))
+        return GradientImage(smoothed, residual, residual / (math.sqrt(2.0) * sigma_px), sigma_px)
 
     def sample(self, uv: np.ndarray) -> np.ndarray:
         """Bilinear samples of the smoothed image at pixel positions (N,2)."""
@@ -214,13 +216,22 @@ class ModelSupport:
         if np.any(counts >= _MIN_SAMPLES):
             shifts = [(0.0, 0.0)]
             if shift_px > 0:
-                steps = (-shift_px, 0.0, shift_px)
+                # A grid of image offsets 1.5 px apart within ±shift_px.
+                half = max(1, round(shift_px / 1.5))
+                steps = np.linspace(-shift_px, shift_px, 2 * half + 1)
                 shifts = [(dx, dy) for dx in steps for dy in steps]
             points = uv[visible]
             n = normal[visible]
             contour = contour_of[visible]
             best = np.full(len(self.names), -np.inf)
             tangent = np.column_stack([-n[:, 1], n[:, 0]])
+            # Samples closer than the smoothing's correlation length (≈ 2σ) are not independent:
+            # count the contour's image length in units of it.
+            step = np.zeros(len(points))
+            same = contour[1:] == contour[:-1]
+            step[1:][same] = np.linalg.norm(np.diff(points, axis=0), axis=1)[same]
+            length = np.bincount(contour, step, minlength=len(self.names))
+            independent = np.clip(length / (2.0 * gradients.sigma_px), 1.0, np.maximum(counts, 1))
             for dx, dy in shifts:
                 shifted = points + np.array([dx, dy])
                 across = np.abs(gradients.directional(shifted, n))
@@ -230,7 +241,7 @@ class ModelSupport:
                 along_sum = np.bincount(contour, along, minlength=len(self.names))
                 safe = np.maximum(counts, 1)
                 spread = np.sqrt(np.maximum(along_sq / safe - (along_sum / safe) ** 2, 0)) + 1e-12
-                z = (diff_sum / safe) / (spread * np.sqrt(2.0 / safe))
+                z = (diff_sum / safe) / (spread * np.sqrt(2.0 / independent))
                 best = np.maximum(best, z)
             for i, name in enumerate(self.names):
                 if counts[i] >= _MIN_SAMPLES:

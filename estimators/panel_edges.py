@@ -21,8 +21,19 @@ from estimators.geometry import Pose
 from estimators.planar_pose import EdgeObservations, ideal_pixel_jacobians, ideal_pixels
 from estimators.target import TargetModel
 
-#: Strips cover this part of each edge (fractions of its length), clear of the corners.
-EDGE_SPAN = (0.12, 0.88)
+#: Strips stay this far (px) from a corner, beyond the band across the neighbouring edge.
+CORNER_CLEARANCE_PX = 5.0
+#: ...and at least this fraction of the edge.
+MIN_CORNER_FRACTION = 0.04
+
+
+def edge_span(length_px: float, strip_px: float) -> tuple[float, float]:
+    """The part of an edge (fractions of its length) the strips cover: as close to the corners
+    as the neighbouring edge allows — an edge's angle, which carries the panel's tilt, is
+    measured best from its ends (its information grows with the cube of the span)."""
+    margin = max(MIN_CORNER_FRACTION, (CORNER_CLEARANCE_PX + 0.5 * strip_px) / max(length_px, 1.0))
+    margin = min(margin, 0.3)
+    return margin, 1.0 - margin
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -36,7 +47,8 @@ class EdgeStrips:
 
 
 def strip_count(length_px: float, strip_px: float) -> int:
-    return int(np.clip(round(length_px * (EDGE_SPAN[1] - EDGE_SPAN[0]) / strip_px), 3, 40))
+    t0, t1 = edge_span(length_px, strip_px)
+    return int(np.clip(round(length_px * (t1 - t0) / strip_px), 3, 60))
 
 
 def strips_from_pose(
@@ -54,7 +66,8 @@ def strips_from_pose(
         a, b = corners[i], corners[(i + 1) % 4]
         length = float(np.linalg.norm(corners_uv[(i + 1) % 4] - corners_uv[i]))
         count = strip_count(length, strip_px)
-        t = np.linspace(EDGE_SPAN[0], EDGE_SPAN[1], count)[:, None]
+        t0, t1 = edge_span(length, strip_px)
+        t = np.linspace(t0, t1, count)[:, None]
         uv = camera.project(X_CT.apply(a + t * (b - a)))
         ahead = camera.project(X_CT.apply(a + (t + 1e-3) * (b - a)))
         tangent = ahead - uv
@@ -62,7 +75,7 @@ def strips_from_pose(
         normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
         if np.mean(np.sum((centre_uv - uv) * normal, axis=1)) < 0:
             normal = -normal
-        spacing = length * (EDGE_SPAN[1] - EDGE_SPAN[0]) / max(count - 1, 1)
+        spacing = length * (t1 - t0) / max(count - 1, 1)
         strips.append(EdgeStrips(uv, normal, 0.5 * spacing))
     return strips
 
@@ -76,13 +89,14 @@ def strips_from_quad(corners_uv: np.ndarray, strip_px: float) -> list[EdgeStrips
         a, b = quad[i], quad[(i + 1) % 4]
         length = float(np.linalg.norm(b - a))
         count = strip_count(length, strip_px)
-        t = np.linspace(EDGE_SPAN[0], EDGE_SPAN[1], count)[:, None]
+        t0, t1 = edge_span(length, strip_px)
+        t = np.linspace(t0, t1, count)[:, None]
         uv = a + t * (b - a)
         tangent = (b - a) / max(length, 1e-9)
         normal = np.array([-tangent[1], tangent[0]])
         if normal @ (centre - 0.5 * (a + b)) < 0:
             normal = -normal
-        spacing = length * (EDGE_SPAN[1] - EDGE_SPAN[0]) / max(count - 1, 1)
+        spacing = length * (t1 - t0) / max(count - 1, 1)
         strips.append(EdgeStrips(uv, np.broadcast_to(normal, uv.shape).copy(), 0.5 * spacing))
     return strips
 
