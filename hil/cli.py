@@ -246,6 +246,8 @@ def matrix(
     acquisition: Annotated[
         bool, typer.Option(help="Also estimate every frame without a prior (acquisition rate).")
     ] = False,
+    camera: CameraOpt = "reference",
+    mockup: MockupOpt = "default",
 ) -> None:
     """Run the reference study's test matrix against simulator ground truth and print the
     per-case mean ± std of the errors beside the targets and the reference's numbers."""
@@ -266,6 +268,8 @@ def matrix(
             seed=seed,
             supersample=supersample,
             acquisition=acquisition,
+            camera=camera,
+            mockup=mockup,
         )
     except ValueError as exc:
         raise _fail(f"bad --distance: {exc}") from None

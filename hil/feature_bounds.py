@@ -133,36 +133,54 @@ def expected_mean_errors(covariance: np.ndarray, *, samples: int = 20000, seed: 
     return float(np.linalg.norm(draws[:, 3:], axis=1).mean()), float(rotation.mean())
 
 
-def bound_table(camera_name: str = "reference", mockup_name: str = "default") -> str:
-    """Markdown: per system, noise and distance, the 1σ bounds and the mean errors they imply."""
+def _with_outline(*args) -> np.ndarray:
+    return panel_edge_information(*args) + outline_edge_information(*args)
+
+
+#: system name → its features' information.
+INFORMATION = {
+    "lines": panel_edge_information,
+    "lines + bus-face outline": _with_outline,
+    "corners": disc_information,
+}
+
+
+def feature_bound(
+    system: str,
+    noise: str,
+    distance_m: float,
+    *,
+    camera_name: str = "reference",
+    mockup_name: str = "default",
+) -> tuple[np.ndarray, float, float]:
+    """(Cramér–Rao covariance over [δθ, δp], mean translation error m, mean rotation error
+    rad) of ``system``'s features at a generic view ``distance_m`` in front of the face (a few
+    degrees off square, as ../shared/LIMITS.md uses; the bound barely depends on it)."""
     camera = load_camera(camera_name).camera_info()
     mockup = load_mockup(mockup_name)
-    lighting = Lighting()
+    sigma = math.sqrt(NoiseConfig(preset=noise).gaussian_variance)
+    offset = Pose.from_rpy(math.radians(2.0), math.radians(-3.0), math.radians(6.0), np.zeros(3))
+    X_CT = facing_camera(distance_m).inverse() @ offset
+    covariance = np.linalg.inv(INFORMATION[system](X_CT, camera, mockup, sigma, Lighting()))
+    position, rotation = expected_mean_errors(covariance)
+    return covariance, position, rotation
+
+
+def bound_table(camera_name: str = "reference", mockup_name: str = "default") -> str:
+    """Markdown: per system, noise and distance, the 1σ bounds and the mean errors they imply."""
     lines = [
-        "| system | noise | distance | tilt 1σ (per axis) | depth 1σ | mean translation error "
+        "| features | noise | distance | tilt 1σ (per axis) | depth 1σ | mean translation error "
         "| mean rotation error |",
         "|---|---|---|---|---|---|---|",
     ]
-    # A generic view (a few degrees off square) as LIMITS.md uses; the bound barely depends on it.
-    offset = Pose.from_rpy(math.radians(2.0), math.radians(-3.0), math.radians(6.0), np.zeros(3))
-
-    def with_outline(*args):
-        return panel_edge_information(*args) + outline_edge_information(*args)
-
-    systems = (
-        ("lines", panel_edge_information),
-        ("lines + bus-face outline", with_outline),
-        ("corners", disc_information),
-    )
-    for system, information in systems:
+    for system in INFORMATION:
         for noise in ("low", "high"):
-            sigma = math.sqrt(NoiseConfig(preset=noise).gaussian_variance)
             for distance in REFERENCE_DISTANCES_M:
-                X_CT = facing_camera(distance).inverse() @ offset
-                covariance = np.linalg.inv(information(X_CT, camera, mockup, sigma, lighting))
+                covariance, position, rotation = feature_bound(
+                    system, noise, distance, camera_name=camera_name, mockup_name=mockup_name
+                )
                 tilt = math.degrees(math.sqrt(max(covariance[0, 0], covariance[1, 1])))
                 depth = math.sqrt(covariance[5, 5])
-                position, rotation = expected_mean_errors(covariance)
                 lines.append(
                     f"| {system} | {noise} | {distance:.1f} m | {tilt:.2f}° | {1000 * depth:.1f} mm "
                     f"| {100 * position:.2f} cm | {math.degrees(rotation):.2f}° |"

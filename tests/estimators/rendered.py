@@ -4,6 +4,7 @@ costs 50–300 ms), with the reference study's noise added deterministically."""
 from __future__ import annotations
 
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
@@ -15,37 +16,9 @@ from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene
 from sim_backends.sensor import expose, frame_rng
 
-#: A mock-up the estimators were not tuned on: smaller panel, other fastener layout, thruster
-#: elsewhere.
-OTHER_MOCKUP = MockupConfig.model_validate(
-    {
-        "name": "other",
-        "centre_panel": {"side": 0.24, "color": [0.7, 0.7, 0.7]},
-        "fasteners": [
-            {
-                "name": "ring_hole",
-                "surface": "ring",
-                "diameter": 0.02,
-                "circle_pattern": {"radius": 0.275, "count": 6, "phase_deg": 10},
-            },
-            {
-                "name": "panel_bolt",
-                "surface": "panel",
-                "diameter": 0.016,
-                "color": [0.1, 0.1, 0.1],
-                "positions": [[0.08, 0.08], [-0.08, 0.08], [-0.08, -0.08]],
-            },
-            {
-                "name": "bus_head",
-                "surface": "bus",
-                "diameter": 0.035,
-                "color": [0.9, 0.9, 0.9],
-                "positions": [[0.55, -0.5], [-0.6, 0.5], [0.0, -0.62]],
-            },
-        ],
-        "thruster": {"center": [-0.5, -0.45]},
-    }
-)
+#: A mock-up the estimators were not tuned on (configs/mockup_other.yaml): smaller panel, other
+#: fastener layout without four-fold symmetry, thruster elsewhere.
+OTHER_MOCKUP = load_mockup(Path(__file__).resolve().parents[2] / "configs" / "mockup_other.yaml")
 
 #: A generic pose offset (no edge on the pixel grid): 3 cm, 2 cm, 2°, −3°, 6°.
 GENERIC = (0.03, -0.02, 0.0, np.radians(2.0), np.radians(-3.0), np.radians(6.0))
