@@ -73,7 +73,8 @@ class LineOptions:
     ``min_edge_support``: z-score every reprojected panel edge (and the strongest other model
     contour in view) must reach; ``turn_margin``: by how much (z units) the model's asymmetric
     parts must favour one quarter turn of the square panel (acquisition needs it; in tracking a
-    clearly better turn means a wrong lock); ``pose_method``: ``gauss_newton`` or ``lhm``.
+    clearly better turn means a wrong lock), ``confirm_margin`` when it confirms the turn the
+    acquisition hypothesis already chose; ``pose_method``: ``gauss_newton`` or ``lhm``.
     """
 
     angle_gate_deg: float = 10.0
@@ -86,6 +87,7 @@ class LineOptions:
     pose_method: str = "gauss_newton"
     max_hypotheses: int = 3
     turn_margin: float = 6.0
+    confirm_margin: float = 3.0
 
     def __post_init__(self) -> None:
         if self.pose_method not in POSE_METHODS:
@@ -384,8 +386,12 @@ class LineEstimator:
                 else:
                     X = X @ self.turns.turns[turn.best]
                     support = self.support.score(gradients, X)
-            elif not tracking and self.turns.decidable and not turn.margin >= options.turn_margin:
-                reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
+            elif not tracking and self.turns.decidable:
+                # The hypothesis came with its turn already chosen (on smoother gradients, from
+                # the quad): confirming it needs less margin than overturning it.
+                needed = options.confirm_margin if turn.best == 0 else options.turn_margin
+                if not turn.margin >= needed:
+                    reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
         corners_image = self.camera.project(X.apply(self.target.panel_corners_T))
         return _Solution(
             X,
