@@ -75,6 +75,7 @@ class CornerOptions:
     pose_method: str = "gauss_newton"
     max_hypotheses: int = 3
     turn_margin: float = 6.0
+    confirm_margin: float = 3.0
 
     def __post_init__(self) -> None:
         if self.pose_method not in POSE_METHODS:
@@ -623,7 +624,9 @@ class CornerEstimator:
                     tracking=False,
                     retry=False,
                 )
-            if not tracking and self.turns.decidable and not turn.margin >= options.turn_margin:
+            # The hypothesis came with its turn already chosen: confirming it needs less margin.
+            needed = options.confirm_margin if turn.best == 0 else options.turn_margin
+            if not tracking and self.turns.decidable and not turn.margin >= needed:
                 reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
         return _Solution(
             fit.X_CT,
