@@ -312,11 +312,50 @@ def _fmt_mean_std(mean: float, std: float, scale: float, unit: str) -> str:
     return f"{scale * mean:.2f} ± {scale * std:.2f}{unit}"
 
 
+def overview_table(summaries: Sequence[CaseSummary]) -> str:
+    """Per system, noise and distance over the seven maneuvers (tracking): the range of the
+    cases' mean errors beside the target and the reference's low-noise range, whether every
+    case meets the target, frames valid / correct / wrong locks, the longest stretch without
+    a correct pose, and the mean NEES."""
+    groups: dict[tuple, list[CaseSummary]] = {}
+    for s in summaries:
+        if s.mode == "tracking":
+            groups.setdefault((s.system, s.noise, s.distance_m), []).append(s)
+    lines = [
+        "| system | noise | distance | position means | attitude means | target (×1.5 high) "
+        "| all cases meet it | reference (low noise) | valid | correct | wrong locks "
+        "| longest gap | NEES |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    order = {"none": 0, "low": 1, "high": 2}
+    for (system, noise, distance), rows in sorted(
+        groups.items(), key=lambda g: (g[0][0], order.get(g[0][1], 3), -g[0][2])
+    ):
+        pos = [100 * r.position_mean_m for r in rows]
+        att = [math.degrees(r.attitude_mean_rad) for r in rows]
+        frames = sum(r.frames for r in rows)
+        meets = [r.within_target for r in rows]
+        meets_text = (
+            "–" if meets[0] is None else ("yes" if all(meets) else f"{sum(meets)}/{len(meets)}")
+        )
+        correct = "–" if rows[0].correct < 0 else f"{sum(r.correct for r in rows)}/{frames}"
+        nees = [r.nees_mean for r in rows if not math.isnan(r.nees_mean)]
+        nees_text = f"{np.mean(nees):.1f}" if nees else "–"
+        lines.append(
+            f"| {system} | {noise} | {distance:.1f} m | {min(pos):.2f}–{max(pos):.2f} cm "
+            f"| {min(att):.2f}–{max(att):.2f}° | {target_text(system, distance)} | {meets_text} "
+            f"| {reference_text(system, distance)} | {sum(r.valid for r in rows)}/{frames} "
+            f"| {correct} | {sum(r.wrong_locks for r in rows)} | {max(r.longest_gap for r in rows)} "
+            f"| {nees_text} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def markdown_table(summaries: Sequence[CaseSummary]) -> str:
-    """One row per tracking case: our mean ± std beside the target and the reference's
-    low-noise range; correct frames (within 3× target), wrong locks, the longest stretch
-    without a correct pose, NEES and time. Acquisition cases (if run) follow in their own
-    table."""
+    """An overview per system, noise and distance (``overview_table``), then one row per
+    tracking case: our mean ± std beside the target and the reference's low-noise range;
+    correct frames (within 3× target), wrong locks, the longest stretch without a correct
+    pose, NEES and time. Acquisition cases (if run) follow in their own table."""
     lines = [
         "| system | distance | maneuver | noise | valid | position mean ± std | attitude mean ± std "
         "| target (low noise) | reference (low noise) | correct | wrong locks | longest gap "
@@ -337,7 +376,7 @@ def markdown_table(summaries: Sequence[CaseSummary]) -> str:
             f"| {s.longest_gap} | {s.nees_mean:.1f} "
             f"| {s.time_median_ms:.1f} / {s.time_p95_ms:.1f} |"
         )
-    text = "\n".join(lines) + "\n"
+    text = overview_table(summaries) + "\n" + "\n".join(lines) + "\n"
     acquisition = [s for s in summaries if s.mode == "acquisition"]
     if acquisition:
         text += "\n" + acquisition_table(acquisition)
