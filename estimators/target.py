@@ -65,13 +65,16 @@ class TargetModel:
     ``panel_corners_T`` (4,3): the square panel's front corners, counter-clockwise seen from +z,
     starting at (+x, +y). ``point_features`` lists the panel corners first, then the fasteners.
     ``circles``: ``ring_outer``, ``ring_inner`` and, when the mock-up has a thruster,
-    ``thruster_exit`` and ``thruster_inner``.
+    ``thruster_exit`` and ``thruster_inner``. ``outline_corners_T`` (4,3), optional: the
+    corners of the face the panel sits on (the mock-up's outline against the background), in
+    the panel's corner order — a large, high-contrast rectangle that helps find the target.
     """
 
     name: str
     panel_corners_T: np.ndarray
     point_features: tuple[PointFeature, ...]
     circles: tuple[Circle3D, ...]
+    outline_corners_T: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         corners = np.array(self.panel_corners_T, dtype=float)
@@ -79,6 +82,12 @@ class TargetModel:
             raise ValueError(f"panel_corners_T must be 4x3; got {corners.shape}")
         corners.flags.writeable = False
         object.__setattr__(self, "panel_corners_T", corners)
+        if self.outline_corners_T is not None:
+            outline = np.array(self.outline_corners_T, dtype=float)
+            if outline.shape != (4, 3):
+                raise ValueError(f"outline_corners_T must be 4x3; got {outline.shape}")
+            outline.flags.writeable = False
+            object.__setattr__(self, "outline_corners_T", outline)
 
     @property
     def panel_side(self) -> float:

@@ -235,9 +235,6 @@ def matrix(
     seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
     camera: CameraOpt = "reference",
     mockup: MockupOpt = "default",
-    acquire_every_frame: Annotated[
-        bool, typer.Option(help="Drop the prior before every frame (acquisition rate).")
-    ] = False,
     blank: Annotated[
         str, typer.Option(help="Comma-separated frame indices replaced by blank frames.")
     ] = "",
@@ -248,9 +245,15 @@ def matrix(
     results: Annotated[
         Path | None, typer.Option(help="Write every frame's result as JSON lines.")
     ] = None,
+    supersample: Annotated[
+        int, typer.Option(min=1, max=4, help="Render anti-aliasing factor (pixel-area sampling).")
+    ] = 1,
+    acquisition: Annotated[
+        bool, typer.Option(help="Also estimate every frame without a prior (acquisition rate).")
+    ] = False,
 ) -> None:
     """Run the reference study's test matrix against simulator ground truth and print the
-    per-case mean ± std of the errors beside the reference's numbers."""
+    per-case mean ± std of the errors beside the targets and the reference's numbers."""
     from dataclasses import asdict
 
     from hil.matrix import MatrixSpec, markdown_table, run_matrix, summarize
@@ -266,9 +269,10 @@ def matrix(
             noises=tuple(noise.split(",")),
             frames=frames,
             seed=seed,
+            supersample=supersample,
+            acquisition=acquisition,
             camera=camera,
             mockup=mockup,
-            acquire_every_frame=acquire_every_frame,
             blank_frames=tuple(int(i) for i in blank.split(",") if i.strip()),
         )
     except ValueError as exc:
@@ -280,7 +284,7 @@ def matrix(
     except (ValueError, NotImplementedError, ConfigError) as exc:
         raise _fail(str(exc)) from None
     table = markdown_table(summarize(rows))
-    out.print(table, markup=False, highlight=False)
+    out.print(table, markup=False, highlight=False, soft_wrap=True)
     if out_path is not None:
         out_path.parent.mkdir(parents=True, exist_ok=True)
         out_path.write_text(table, encoding="utf-8")

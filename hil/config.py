@@ -300,9 +300,14 @@ class MockupConfig(Strict):
             circles.append(
                 Circle3D("thruster_inner", center, z_axis, t.exit_diameter / 2 - t.lip_width)
             )
+        w, hh = self.bus_face.width / 2, self.bus_face.height / 2
+        outline = np.array(
+            [[w, hh, self.z_bus], [-w, hh, self.z_bus], [-w, -hh, self.z_bus], [w, -hh, self.z_bus]]
+        )
         return TargetModel(
             name=self.name,
             panel_corners_T=corners,
+            outline_corners_T=outline,
             point_features=tuple(points),
             circles=tuple(circles),
         )

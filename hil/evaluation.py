@@ -63,12 +63,7 @@ def measurement_error(m: Measurement, X_CT_true: Pose, target: TargetModel) -> M
         values["translation_m"] = translation_error(X_CT_true, m.X_CT)
         values["rotation_rad"] = rotation_error_rpy_norm(X_CT_true, m.X_CT)
         values["rotation_geodesic_rad"] = rotation_error_geodesic(X_CT_true, m.X_CT)
-        if m.covariance is not None:
-            # Conventions of estimators.measurement: R_true = Exp(δθ)·R_est, p_true = p_est + δp.
-            delta = np.concatenate(
-                [Rotation.from_matrix(X_CT_true.R @ m.X_CT.R.T).as_rotvec(), X_CT_true.p - m.X_CT.p]
-            )
-            values["nees_pose"] = _nees(delta, m.covariance)
+        values["nees_pose"] = pose_nees(m, X_CT_true)
     if m.center_C is not None and m.normal_C is not None and m.circle is not None:
         circle = target.circle(m.circle)
         center_true = X_CT_true.apply(circle.center_T)
@@ -90,6 +85,17 @@ def _nees(delta: np.ndarray, covariance: np.ndarray) -> float:
         return float(delta @ np.linalg.solve(covariance, delta))
     except np.linalg.LinAlgError:
         return math.inf
+
+
+def pose_nees(m: Measurement, X_CT_true: Pose) -> float:
+    """Normalised estimation error squared of a 6-DOF measurement: δᵀ·P⁻¹·δ with δ = [δθ, δp]
+    the true pose's offset from the estimate in the measurement's convention (R_true =
+    Exp(δθ)·R_est, p_true = p_est + δp). Its mean over many frames is 6 when the covariance is
+    honest. NaN without a 6-DOF pose."""
+    if not m.valid or m.X_CT is None or m.covariance is None:
+        return NAN
+    rotvec = Rotation.from_matrix(X_CT_true.R @ m.X_CT.R.T).as_rotvec()
+    return _nees(np.concatenate([rotvec, X_CT_true.p - m.X_CT.p]), m.covariance)
 
 
 def roll_error(X_CT_true: Pose, X_CT_est: Pose, axis_T: np.ndarray) -> float:

@@ -5,6 +5,12 @@ x / y / z and ±10° about x / y / z, each run as one sine period over the case'
 none / low / high; the reference camera. Each case starts without a prior (acquisition) and then
 tracks frame to frame, exactly as a running system would. Noise-free renderings are shared by
 all noise levels and systems of a case; each frame's noise depends only on (seed, case, frame).
+With ``acquisition`` every frame is also estimated without a prior (mode ``acquisition``), to
+measure how reliably each system finds the target from nothing.
+
+Every frame is judged against ground truth: its errors, its NEES (is the covariance honest?),
+whether it is *correct* (within 3× the accuracy target of ``hil.targets``) or a *wrong lock*
+(a valid pose with a gross error).
 """
 
 from __future__ import annotations
@@ -24,30 +30,21 @@ from hil.config import NoiseConfig, RenderConfig, load_camera, load_mockup
 from hil.evaluation import MeasurementError, measurement_error
 from hil.reference import reference_text
 from hil.scenarios import MANEUVERS, REFERENCE_DISTANCES_M, Maneuver, camera_pose_for
+from hil.targets import accuracy_target, is_correct, is_wrong_lock, judged_errors, target_text
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene
 from sim_backends.sensor import expose, frame_rng
 
 NOISE_LEVELS = ("none", "low", "high")
-#: A valid measurement this far from the truth is a wrong lock (position m, attitude rad).
-WRONG_LOCK_POSITION_M = 0.05
-WRONG_LOCK_ATTITUDE_RAD = math.radians(10.0)
-#: … unless its own covariance covers the error: 99.9 % quantiles of χ² with 6 and 5 degrees of
-#: freedom (a measurement without a covariance has NaN here, which never covers).
-WRONG_LOCK_NEES_POSE = 22.46
-WRONG_LOCK_NEES_CIRCLE = 20.52
 #: Intensity of a blank frame (a lens cap, a dropout): uniform grey, then the case's noise.
 BLANK_LEVEL = 0.35
 
 
 @dataclass(frozen=True, slots=True)
 class MatrixSpec:
-    """What to run. ``estimator_options`` go to every estimator factory.
-
-    ``acquire_every_frame`` drops the prior before every frame (measures acquisition alone);
-    ``blank_frames`` replaces those frame indices by blank frames (a forced loss, to measure
-    re-acquisition).
-    """
+    """What to run. ``estimator_options`` go to every estimator factory. ``acquisition`` also
+    estimates every frame without a prior (rows of mode "acquisition"); ``blank_frames``
+    replaces those frame indices by blank frames (a forced loss, to measure re-acquisition)."""
 
     systems: tuple[str, ...]
     distances_m: tuple[float, ...] = REFERENCE_DISTANCES_M
@@ -59,7 +56,7 @@ class MatrixSpec:
     mockup: str = "default"
     supersample: int = 1
     estimator_options: dict = field(default_factory=dict)
-    acquire_every_frame: bool = False
+    acquisition: bool = False
     blank_frames: tuple[int, ...] = ()
 
 
@@ -76,8 +73,9 @@ class FrameResult:
     residual_px: float
     time_ms: float
     had_prior: bool
-    blank: bool = False
-    ambiguous: bool = False
+    blank: bool = False  # a forced loss: the frame showed nothing
+    ambiguous: bool = False  # the estimator said it could not choose between two poses
+    mode: str = "tracking"  # or "acquisition": estimated without any prior
 
 
 def _maneuver(name: str) -> Maneuver:
@@ -115,36 +113,42 @@ def run_case_group(spec: MatrixSpec, distance_m: float, maneuver_name: str) -> l
         }
         for i, rendering in enumerate(renderings):
             blank = i in spec.blank_frames
-            scene_image = np.full_like(rendering.image, BLANK_LEVEL) if blank else rendering.image
-            image = expose(
-                scene_image, rendering.depth_m, camera.K, noise_config, frame_rng(seed, i)
-            )
+            scene = np.full_like(rendering.image, BLANK_LEVEL) if blank else rendering.image
+            image = expose(scene, rendering.depth_m, camera.K, noise_config, frame_rng(seed, i))
             frame = Frame(
                 image, float(i) / 30.0, camera, i, GroundTruth(rendering.X_CT, rendering.X_WC)
             )
+            case = (distance_m, maneuver_name, noise, i, rendering.X_CT, target, blank)
             for system, tracker in trackers.items():
-                if spec.acquire_every_frame:
-                    tracker.reset()
                 had_prior = tracker.prior_X_CT is not None
-                m = tracker.update(frame)
                 results.append(
-                    FrameResult(
-                        system,
-                        distance_m,
-                        maneuver_name,
-                        noise,
-                        i,
-                        m.status,
-                        m.reason,
-                        measurement_error(m, rendering.X_CT, target),
-                        m.residual_px,
-                        m.time_ms,
-                        had_prior,
-                        blank,
-                        m.ambiguous,
-                    )
+                    _frame_result(tracker.update(frame), system, *case, had_prior, "tracking")
                 )
+                if spec.acquisition:
+                    m = Tracker(tracker.estimator).update(frame)  # no prior at all
+                    results.append(_frame_result(m, system, *case, False, "acquisition"))
     return results
+
+
+def _frame_result(
+    m, system, distance_m, maneuver, noise, index, X_CT_true, target, blank, had_prior, mode
+) -> FrameResult:
+    return FrameResult(
+        system,
+        distance_m,
+        maneuver,
+        noise,
+        index,
+        m.status,
+        m.reason,
+        measurement_error(m, X_CT_true, target),
+        m.residual_px,
+        m.time_ms,
+        had_prior,
+        blank,
+        m.ambiguous,
+        mode,
+    )
 
 
 def run_matrix(
@@ -180,14 +184,18 @@ def run_matrix(
 
 @dataclass(frozen=True, slots=True)
 class CaseSummary:
-    """Statistics of one (system, distance, maneuver, noise) case over its frames.
+    """Statistics of one (system, distance, maneuver, noise, mode) case over its frames.
 
-    Errors are over the frames with a valid estimate; ``position`` is the translation (6-DOF)
-    or circle-centre (5-DOF) error, ``attitude`` the rotation or normal error; ``normal`` the
-    circle normal's error when a circle pose is measured. ``wrong`` counts valid frames beyond
-    the wrong-lock gate, not covered by their own covariance and not flagged ambiguous (``ambiguous`` counts the flagged ones);
-    ``recovery_max`` is the longest run of lost frames after a blank
-    stretch (frames to re-acquire); blank frames are excluded from everything else but ``lost``.
+    Errors are over the frames with a valid estimate (blank frames excluded from everything
+    but ``lost``); ``position`` is the translation (6-DOF) or circle-centre (5-DOF) error,
+    ``attitude`` the rotation or normal error, ``normal`` the circle normal's error when a
+    circle is measured. ``correct``: frames within 3× the case's accuracy target (-1 without a
+    target; the ellipse system is judged on its circle); ``wrong_locks``: valid frames wrong
+    without saying so (``hil.targets.is_wrong_lock``); ``ambiguous``: valid frames the
+    estimator flagged ambiguous; ``longest_gap``: the longest run of frames without a correct
+    estimate (without a target: without a valid one); ``recovery_max``: the longest run of lost
+    frames right after a blank stretch; ``nees_mean`` / ``nees_circle_mean``: mean NEES of the
+    6-DOF / 5-DOF estimates (6 / 5 for honest covariances).
     """
 
     system: str
@@ -207,42 +215,37 @@ class CaseSummary:
     acquired_tries: int
     time_median_ms: float
     time_p95_ms: float
+    mode: str = "tracking"
+    correct: int = -1
+    wrong_locks: int = 0
+    longest_gap: int = 0
+    nees_mean: float = math.nan
+    nees_circle_mean: float = math.nan
     normal_mean_rad: float = math.nan
     normal_std_rad: float = math.nan
-    wrong: int = 0
-    recovery_max: int = 0
-    blank: int = 0
     ambiguous: int = 0
+    blank: int = 0
+    recovery_max: int = 0
 
+    @property
+    def target(self) -> tuple[float, float] | None:
+        return accuracy_target(self.system, self.distance_m, self.noise)
 
-def _recovery(rows: Sequence[FrameResult]) -> int:
-    """Longest run of lost frames right after a blank stretch (0 when valid at once)."""
-    longest = 0
-    for k, r in enumerate(rows):
-        if r.blank and (k + 1 < len(rows) and not rows[k + 1].blank):
-            run = 0
-            for after in rows[k + 1 :]:
-                if after.status != "lost" or after.blank:
-                    break
-                run += 1
-            longest = max(longest, run)
-    return longest
+    @property
+    def judged_means(self) -> tuple[float, float]:
+        """The mean errors the target is about (the circle's for the ellipse system)."""
+        if self.system == "ellipses" and not math.isnan(self.normal_mean_rad):
+            return self.position_mean_m, self.normal_mean_rad
+        return self.position_mean_m, self.attitude_mean_rad
 
-
-def _wrong_lock(r: FrameResult) -> bool:
-    """A valid, unqualified answer beyond the gate that its own covariance does not cover
-    (normalised error beyond the 99.9 % χ² quantile): a lock on the wrong thing, not a noisy
-    answer that says it is noisy. An answer flagged ambiguous is not a wrong lock either."""
-    if r.status == "lost" or r.ambiguous:
-        return False
-    beyond = not r.error.position_m <= WRONG_LOCK_POSITION_M or not (
-        r.error.attitude_rad <= WRONG_LOCK_ATTITUDE_RAD
-    )
-    if not math.isnan(r.error.nees_pose):
-        covered = r.error.nees_pose <= WRONG_LOCK_NEES_POSE
-    else:
-        covered = r.error.nees_circle <= WRONG_LOCK_NEES_CIRCLE
-    return beyond and not covered
+    @property
+    def within_target(self) -> bool | None:
+        """Whether the mean errors meet the case's accuracy target (None without one)."""
+        target = self.target
+        if target is None or self.valid == 0:
+            return None
+        position, attitude = self.judged_means
+        return position <= target[0] and attitude <= target[1]
 
 
 def _longest_run(flags: Sequence[bool]) -> int:
@@ -253,21 +256,44 @@ def _longest_run(flags: Sequence[bool]) -> int:
     return longest
 
 
+def _recovery(rows: Sequence[FrameResult]) -> int:
+    """Longest run of lost frames right after a blank stretch (0 when valid at once)."""
+    longest = 0
+    for k, r in enumerate(rows[:-1]):
+        if r.blank and not rows[k + 1].blank:
+            run = 0
+            for after in rows[k + 1 :]:
+                if after.status != "lost" or after.blank:
+                    break
+                run += 1
+            longest = max(longest, run)
+    return longest
+
+
+def _mean_std(values: list[float]) -> tuple[float, float]:
+    finite = np.array([v for v in values if not math.isnan(v)])
+    return (float(finite.mean()), float(finite.std())) if len(finite) else (math.nan, math.nan)
+
+
 def summarize(results: Iterable[FrameResult]) -> list[CaseSummary]:
     cases: dict[tuple, list[FrameResult]] = {}
     for r in results:
-        cases.setdefault((r.system, r.distance_m, r.maneuver, r.noise), []).append(r)
+        cases.setdefault((r.system, r.distance_m, r.maneuver, r.noise, r.mode), []).append(r)
     summaries = []
-    for (system, distance, maneuver, noise), rows in cases.items():
+    for (system, distance, maneuver, noise, mode), rows in cases.items():
         rows.sort(key=lambda r: r.index)
         seen = [r for r in rows if not r.blank]
         valid = [r for r in seen if r.status != "lost"]
-        pos = np.array([r.error.position_m for r in valid])
-        att = np.array([r.error.attitude_rad for r in valid])
-        roll = np.array([r.error.roll_rad for r in valid if not math.isnan(r.error.roll_rad)])
-        normal = np.array([r.error.normal_rad for r in valid if not math.isnan(r.error.normal_rad)])
+        position = _mean_std([r.error.position_m for r in valid])
+        attitude = _mean_std([r.error.attitude_rad for r in valid])
+        normal = _mean_std([r.error.normal_rad for r in valid])
         no_prior = [r for r in seen if not r.had_prior]
         times = np.array([r.time_ms for r in seen])
+        target = accuracy_target(system, distance, noise)
+        judged = [
+            r.status != "lost" and is_correct(*judged_errors(system, r.error), target) for r in seen
+        ]
+        good = judged if target is not None else [r.status != "lost" for r in seen]
         summaries.append(
             CaseSummary(
                 system,
@@ -276,65 +302,153 @@ def summarize(results: Iterable[FrameResult]) -> list[CaseSummary]:
                 noise,
                 len(seen),
                 len(valid),
-                float(pos.mean()) if len(pos) else math.nan,
-                float(pos.std()) if len(pos) else math.nan,
-                float(att.mean()) if len(att) else math.nan,
-                float(att.std()) if len(att) else math.nan,
-                float(roll.mean()) if len(roll) else math.nan,
+                *position,
+                *attitude,
+                _mean_std([r.error.roll_rad for r in valid])[0],
                 len(seen) - len(valid),
-                _longest_run([r.status == "lost" for r in rows]),
+                _longest_run([r.status == "lost" for r in seen]),
                 sum(r.status == "acquired" for r in no_prior),
                 len(no_prior),
-                float(np.median(times)),
-                float(np.percentile(times, 95)),
-                float(normal.mean()) if len(normal) else math.nan,
-                float(normal.std()) if len(normal) else math.nan,
-                sum(_wrong_lock(r) for r in valid),
-                _recovery(rows),
-                len(rows) - len(seen),
+                float(np.median(times)) if len(times) else math.nan,
+                float(np.percentile(times, 95)) if len(times) else math.nan,
+                mode,
+                sum(bool(j) for j in judged) if target is not None else -1,
+                sum(is_wrong_lock(r.error, distance, ambiguous=r.ambiguous) for r in valid),
+                _longest_run([not g for g in good]),
+                _mean_std([r.error.nees_pose for r in valid])[0],
+                _mean_std([r.error.nees_circle for r in valid])[0],
+                *normal,
                 sum(r.ambiguous for r in valid),
+                len(rows) - len(seen),
+                _recovery(rows),
             )
         )
     return summaries
 
 
-def markdown_table(summaries: Sequence[CaseSummary]) -> str:
-    """One row per case: our mean ± std beside the reference's low-noise range, wrong locks,
-    and — when a system measures circles — the circle normal's error and the roll error; with
-    blank frames, the frames needed to re-acquire after them."""
-    circles = any(not math.isnan(s.normal_mean_rad) for s in summaries)
+def _fmt_mean_std(mean: float, std: float, scale: float, unit: str) -> str:
+    if math.isnan(mean):
+        return "–"
+    return f"{scale * mean:.2f} ± {scale * std:.2f}{unit}"
+
+
+def _nees_text(values_6: list[float], values_5: list[float]) -> str:
+    """Mean NEES, 6-DOF if there is any, else the 5-DOF circle's (marked "/5")."""
+    six = [v for v in values_6 if not math.isnan(v)]
+    five = [v for v in values_5 if not math.isnan(v)]
+    if six:
+        return f"{np.mean(six):.1f}"
+    return f"{np.mean(five):.1f}/5" if five else "–"
+
+
+def _wrong_text(wrong: int, ambiguous: int) -> str:
+    return f"{wrong} ({ambiguous} amb.)" if ambiguous else str(wrong)
+
+
+def overview_table(summaries: Sequence[CaseSummary]) -> str:
+    """Per system, noise and distance over the seven maneuvers (tracking): the range of the
+    cases' mean errors beside the target and the reference's low-noise range, whether every
+    case meets the target, frames valid / correct / wrong locks, the longest stretch without
+    a correct pose, and the mean NEES."""
+    groups: dict[tuple, list[CaseSummary]] = {}
+    for s in summaries:
+        if s.mode == "tracking":
+            groups.setdefault((s.system, s.noise, s.distance_m), []).append(s)
     blanks = any(s.blank for s in summaries)
-    header = (
-        "| system | distance | maneuver | noise | valid | wrong | position mean ± std "
-        "| attitude mean ± std "
-    )
-    rule = "|---|---|---|---|---|---|---|---|"
-    if circles:
-        header += "| normal mean ± std | roll mean "
-        rule += "---|---|"
-    header += "| reference (low noise) | longest loss "
-    rule += "---|---|"
-    if blanks:
-        header += "| re-acquired after "
-        rule += "---|"
-    header += "| median / p95 ms |"
-    rule += "---|"
-    lines = [header, rule]
-    for s in sorted(summaries, key=lambda s: (s.system, -s.distance_m, s.noise, s.maneuver)):
-        row = (
-            f"| {s.system} | {s.distance_m:.1f} m | {s.maneuver} | {s.noise} | {s.valid}/{s.frames} "
-            f"| {s.wrong}{f' ({s.ambiguous} amb.)' if s.ambiguous else ''} "
-            f"| {100 * s.position_mean_m:.2f} ± {100 * s.position_std_m:.2f} cm "
-            f"| {math.degrees(s.attitude_mean_rad):.2f} ± {math.degrees(s.attitude_std_rad):.2f}° "
+    lines = [
+        "| system | noise | distance | position means | attitude means | target (×1.5 high) "
+        "| all cases meet it | reference (low noise) | valid | correct | wrong locks "
+        "| longest gap | NEES |" + (" re-acquired after blanks |" if blanks else ""),
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if blanks else ""),
+    ]
+    order = {"none": 0, "low": 1, "high": 2}
+    for (system, noise, distance), rows in sorted(
+        groups.items(), key=lambda g: (g[0][0], order.get(g[0][1], 3), -g[0][2])
+    ):
+        pos = [100 * r.judged_means[0] for r in rows]
+        att = [math.degrees(r.judged_means[1]) for r in rows]
+        frames = sum(r.frames for r in rows)
+        meets = [r.within_target for r in rows]
+        meets_text = (
+            "–" if meets[0] is None else ("yes" if all(meets) else f"{sum(meets)}/{len(meets)}")
         )
-        if circles:
-            row += (
-                f"| {math.degrees(s.normal_mean_rad):.2f} ± {math.degrees(s.normal_std_rad):.2f}° "
-                f"| {math.degrees(s.roll_mean_rad):.2f}° "
-            )
-        row += f"| {reference_text(s.system, s.distance_m)} | {s.longest_loss} "
-        if blanks:
-            row += f"| {s.recovery_max + 1 if s.blank else '–'} "
-        row += f"| {s.time_median_ms:.1f} / {s.time_p95_ms:.1f} |"
-        lines.append(row)
+        correct = "–" if rows[0].correct < 0 else f"{sum(r.correct for r in rows)}/{frames}"
+        nees_text = _nees_text([r.nees_mean for r in rows], [r.nees_circle_mean for r in rows])
+        recovery = f" {max(r.recovery_max for r in rows) + 1} frame(s) |" if blanks else ""
+        lines.append(
+            f"| {system} | {noise} | {distance:.1f} m | {min(pos):.2f}–{max(pos):.2f} cm "
+            f"| {min(att):.2f}–{max(att):.2f}° | {target_text(system, distance)} | {meets_text} "
+            f"| {reference_text(system, distance)} | {sum(r.valid for r in rows)}/{frames} "
+            f"| {correct} | {_wrong_text(sum(r.wrong_locks for r in rows), sum(r.ambiguous for r in rows))} "
+            f"| {max(r.longest_gap for r in rows)} | {nees_text} |{recovery}"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def markdown_table(summaries: Sequence[CaseSummary]) -> str:
+    """An overview per system, noise and distance (``overview_table``), then one row per
+    tracking case: our mean ± std beside the target and the reference's low-noise range;
+    correct frames (within 3× target), wrong locks, the longest stretch without a correct
+    pose, NEES and time. For the ellipse system the attitude is the circle normal's error and
+    the roll error (6-DOF with the thruster) has its own column. Acquisition cases (if run)
+    follow in their own table."""
+    lines = [
+        "| system | distance | maneuver | noise | valid | position mean ± std | attitude mean ± std "
+        "| roll mean | target (low noise) | reference (low noise) | correct | wrong locks "
+        "| longest gap | NEES | median / p95 ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    tracking = [s for s in summaries if s.mode == "tracking"]
+    for s in sorted(tracking, key=lambda s: (s.system, -s.distance_m, s.noise, s.maneuver)):
+        meets = s.within_target
+        mark = "" if meets is None else (" ✓" if meets else " ✗")
+        correct = "–" if s.correct < 0 else f"{s.correct}/{s.frames}"
+        circle = s.system == "ellipses" and not math.isnan(s.normal_mean_rad)
+        attitude = (
+            (s.normal_mean_rad, s.normal_std_rad)
+            if circle
+            else (s.attitude_mean_rad, s.attitude_std_rad)
+        )
+        roll = "–" if math.isnan(s.roll_mean_rad) else f"{math.degrees(s.roll_mean_rad):.2f}°"
+        lines.append(
+            f"| {s.system} | {s.distance_m:.1f} m | {s.maneuver} | {s.noise} | {s.valid}/{s.frames} "
+            f"| {_fmt_mean_std(s.position_mean_m, s.position_std_m, 100, ' cm')} "
+            f"| {_fmt_mean_std(*attitude, 180 / math.pi, '°')}{mark} | {roll} "
+            f"| {target_text(s.system, s.distance_m)} "
+            f"| {reference_text(s.system, s.distance_m)} | {correct} "
+            f"| {_wrong_text(s.wrong_locks, s.ambiguous)} "
+            f"| {s.longest_gap} | {_nees_text([s.nees_mean], [s.nees_circle_mean])} "
+            f"| {s.time_median_ms:.1f} / {s.time_p95_ms:.1f} |"
+        )
+    text = overview_table(summaries) + "\n" + "\n".join(lines) + "\n"
+    acquisition = [s for s in summaries if s.mode == "acquisition"]
+    if acquisition:
+        text += "\n" + acquisition_table(acquisition)
+    return text
+
+
+def acquisition_table(summaries: Sequence[CaseSummary]) -> str:
+    """Acquisition without a prior, per system, noise and distance (all maneuvers pooled)."""
+    groups: dict[tuple, list[CaseSummary]] = {}
+    for s in summaries:
+        if s.mode == "acquisition":
+            groups.setdefault((s.system, s.noise, s.distance_m), []).append(s)
+    lines = [
+        "| system | noise | distance | acquired | correct | wrong locks | median / p95 ms |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for (system, noise, distance), rows in sorted(
+        groups.items(), key=lambda g: (g[0][0], g[0][1], -g[0][2])
+    ):
+        frames = sum(r.frames for r in rows)
+        valid = sum(r.valid for r in rows)
+        correct = sum(max(r.correct, 0) for r in rows)
+        wrong = _wrong_text(sum(r.wrong_locks for r in rows), sum(r.ambiguous for r in rows))
+        median = float(np.median([r.time_median_ms for r in rows]))
+        p95 = float(max(r.time_p95_ms for r in rows))
+        correct_text = f"{correct}/{frames}" if rows[0].correct >= 0 else "–"
+        lines.append(
+            f"| {system} | {noise} | {distance:.1f} m | {valid}/{frames} ({100 * valid / frames:.1f} %) "
+            f"| {correct_text} | {wrong} | {median:.1f} / {p95:.1f} |"
+        )
     return "\n".join(lines) + "\n"

@@ -44,7 +44,7 @@ def test_ellipses_reduced_matrix_accuracy_bounds(summaries):
         center_bound, normal_bound = BOUNDS[(s.distance_m, s.noise)]
         case = f"{s.distance_m} m {s.maneuver} {s.noise}"
         assert s.valid == s.frames, case  # every non-blank frame has a pose
-        assert s.wrong == 0, case
+        assert s.wrong_locks == 0, case
         assert s.position_mean_m <= center_bound, case
         assert math.degrees(s.normal_mean_rad) <= normal_bound, case
         assert math.degrees(s.roll_mean_rad) <= 3.0, case  # the thruster fixes the roll

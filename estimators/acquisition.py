@@ -1,0 +1,373 @@
+"""Acquisition without a prior: find the square panel, and rank the poses it allows.
+
+1. Quadrilateral hypotheses. The image is reduced (area averaging, which also lowers the
+   noise), smoothed to the noise level and cut at several grey levels (the panel is a region
+   brighter — or darker — than all around it, at some level). Outer contours whose convex hull
+   reduces to four corners (Douglas–Peucker), with the area they enclose close to the hull's,
+   are candidate panels; each is verified by edge support along all four sides (the gradient
+   across each side, with the polarity the model gives, as a z-score against the noise) and
+   kept only if its size and shape fit the model: the four corners must be the image of a
+   square of the panel's side at a plausible distance (IPPE residual small, pose in front).
+2. Pose hypotheses. A quad may be the panel or the outline of the face it sits on (large and
+   contrasted against the background). A square has four rotations that map its corners onto
+   the quad, and each has the two planar-ambiguity poses. The reprojected *whole* model
+   judges them (``estimators.model_support``): the ring's parallax the planar flip, the
+   thruster (or any asymmetric feature) the rotation (``TurnChecker``).
+
+Shared by the corner and line systems; each then refines the best hypotheses with its own
+features and validates the result.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from drivers.base import CameraInfo
+from estimators.geometry import Pose
+from estimators.imaging import GrayImage, smooth
+from estimators.model_support import GradientImage, ModelSupport, Support
+from estimators.panel_edges import fit_panel_edges, strips_from_quad
+from estimators.planar_pose import ippe_poses, project_ideal
+from estimators.target import TargetModel
+
+#: Distances (m) at which a panel may plausibly be found.
+DISTANCE_RANGE_M = (0.15, 20.0)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Quad:
+    """Four image corners (4,2 px) in the order that matches the model's corner order up to a
+    cyclic shift, and the weakest side's edge support (z-score)."""
+
+    corners_uv: np.ndarray
+    support: float
+
+
+def quarter_turns(target: TargetModel) -> tuple[Pose, ...]:
+    """The square panel's symmetries: X_TT' for turns of 0, 90, 180 and 270° about the panel's
+    axis (the panel alone cannot tell ``X_CT`` from ``X_CT @ turn``)."""
+    centre = target.panel_corners_T.mean(axis=0)
+    normal = np.cross(
+        target.panel_corners_T[1] - target.panel_corners_T[0],
+        target.panel_corners_T[2] - target.panel_corners_T[1],
+    )
+    normal /= np.linalg.norm(normal)
+    turns = []
+    for k in range(4):
+        R = Pose.from_rotvec(normal * k * math.pi / 2, np.zeros(3)).R
+        turns.append(Pose(R, centre - R @ centre))
+    return tuple(turns)
+
+
+@dataclass(frozen=True, slots=True)
+class TurnCheck:
+    """Support of the four quarter turns of a pose from the parts of the model that tell them
+    apart: the best turn (0 = the pose itself) and by how much its support beats the
+    runner-up (z units; infinite when only one turn is possible, NaN when no part can tell)."""
+
+    best: int
+    margin: float
+
+
+class TurnChecker:
+    """Decides the panel's quarter turn with the model's asymmetric parts (the thruster, an
+    irregular fastener layout). For a rough pose (a few degrees of tilt error) pass gradients
+    of a more strongly smoothed image (``coarse_gradients``): its edges are wide enough to be
+    met by a contour a few pixels off."""
+
+    def __init__(self, target: TargetModel, support: ModelSupport):
+        self.turns = quarter_turns(target)
+        self.support = support
+        symmetric, discs_symmetric = support.symmetric_under(self.turns[1])
+        self.parts = frozenset(n for n in support.names if n not in symmetric)
+        self.use_discs = not discs_symmetric
+
+    @property
+    def decidable(self) -> bool:
+        return bool(self.parts) or self.use_discs
+
+    def check(self, gradients: GradientImage, X_CT: Pose, *, search_px: float = 0.0) -> TurnCheck:
+        """Compare the quarter turns of ``X_CT``; with ``search_px`` each turn's parts take
+        their best image offset within that many pixels (for a pose whose tilt is uncertain:
+        the parts lie far from the panel, where a tilt error moves them most)."""
+        if not self.decidable:
+            return TurnCheck(0, math.nan)
+        totals = np.array(
+            [
+                self.support.score(
+                    gradients,
+                    X_CT @ turn,
+                    only=self.parts,
+                    discs=self.use_discs,
+                    shift_px=search_px,
+                ).total
+                for turn in self.turns
+            ]
+        )
+        order = np.argsort(-totals)
+        return TurnCheck(int(order[0]), float(totals[order[0]] - totals[order[1]]))
+
+
+#: Smoothing (px) of the gradients that judge rough hypotheses.
+COARSE_SMOOTHING_PX = 4.0
+
+
+def coarse_gradients(image: GrayImage) -> GradientImage:
+    """Gradients smoothed enough (σ = 4 px) to judge a pose a few pixels off."""
+    return GradientImage.of(image.pixels, COARSE_SMOOTHING_PX, image.noise_sigma)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Hypothesis:
+    """A pose the panel quad allows, with the whole model's support at that pose."""
+
+    X_CT: Pose
+    support: Support
+    quad: Quad
+
+
+def _polarity(target: TargetModel) -> float:
+    """+1 if the panel is brighter than what surrounds it, else −1."""
+    corners = [f for f in target.point_features if f.kind == "corner"]
+    return 1.0 if (not corners or corners[0].brighter) else -1.0
+
+
+def _side_support(gradients: GradientImage, quad: np.ndarray, polarity: float) -> float:
+    """Smallest z-score over the four sides of mean(−polarity · g·n_out) (n_out outward),
+    each side taken at its best offset within ±3 px (quad corners are rough)."""
+    centre = quad.mean(axis=0)
+    worst = math.inf
+    h, w = gradients.smoothed.shape
+    for i in range(4):
+        a, b = quad[i], quad[(i + 1) % 4]
+        length = float(np.linalg.norm(b - a))
+        count = max(6, int(length / 3))
+        t = np.linspace(0.15, 0.85, count)[:, None]
+        normal = np.array([-(b - a)[1], (b - a)[0]]) / max(length, 1e-9)
+        if normal @ (0.5 * (a + b) - centre) < 0:
+            normal = -normal
+        best = -math.inf
+        for shift in (-3.0, -1.5, 0.0, 1.5, 3.0):
+            points = a + t * (b - a) + shift * normal
+            inside = (points[:, 0] >= 0) & (points[:, 0] <= w - 1) & (points[:, 1] >= 0)
+            inside &= points[:, 1] <= h - 1
+            if inside.sum() < 4:
+                continue
+            points = points[inside]
+            g = gradients.directional(points, normal)
+            # Samples ~3 px apart along a side are treated as independent.
+            z = float(-polarity * g.mean() / (gradients.gradient_noise / math.sqrt(len(g))))
+            best = max(best, z)
+        worst = min(worst, best)
+    return worst
+
+
+def find_panel_quads(
+    image: GrayImage,
+    gradients: GradientImage,
+    target: TargetModel,
+    *,
+    levels: int = 7,
+    min_side_px: float = 10.0,
+    min_support: float = 2.5,
+    max_quads: int = 6,
+) -> list[Quad]:
+    """Candidate panel quadrilaterals, best supported first (see module docstring)."""
+    pixels = image.pixels
+    h, w = pixels.shape
+    factor = max(1, round(min(h, w) / 240))
+    small = cv2.resize(pixels, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+    small = smooth(small, 1.0)
+    polarity = _polarity(target)
+    if polarity < 0:
+        small = 1.0 - small
+    low, high = np.percentile(small[::2, ::2], [30.0, 99.5])
+    min_area = (min_side_px / factor) ** 2
+    max_area = 0.6 * small.size
+    found: list[np.ndarray] = []
+    for level in np.linspace(low, high, levels + 2)[1:-1]:
+        binary = (small > level).astype(np.uint8)
+        contours, _ = cv2.findContours(binary, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+        for contour in contours:
+            area = cv2.contourArea(contour)
+            if not min_area <= area <= max_area:
+                continue
+            hull = cv2.convexHull(contour)
+            hull_area = cv2.contourArea(hull)
+            if hull_area <= 0 or area / hull_area < 0.8:
+                continue
+            approx = cv2.approxPolyDP(hull, 0.08 * cv2.arcLength(hull, True), True)
+            if len(approx) != 4 or not cv2.isContourConvex(approx):
+                continue
+            quad = approx.reshape(4, 2).astype(float)
+            # A disc also reduces to four points; a square's region fills its quad.
+            if abs(cv2.contourArea(approx) / area - 1.0) > 0.12:
+                continue
+            # Contour coordinates are pixel indices of the reduced image; map pixel centres.
+            quad = (quad + 0.5) * factor - 0.5
+            sides = np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)
+            if sides.min() < min_side_px or sides.max() > 4.0 * sides.min():
+                continue
+            found.append(quad)
+    unique: list[np.ndarray] = []
+    for quad in found:
+        scale = np.linalg.norm(quad - quad.mean(axis=0), axis=1).mean()
+        if all(_quad_distance(quad, other) > 0.15 * scale for other in unique):
+            unique.append(quad)
+    quads = []
+    for quad in unique:
+        support = _side_support(gradients, quad, polarity)
+        if support >= min_support:
+            quads.append(Quad(quad, support))
+    quads.sort(key=lambda q: -q.support)
+    return quads[:max_quads]
+
+
+def _quad_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest corner distance under the best cyclic matching of two quads."""
+    return min(float(np.max(np.linalg.norm(a - np.roll(b, k, axis=0), axis=1))) for k in range(4))
+
+
+def _model_orientation(target: TargetModel, camera: CameraInfo) -> float:
+    """Sign of the image orientation of the panel corners seen from the front (+z side)."""
+    X_CT = Pose(np.diag([1.0, -1.0, -1.0]), np.array([0.0, 0.0, 2.0]))
+    uv = project_ideal(X_CT, target.panel_corners_T, camera.K)
+    return float(np.sign(_signed_area(uv)))
+
+
+def _signed_area(quad: np.ndarray) -> float:
+    x, y = quad[:, 0], quad[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def poses_from_corners(
+    corners_ideal: np.ndarray,
+    camera: CameraInfo,
+    target: TargetModel,
+    shifts: tuple[int, ...] = (0, 1, 2, 3),
+    *,
+    square_T: np.ndarray | None = None,
+) -> list[Pose]:
+    """The (up to) eight poses under which a model rectangle — the panel, or ``square_T``
+    (e.g. the face outline) — images onto the four corners (4,2 ideal px, in order around the
+    quad): the cyclic correspondences ``shifts`` × the planar two-fold ambiguity, kept if the
+    rectangle faces the camera at a plausible distance and reprojects onto the corners."""
+    model = target.panel_corners_T if square_T is None else np.asarray(square_T, dtype=float)
+    uv = np.asarray(corners_ideal, dtype=float).reshape(4, 2)
+    if np.sign(_signed_area(uv)) != _model_orientation(target, camera):
+        uv = uv[::-1]
+    size = float(np.mean(np.linalg.norm(uv - np.roll(uv, -1, axis=0), axis=1)))
+    poses = []
+    for shift in shifts:
+        ordered = np.roll(uv, shift, axis=0)
+        for X_CT in ippe_poses(model, ordered, camera.K):
+            depth = X_CT.apply(target.panel_corners_T)[:, 2]
+            if depth.min() < DISTANCE_RANGE_M[0] or depth.max() > DISTANCE_RANGE_M[1]:
+                continue
+            normal_C = X_CT.R[:, 2]
+            centre_C = X_CT.apply(model.mean(axis=0))
+            if normal_C @ centre_C >= 0:  # the front must face the camera
+                continue
+            projected = project_ideal(X_CT, model, camera.K)
+            if np.max(np.linalg.norm(projected - ordered, axis=1)) > 0.12 * size + 2.0:
+                continue
+            poses.append(X_CT)
+    return poses
+
+
+def refine_quad(
+    image: GrayImage,
+    corners_uv: np.ndarray,
+    camera: CameraInfo,
+    polarity: float,
+    strip_px: float = 6.0,
+    *,
+    passes: int = 3,
+) -> np.ndarray | None:
+    """Sub-pixel corners (4,2 ideal px) of a rough quad (image px) from its four edges, or
+    None if an edge is not found. A quad cut from a thresholded, reduced image may be several
+    pixels and degrees off: the first pass searches a wide band, later ones narrow it around
+    the lines just found, until the corners settle."""
+    schedule = [(5.0, 5.0), (4.0, 2.0), (3.0, 1.0)][:passes]
+    quad_uv = np.asarray(corners_uv, dtype=float)
+    corners = None
+    for band, search in schedule:
+        edges = fit_panel_edges(
+            image.pixels,
+            strips_from_quad(quad_uv, strip_px),
+            camera,
+            half_width_px=band,
+            search_px=search,
+            polarity=polarity,
+        )
+        if not edges.all_found:
+            return None
+        previous, corners = corners, edges.corners_ideal
+        assert corners is not None
+        quad_uv = camera.project(
+            np.column_stack(
+                [
+                    (corners[:, 0] - camera.K[0, 2]) / camera.K[0, 0],
+                    (corners[:, 1] - camera.K[1, 2]) / camera.K[1, 1],
+                    np.ones(4),
+                ]
+            )
+        )
+        if previous is not None and np.max(np.abs(corners - previous)) < 0.3:
+            break
+    return corners
+
+
+def pose_hypotheses(
+    image: GrayImage,
+    gradients: GradientImage,
+    coarse: GradientImage,
+    camera: CameraInfo,
+    target: TargetModel,
+    support: ModelSupport,
+    turns: TurnChecker,
+    *,
+    max_quads: int = 3,
+    strip_px: float = 6.0,
+) -> list[Hypothesis]:
+    """One pose hypothesis per panel quad, best supported first.
+
+    Each quad's sides are refined to sub-pixel edges first, so that the hypotheses are accurate
+    enough for the model's other contours to judge them. Of the quad's poses, the planar flip
+    is chosen by the whole model's support and the quarter turn by the model's asymmetric parts
+    (``turns``), both on the ``coarse`` gradients (tolerant of a few pixels): the four
+    turns and two flips of one quad agree on the panel and the ring, so only those parts can
+    tell them apart, and scoring all eight poses in full would only repeat the same numbers.
+    """
+    # A quad may be the panel or, when the model has one, the outline of the face it sits on
+    # (larger, with far more contrast against the background: found at every noise level
+    # while it is in view). The face is taken to be brighter than the background.
+    squares: list[tuple[np.ndarray | None, float]] = [(None, _polarity(target))]
+    if target.outline_corners_T is not None:
+        squares.append((target.outline_corners_T, 1.0))
+    hypotheses = []
+    for quad in find_panel_quads(image, gradients, target, max_quads=max_quads):
+        refined: dict[float, np.ndarray | None] = {}
+        for square_T, polarity in squares:
+            if polarity not in refined:
+                refined[polarity] = refine_quad(image, quad.corners_uv, camera, polarity, strip_px)
+            corners = refined[polarity]
+            if corners is None:
+                continue
+            # Both flips of one correspondence; the turn check chooses the correspondence.
+            flips = poses_from_corners(corners, camera, target, shifts=(0,), square_T=square_T)
+            if not flips:
+                continue
+            scored = [(support.score(coarse, X), X) for X in flips]
+            best_support, best_X = max(scored, key=lambda item: item[0].total)
+            turn = turns.check(coarse, best_X)
+            if turn.best != 0:
+                best_X = best_X @ turns.turns[turn.best]
+                best_support = support.score(coarse, best_X)
+            hypotheses.append(Hypothesis(best_X, best_support, quad))
+    hypotheses.sort(key=lambda h: -h.support.total)
+    return hypotheses

@@ -1,0 +1,678 @@
+"""The corner system: point features → pose (FEDALPE: extract → detect/label → pose).
+
+Extract: Shi–Tomasi corners (minimum eigenvalue of the structure tensor, OpenCV
+``goodFeaturesToTrack``; J. Shi and C. Tomasi, "Good features to track", CVPR 1994) on an image
+smoothed to its noise level; small discs (bolt heads and holes) respond as strongly as corners.
+With a prior only the neighbourhoods of the predicted features are searched.
+
+Detect/label: every point feature of the mock-up (panel corners; bolt heads and holes from its
+configuration) is projected with the prior. Each disc takes, among the candidates inside its
+gate (wide enough for the target's motion since the previous frame, narrower than half the
+distance to a look-alike feature), the one most clearly darker/brighter than its surroundings
+as the model says; panel corners take the nearest candidate. Labeling, refinement and pose
+alternate for a few rounds with shrinking gates.
+
+Refine: discs by a maximum-likelihood fit of a disc of the model's radius to the raw pixels,
+panel corners by a wedge fit (``estimators.point_fit``), each with its 2×2 covariance.
+
+Pose: nonlinear least squares on the whitened reprojection errors (or Lu–Hager–Mjolsness
+orthogonal iteration) from the prior and IPPE starts (``estimators.planar_pose``), gross
+outliers removed by a χ² test; validated against the reprojected model's edge support.
+
+Without a prior (start, lost, or failed validation) the panel is acquired from quadrilateral
+hypotheses (``estimators.acquisition``) and refined the same way.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from drivers.base import CameraInfo, Frame
+from estimators.acquisition import TurnChecker, coarse_gradients, pose_hypotheses
+from estimators.geometry import Pose, rotation_error_geodesic
+from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
+from estimators.measurement import Measurement
+from estimators.model_support import GradientImage, ModelSupport, Support
+from estimators.model_view import local_affine, plane_coordinates
+from estimators.planar_pose import (
+    POSE_METHODS,
+    PointObservations,
+    choose_pose,
+    fit_from_starts,
+    ideal_pixel_jacobians,
+    ideal_pixels,
+    ippe_poses,
+    refine_pose_robust,
+)
+from estimators.point_fit import PointFits, fit_corners, fit_discs
+from estimators.target import TargetModel
+
+SYSTEM = "corners"
+
+
+@dataclass(frozen=True, slots=True)
+class CornerOptions:
+    """Tunable settings of the corner system (defaults suit the reference study's set-up).
+
+    ``gate_m``: labeling gate around a predicted feature in tracking — how far (m, at the
+    target) it may have moved since the prior; in pixels it shrinks with distance;
+    ``min_features``: features needed for a pose; ``max_reduced_chi2``: the largest χ²/dof of
+    a valid fit (feature covariances come from their own fits, so 1 is ideal);
+    ``min_edge_support``: z-score the reprojected panel edges (and, when in view, another model
+    contour) must reach; ``pose_method``: ``gauss_newton`` or ``lhm``.
+    """
+
+    gate_m: float = 0.04
+    min_features: int = 5
+    max_reduced_chi2: float = 5.0
+    min_edge_support: float = 3.0
+    min_disc_snr: float = 3.0
+    pose_method: str = "gauss_newton"
+    max_hypotheses: int = 3
+    turn_margin: float = 6.0
+    confirm_margin: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.pose_method not in POSE_METHODS:
+            raise ValueError(
+                f"pose_method must be one of {', '.join(POSE_METHODS)}; got {self.pose_method!r}"
+            )
+        if self.min_features < 4:
+            raise ValueError("min_features must be at least 4")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FeatureLayout:
+    """The model's point features as arrays: positions (N,3) in T, disc radius (m, 0 for
+    corners), whether each is a disc, brighter than its surroundings, and the fitting window
+    radius (m) that stays clear of other model structure."""
+
+    names: tuple[str, ...]
+    points_T: np.ndarray
+    radius_m: np.ndarray
+    is_disc: np.ndarray
+    brighter: np.ndarray
+    window_m: np.ndarray
+
+    @staticmethod
+    def of(target: TargetModel) -> FeatureLayout:
+        features = target.point_features
+        points = np.array([f.p_T for f in features]).reshape(-1, 3)
+        radius = np.array([f.diameter / 2 for f in features])
+        is_disc = np.array([f.kind == "disc" for f in features])
+        brighter = np.array([f.brighter for f in features])
+        half = 0.5 * target.panel_side
+        centre = target.panel_corners_T.mean(axis=0)[:2]
+        window = np.zeros(len(features))
+        for i in np.flatnonzero(is_disc):
+            xy = points[i, :2]
+            gaps = [
+                np.linalg.norm(points[j, :2] - xy) - radius[j] - radius[i]
+                for j in range(len(features))
+                if j != i and is_disc[j]
+            ]
+            for circle in target.circles:
+                gaps.append(
+                    abs(np.linalg.norm(xy - circle.center_T[:2]) - circle.radius) - radius[i]
+                )
+            local = np.abs(xy - centre)
+            inside = np.all(local <= half)
+            to_square = (
+                min(half - local[0], half - local[1])
+                if inside
+                else np.linalg.norm(np.maximum(local - half, 0.0))
+            )
+            gaps.append(to_square - radius[i])
+            clearance = max(min(gaps), 0.0)
+            window[i] = radius[i] + float(
+                np.clip(0.8 * clearance, 0.5 * radius[i], 1.5 * radius[i])
+            )
+        return FeatureLayout(
+            tuple(f.name for f in features), points, radius, is_disc, brighter, window
+        )
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Solution:
+    """A validated-or-not pose with what it was computed from."""
+
+    X_CT: Pose
+    covariance: np.ndarray
+    rms_px: float
+    reduced_chi2: float
+    used: np.ndarray  # feature indices
+    uv: np.ndarray  # their measured image positions (px)
+    ambiguous: bool
+    candidates: np.ndarray
+    support: Support | None = None
+    reason: str = ""
+    details: dict = field(default_factory=dict)
+
+
+class CornerEstimator:
+    """Pose of the mock-up from its point features (see module docstring)."""
+
+    system = SYSTEM
+
+    def __init__(self, target: TargetModel, camera: CameraInfo, options: CornerOptions):
+        self.target = target
+        self.camera = camera
+        self.options = options
+        self.layout = FeatureLayout.of(target)
+        self.support = ModelSupport(target, camera)
+        self._z_panel = float(target.panel_corners_T[:, 2].mean())
+        self._ring_inner = (
+            target.circle("ring_inner").radius if target.has_circle("ring_inner") else math.inf
+        )
+        self.turns = TurnChecker(target, self.support)
+
+    # --- entry point ----------------------------------------------------------------------
+    def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
+        started = time.perf_counter()
+        image = gray_image(frame)
+        if isinstance(image, str):
+            return Measurement.lost(SYSTEM, frame, image, started=started)
+        gradients = GradientImage.of(image.pixels, 2.0, image.noise_sigma)
+        reasons = []
+        if prior_X_CT is not None:
+            solution = self._solve(image, gradients, prior_X_CT, tracking=True)
+            if not solution.reason:
+                return self._measurement(frame, solution, "tracking", started)
+            reasons.append(f"tracking failed ({solution.reason})")
+        solution = self._acquire(image, gradients)
+        if not solution.reason:
+            return self._measurement(frame, solution, "acquired", started)
+        reasons.append(f"acquisition failed ({solution.reason})")
+        features = {"extracted": solution.candidates} if len(solution.candidates) else {}
+        return Measurement.lost(
+            SYSTEM, frame, "; ".join(reasons), started=started, features=features
+        )
+
+    def _measurement(self, frame: Frame, s: _Solution, status: str, started: float) -> Measurement:
+        return Measurement(
+            system=SYSTEM,
+            status=status,  # type: ignore[arg-type]
+            stamp=frame.stamp,
+            seq=frame.seq,
+            X_CT=s.X_CT,
+            covariance=s.covariance,
+            residual_px=s.rms_px,
+            ambiguous=s.ambiguous,
+            features={"extracted": s.candidates, "labeled": s.uv},
+            time_ms=1000.0 * (time.perf_counter() - started),
+        )
+
+    # --- acquisition ------------------------------------------------------------------------
+    def _acquire(self, image: GrayImage, gradients: GradientImage) -> _Solution:
+        coarse = coarse_gradients(image)
+        hypotheses = pose_hypotheses(
+            image, gradients, coarse, self.camera, self.target, self.support, self.turns
+        )
+        if not hypotheses:
+            return self._failure("no panel-like quadrilateral in the image")
+        failures = []
+        tried: list[Pose] = []
+        for hypothesis in hypotheses:
+            if len(tried) >= self.options.max_hypotheses:
+                break
+            if any(rotation_error_geodesic(hypothesis.X_CT, X) < 0.05 for X in tried):
+                continue
+            tried.append(hypothesis.X_CT)
+            solution = self._solve(image, gradients, hypothesis.X_CT, tracking=False)
+            if not solution.reason:
+                return solution
+            failures.append(solution.reason)
+        return self._failure(f"{len(tried)} hypotheses rejected: {failures[0]}")
+
+    # --- the pipeline from a pose guess -----------------------------------------------------
+    def _failure(self, reason: str, candidates: np.ndarray | None = None) -> _Solution:
+        empty = np.zeros((0, 2))
+        return _Solution(
+            Pose.identity(),
+            np.eye(6),
+            math.nan,
+            math.nan,
+            np.zeros(0, int),
+            empty,
+            False,
+            empty if candidates is None else candidates,
+            reason=reason,
+        )
+
+    def _predict(self, X_CT: Pose):
+        """Projected features (N,2), in-view mask, local affine maps and disc radii (px)."""
+        P = X_CT.apply(self.layout.points_T)
+        visible = self.camera.in_view(P, margin_px=3.0)
+        uv = np.full((len(P), 2), np.nan)
+        A = np.full((len(P), 2, 2), np.nan)
+        if np.any(visible):
+            uv[visible] = self.camera.project(P[visible])
+            A[visible] = local_affine(X_CT, self.layout.points_T[visible], self.camera)
+        scale = np.sqrt(np.abs(np.linalg.det(np.nan_to_num(A))))
+        radius_px = self.layout.radius_m * scale
+        # A disc must be fully inside the image with room for its fitting window.
+        margin = self.layout.window_m * scale + 2.0
+        visible &= np.nan_to_num(uv[:, 0]) >= margin
+        visible &= np.nan_to_num(uv[:, 0]) <= self.camera.width - 1 - margin
+        visible &= np.nan_to_num(uv[:, 1]) >= margin
+        visible &= np.nan_to_num(uv[:, 1]) <= self.camera.height - 1 - margin
+        return uv, visible, A, radius_px
+
+    def _extract(
+        self,
+        image: GrayImage,
+        uv: np.ndarray,
+        visible: np.ndarray,
+        radius_px: np.ndarray,
+        reach: float,
+    ) -> tuple[np.ndarray, np.ndarray, float]:
+        """Shi–Tomasi candidates near the predicted features, the smoothed image (full size)
+        used for polarity tests and fit starts, and the noise of a polarity response on it
+        (centre minus ring mean). Large features are searched on a half-size image (same
+        response, a quarter of the cost)."""
+        disc_r = radius_px[visible & self.layout.is_disc]
+        typical_r = float(np.median(disc_r)) if len(disc_r) else 2.0
+        sigma = max(smoothing_sigma_px(image.noise_sigma), 0.5 * typical_r)
+        points = uv[visible]
+        h, w = image.shape
+        lo = np.maximum(np.floor(points.min(axis=0) - reach - 3 * sigma), 0).astype(int)
+        hi = np.minimum(np.ceil(points.max(axis=0) + reach + 3 * sigma), [w - 1, h - 1]).astype(int)
+        crop = image.pixels[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1]
+        smoothed = smooth(crop, sigma)
+        full = np.zeros(image.shape, np.float32)
+        full[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1] = smoothed
+        factor = 2 if typical_r > 3.0 else 1
+        search = smoothed
+        if factor > 1:
+            size = (smoothed.shape[1] // factor, smoothed.shape[0] // factor)
+            search = cv2.resize(smoothed, size, interpolation=cv2.INTER_AREA)
+        block = int(np.clip(2 * round(typical_r / factor) + 1, 3, 9))
+        mask = np.zeros(search.shape, np.uint8)
+        for u, v in (points - lo + 0.5) / factor - 0.5:
+            cv2.circle(mask, (round(u), round(v)), round(reach / factor), 255, -1)
+        corners = cv2.goodFeaturesToTrack(
+            search,
+            maxCorners=40 * len(points),
+            qualityLevel=0.005,
+            minDistance=2,
+            mask=mask,
+            blockSize=block,
+        )
+        # White noise smoothed by a Gaussian σ keeps σ_n / (2√π σ); centre minus a ring mean
+        # of eight samples adds √(1 + 1/8).
+        noise = image.noise_sigma / (2.0 * math.sqrt(math.pi) * sigma) * math.sqrt(1.125) + 1e-3
+        if corners is None:
+            return np.zeros((0, 2)), full, noise
+        found = (corners.reshape(-1, 2).astype(float) + 0.5) * factor - 0.5
+        return found + lo, full, noise
+
+    def _gates(self, pred: np.ndarray, visible: np.ndarray, gate: np.ndarray) -> np.ndarray:
+        """Per-feature labeling gate (px): at most ``gate`` (N,) and under half the distance
+        to the nearest other visible feature of the same kind and polarity (so that a gate
+        never holds two of them), at least 2 px."""
+        gates = np.array(gate, dtype=float)
+        index = np.flatnonzero(visible)
+        if len(index) < 2:
+            return gates
+        p = pred[index]
+        distance = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
+        kind = self.layout.is_disc[index]
+        polarity = self.layout.brighter[index]
+        alike = (kind[:, None] == kind[None, :]) & (polarity[:, None] == polarity[None, :])
+        np.fill_diagonal(alike, False)
+        nearest = np.where(alike, distance, np.inf).min(axis=1)
+        gates[index] = np.clip(0.45 * nearest, 2.0, gates[index])
+        return gates
+
+    def _label(
+        self, pred, visible, candidates, smoothed, noise, radius_px, gate, skip=()
+    ) -> dict[int, np.ndarray]:
+        """Feature index → labeled candidate (px). Discs take, among the candidates inside
+        their gate with the model's polarity (darker/brighter than a ring around them on the
+        smoothed image, whose noise is ``noise``), the most likely one: strong response, close
+        to the prediction. Panel corners take the nearest. Features in ``skip`` are already
+        measured."""
+        labels: dict[int, np.ndarray] = {}
+        wanted = np.array([i for i in np.flatnonzero(visible) if i not in skip], int)
+        if len(candidates) == 0 or len(wanted) == 0:
+            return labels
+        gates = self._gates(pred, visible, gate)[wanted]
+        limit = np.where(
+            self.layout.is_disc[wanted], gates, gates + 4.0
+        )  # corners respond off-apex
+        distance = np.linalg.norm(candidates[None, :, :] - pred[wanted][:, None, :], axis=2)
+        pairs_f, pairs_c = np.nonzero(distance <= limit[:, None])
+        score = -distance[pairs_f, pairs_c]  # corners: nearest first
+        disc_pair = self.layout.is_disc[wanted[pairs_f]]
+        if np.any(disc_pair):
+            f = wanted[pairs_f[disc_pair]]
+            points = candidates[pairs_c[disc_pair]]
+            # The ring of comparison samples stays inside the disc's clear surroundings.
+            scale = radius_px[f] / np.maximum(self.layout.radius_m[f], 1e-9)
+            clear_px = self.layout.window_m[f] * scale
+            ring_r = np.clip(
+                2.2 * np.maximum(radius_px[f], 1.0) + 1.0, radius_px[f] + 1.0, clear_px
+            )
+            angles = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
+            ring = points[:, None, :] + ring_r[:, None, None] * np.stack(
+                [np.cos(angles), np.sin(angles)], axis=1
+            )
+            samples = _bilinear(smoothed, np.concatenate([points, ring.reshape(-1, 2)]))
+            around = samples[len(points) :].reshape(-1, 8)
+            difference = samples[: len(points)] - around.mean(axis=1)
+            # Next to an edge the surroundings are half bright, half dark: their spread
+            # discounts the response (a disc's surroundings are uniform).
+            contrast = np.where(self.layout.brighter[f], difference, -difference) - around.std(
+                axis=1
+            )
+            # Log-likelihood of "the disc is here": its response against the smoothed noise,
+            # and the distance from the prediction against the gate (≈ 3σ of the prior).
+            sigma_pred = gates[pairs_f[disc_pair]] / 3.0
+            d = distance[pairs_f, pairs_c][disc_pair]
+            loglik = 0.5 * (contrast / noise) ** 2 - 0.5 * (d / sigma_pred) ** 2
+            score[disc_pair] = np.where(contrast > 0, loglik, -np.inf)
+        taken = np.zeros(len(candidates), bool)
+        for k in np.argsort(-score):  # best pairs first, each candidate and feature used once
+            if not np.isfinite(score[k]):
+                break
+            i, c = int(wanted[pairs_f[k]]), int(pairs_c[k])
+            if i in labels or taken[c]:
+                continue
+            labels[i] = candidates[c]
+            taken[c] = True
+        return labels
+
+    def _disc_starts(self, smoothed, labels, radius_px) -> tuple[np.ndarray, np.ndarray]:
+        """Start positions for disc fits: the smoothed image's extremum near each candidate."""
+        index = np.array([i for i in labels if self.layout.is_disc[i]], int)
+        starts = []
+        h, w = smoothed.shape
+        for i in index:
+            u, v = labels[i]
+            r = max(1, math.ceil(max(radius_px[i], 1.5)))
+            u0, v0 = round(u), round(v)
+            if u0 - r - 1 < 0 or v0 - r - 1 < 0 or u0 + r + 2 > w or v0 + r + 2 > h:
+                starts.append((u, v))
+                continue
+            sign = 1.0 if self.layout.brighter[i] else -1.0
+            patch = sign * smoothed[v0 - r : v0 + r + 1, u0 - r : u0 + r + 1]
+            yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+            patch = np.where(xx * xx + yy * yy <= r * r, patch, -np.inf)
+            pv, pu = np.unravel_index(int(np.argmax(patch)), patch.shape)
+            vi, ui = v0 - r + pv, u0 - r + pu
+            c = sign * smoothed[vi - 1 : vi + 2, ui - 1 : ui + 2]
+            du = _parabola_peak(c[1, 0], c[1, 1], c[1, 2])
+            dv = _parabola_peak(c[0, 1], c[1, 1], c[2, 1])
+            starts.append((ui + du, vi + dv))
+        return index, np.array(starts, dtype=float).reshape(-1, 2)
+
+    def _fit_discs(
+        self, image, smoothed, labels, A, radius_px
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Refined disc positions: (feature indices, uv (n,2), covariance (n,2,2))."""
+        index, starts = self._disc_starts(smoothed, labels, radius_px)
+        if len(index) == 0:
+            return index, np.zeros((0, 2)), np.zeros((0, 2, 2))
+        fits: PointFits = fit_discs(
+            image.pixels, starts, A[index], self.layout.radius_m[index], self.layout.window_m[index]
+        )
+        moved = np.linalg.norm(fits.uv - starts, axis=1)
+        sign = np.where(self.layout.brighter[index], 1.0, -1.0)
+        good = fits.ok & (moved <= np.maximum(2.0, radius_px[index]))
+        good &= sign * fits.contrast_snr >= self.options.min_disc_snr
+        return index[good], fits.uv[good], fits.covariance[good]
+
+    def _fit_panel_corners(self, image, X_CT: Pose, pred, visible, labels):
+        """Wedge fits of the labeled panel corners around their predictions under ``X_CT``."""
+        index = np.array([i for i in labels if not self.layout.is_disc[i] and visible[i]], int)
+        if len(index) == 0:
+            return index, np.zeros((0, 2)), np.zeros((0, 2, 2))
+        corners_T = self.target.panel_corners_T
+        directions, windows = [], []
+        for i in index:
+            p = self.layout.points_T[i]
+            # The two panel edges leaving this corner: toward its neighbours.
+            k = int(np.argmin(np.linalg.norm(corners_T - p, axis=1)))
+            ends = [corners_T[(k - 1) % 4], corners_T[(k + 1) % 4]]
+            d = []
+            for end in ends:
+                ahead = self.camera.project(X_CT.apply((p + 0.05 * (end - p))[None]))[0]
+                vector = ahead - pred[i]
+                d.append(vector / np.linalg.norm(vector))
+            directions.append(d)
+            side_px = np.linalg.norm(
+                self.camera.project(X_CT.apply((p + 0.2 * (ends[0] - p))[None]))[0] - pred[i]
+            )
+            # A fifth of the side, at most 12 px: the corner carries little weight next to the
+            # discs, and a wider window costs time and meets more clutter.
+            windows.append(float(np.clip(side_px, 5.0, 12.0)))
+        z_panel = self._z_panel
+        disc_xy = self.layout.points_T[self.layout.is_disc, :2]
+        disc_r = self.layout.radius_m[self.layout.is_disc]
+        depth = np.median(X_CT.apply(corners_T)[:, 2])
+        margin_m = 2.5 * depth / self.camera.K[0, 0]  # 2.5 px at the panel
+        ring_limit = self._ring_inner - margin_m
+
+        def keep(coords: np.ndarray) -> np.ndarray:
+            xy = plane_coordinates(coords, X_CT, self.camera, z_panel)
+            ok = np.isfinite(xy[:, 0])
+            xy = np.nan_to_num(xy)
+            ok &= np.hypot(xy[:, 0], xy[:, 1]) < ring_limit
+            gap = np.hypot(
+                xy[:, None, 0] - disc_xy[None, :, 0], xy[:, None, 1] - disc_xy[None, :, 1]
+            )
+            ok &= np.all(gap > disc_r + margin_m, axis=1)
+            return ok
+
+        fits = fit_corners(image.pixels, pred[index], np.array(directions), np.array(windows), keep)
+        polarity = 1.0 if self.layout.brighter[index[0]] else -1.0
+        moved = np.linalg.norm(fits.uv - pred[index], axis=1)
+        good = fits.ok & (moved <= 2.5) & (polarity * fits.contrast_snr >= 4.0)
+        return index[good], fits.uv[good], fits.covariance[good]
+
+    def _observations(self, index, uv, cov) -> PointObservations:
+        ideal = ideal_pixels(uv, self.camera.K, self.camera.dist)
+        if self.camera.has_distortion:
+            J = ideal_pixel_jacobians(uv, self.camera.K, self.camera.dist)
+            cov = J @ cov @ J.transpose(0, 2, 1)
+        return PointObservations(self.layout.points_T[index], ideal, cov)
+
+    def _fit_pose(self, index, uv, cov, X_start: Pose, prior: Pose | None, *, final: bool):
+        """Robust pose from labeled features; returns (choice, inlier mask) or None.
+
+        Gauss–Newton with Cauchy weights 1/(1 + χ²ᵢ/9) on each feature's whitened χ² (2 dof)
+        from ``X_start`` tolerates a good share of wrong labels; features with χ²ᵢ > 16
+        (p ≈ 3·10⁻⁴) times a robust variance factor (median χ² / 1.386, within [1, 4]) are then
+        dropped and the pose refitted on the inliers by plain least squares (covariance) —
+        from both IPPE poses too in the final round (the planar two-fold ambiguity)."""
+        if len(index) < self.options.min_features:
+            return None
+        K = self.camera.K
+        method = self.options.pose_method
+        obs_all = self._observations(index, uv, cov)
+        try:
+            X, chi2 = refine_pose_robust(obs_all, X_start, K)
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+        keep = chi2 <= 16.0 * float(np.clip(np.median(chi2) / 1.386, 1.0, 4.0))
+        choice = None
+        for _ in range(3):
+            if keep.sum() < self.options.min_features:
+                return None
+            obs = PointObservations(
+                obs_all.points_T[keep], obs_all.uv[keep], obs_all.covariance[keep]
+            )
+            starts = [X]
+            if final:
+                starts += ippe_poses(obs.points_T, obs.uv, K)
+            fits = fit_from_starts([obs], starts, K, method=method)  # type: ignore[arg-type]
+            if not fits:
+                return None
+            choice = choose_pose(fits, prior)
+            X = choice.fit.X_CT
+            _, r_w, _ = obs_all.linearize(X, K)
+            chi2 = np.sum(r_w.reshape(-1, 2) ** 2, axis=1)
+            new_keep = chi2 <= 16.0 * float(np.clip(np.median(chi2[keep]) / 1.386, 1.0, 4.0))
+            if np.array_equal(new_keep, keep):
+                break
+            keep = new_keep
+        if choice is None or keep.sum() < self.options.min_features:
+            return None
+        return choice, keep
+
+    def _solve(
+        self,
+        image: GrayImage,
+        gradients: GradientImage,
+        X0: Pose,
+        *,
+        tracking: bool,
+        retry: bool = True,
+    ) -> _Solution:
+        """Label, refine and fit from the pose guess ``X0`` (the prior when ``tracking``, an
+        acquisition hypothesis otherwise), in rounds with shrinking gates; a disc refined in
+        one round keeps its measurement, later rounds add the ones now predicted better."""
+        options = self.options
+        X = X0
+        # Gates in metres at the target: how far the features may be from their prediction.
+        gates_m = [options.gate_m, 0.0] if tracking else [2.0 * options.gate_m, options.gate_m, 0.0]
+        pred, visible, A, radius_px = self._predict(X)
+        if visible.sum() < options.min_features:
+            return self._failure(f"only {int(visible.sum())} point features in view")
+        px_per_m = np.sqrt(np.abs(np.linalg.det(np.nan_to_num(A))))
+        reach = float(np.max(options.gate_m * px_per_m[visible])) + 5.0
+        candidates, smoothed, noise = self._extract(image, pred, visible, radius_px, reach)
+        measured: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        fitted = None
+        index = np.zeros(0, int)
+        uv = np.zeros((0, 2))
+        for round_, gate_m in enumerate(gates_m):
+            final = round_ == len(gates_m) - 1
+            if round_ > 0:
+                pred, visible, A, radius_px = self._predict(X)
+                px_per_m = np.sqrt(np.abs(np.linalg.det(np.nan_to_num(A))))
+            gate = np.clip(gate_m * px_per_m, 3.0, 40.0)
+            # Panel corners are measured afresh around their current prediction each round.
+            measured = {i: m for i, m in measured.items() if self.layout.is_disc[i]}
+            labels = self._label(
+                pred, visible, candidates, smoothed, noise, radius_px, gate, set(measured)
+            )
+            if round_ > 0:
+                # Guided search: once a pose from the clearest features predicts the rest to
+                # about a pixel, a disc without a Shi–Tomasi response is looked for at the
+                # extremum of the matched-filter (smoothed) image next to its prediction; its
+                # fit must still pass the contrast test and the pose's χ² test.
+                for i in np.flatnonzero(visible & self.layout.is_disc):
+                    if int(i) not in measured and int(i) not in labels:
+                        labels[int(i)] = pred[i]
+            new_index, new_uv, new_cov = self._fit_discs(image, smoothed, labels, A, radius_px)
+            for i, p, c in zip(new_index, new_uv, new_cov, strict=True):
+                measured[int(i)] = (p, c)
+            if final or len(measured) < options.min_features:
+                corner_labels = {i: p for i, p in labels.items() if not self.layout.is_disc[i]}
+                c_index, c_uv, c_cov = self._fit_panel_corners(
+                    image, X, pred, visible, corner_labels
+                )
+                for i, p, c in zip(c_index, c_uv, c_cov, strict=True):
+                    measured[int(i)] = (p, c)
+            if len(measured) < options.min_features:
+                if not final:
+                    continue  # too few clear features yet: the guided search comes next round
+                return self._failure(
+                    f"only {len(measured)} features labeled and refined", candidates
+                )
+            index = np.array(sorted(measured), int)
+            uv = np.array([measured[i][0] for i in index])
+            cov = np.array([measured[i][1] for i in index])
+            attempt = self._fit_pose(
+                index, uv, cov, X, X0 if tracking else None, final=final and not tracking
+            )
+            if attempt is None:
+                if not final:
+                    measured.clear()  # start the next round afresh from the current pose
+                    continue
+                return self._failure("no consistent pose from the labeled features", candidates)
+            fitted = attempt
+            choice, keep = fitted
+            for i in index[~keep]:  # outliers are labeled afresh next round
+                del measured[int(i)]
+            X = choice.fit.X_CT
+        assert fitted is not None
+        choice, keep = fitted
+        fit = choice.fit
+        support = self.support.score(gradients, fit.X_CT)
+        reason = self._validate(fit, int(keep.sum()), support)
+        if not reason:
+            # The panel and a symmetric fastener layout look the same after a quarter turn;
+            # the model's asymmetric parts (the thruster) decide, in tracking too, so that a
+            # wrong lock cannot survive.
+            turn = self.turns.check(gradients, fit.X_CT)
+            if turn.best != 0 and turn.margin >= options.turn_margin:
+                if tracking or not retry:
+                    return self._failure(
+                        "a quarter turn of the pose fits the image better", candidates
+                    )
+                return self._solve(
+                    image,
+                    gradients,
+                    fit.X_CT @ self.turns.turns[turn.best],
+                    tracking=False,
+                    retry=False,
+                )
+            # The hypothesis came with its turn already chosen: confirming it needs less margin.
+            needed = options.confirm_margin if turn.best == 0 else options.turn_margin
+            if not tracking and self.turns.decidable and not turn.margin >= needed:
+                reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
+        return _Solution(
+            fit.X_CT,
+            fit.covariance,
+            fit.rms_px,
+            fit.reduced_chi2,
+            index[keep],
+            uv[keep],
+            choice.ambiguous,
+            candidates,
+            support,
+            reason,
+        )
+
+    def _validate(self, fit, count: int, support: Support) -> str:
+        """Why the fit is not a valid pose ('' if it is): too few or inconsistent features,
+        or a reprojected model that the image does not support — every panel edge, and the
+        strongest other contour in view (the ring), must stand out of the noise."""
+        options = self.options
+        if count < options.min_features:
+            return f"only {count} consistent features"
+        if fit.reduced_chi2 > options.max_reduced_chi2:
+            return f"features disagree with the model (χ²/dof {fit.reduced_chi2:.1f})"
+        panel = support.panel()
+        if len(panel) < 4 or min(panel) < options.min_edge_support:
+            weakest = min(panel) if panel else float("nan")
+            return f"a reprojected panel edge has no edge support (z {weakest:.1f})"
+        others = support.others()
+        if others and max(others.values()) < options.min_edge_support:
+            return "the reprojected ring/thruster have no edge support"
+        return ""
+
+
+def _bilinear(image: np.ndarray, points: np.ndarray) -> np.ndarray:
+    map_xy = np.asarray(points, dtype=np.float32).reshape(1, -1, 2)
+    return cv2.remap(image, map_xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+
+
+def _parabola_peak(left: float, centre: float, right: float) -> float:
+    """Sub-pixel offset of a maximum from three samples (clamped to ±0.5)."""
+    curvature = left - 2.0 * centre + right
+    if curvature >= 0:
+        return 0.0
+    return float(np.clip(0.5 * (left - right) / curvature, -0.5, 0.5))
+
+
+def build(target: TargetModel, camera: CameraInfo, **options) -> CornerEstimator:
+    """The registry's factory: options are ``CornerOptions`` fields."""
+    return CornerEstimator(target, camera, CornerOptions(**options))

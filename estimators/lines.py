@@ -1,0 +1,445 @@
+"""The line system: the panel's four edges → pose (FEDALPE: extract → detect/label → pose).
+
+Extract: Canny edges on an image smoothed to its noise level (thresholds from the noise of its
+gradient) and probabilistic Hough segments (OpenCV ``HoughLinesP``; J. Matas, C. Galambos and
+J. Kittler, "Robust detection of lines using the progressive probabilistic Hough transform",
+CVIU 78(1), 2000). With a prior only the neighbourhood of the predicted panel is searched.
+
+Detect/label: the panel's four edges are projected with the prior; a segment is a candidate
+for an edge when its direction is within the angle gate, its midpoint within the distance gate
+(metres at the panel, converted to pixels) and within the edge's extent, and the image is
+brighter on the panel's side of it (or darker, as the model says). The longest candidate and
+those collinear with it define the edge's search line.
+
+Refine: strips along the search line are fitted with a step edge on the raw pixels (sub-pixel
+edge points with their variances), robust total least squares gives each edge's line, and
+neighbouring lines intersect at the corners (``estimators.panel_edges``).
+
+Pose: nonlinear least squares on the edge points' distances from the projected model edges
+(or Lu–Hager–Mjolsness on the corners), from the prior and both IPPE poses of the corners; the
+planar two-fold ambiguity is resolved by the residuals when they decide, else by the prior,
+else by the reprojected model's support (``estimators.planar_pose``, ``model_support``).
+Without a prior the panel is acquired from quadrilateral hypotheses (``estimators.acquisition``).
+
+Only the panel's edges measure the pose, so its tilt is weakly determined (a 0.30 m square at
+several metres); see docs/corners_lines.md for the bound this sets.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from drivers.base import CameraInfo, Frame
+from estimators.acquisition import TurnChecker, coarse_gradients, pose_hypotheses
+from estimators.geometry import Pose, rotation_error_geodesic
+from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
+from estimators.measurement import Measurement
+from estimators.model_support import GradientImage, ModelSupport, Support
+from estimators.model_view import plane_coordinates
+from estimators.panel_edges import (
+    EdgeStrips,
+    PanelEdges,
+    corner_sigma_px,
+    fit_panel_edges,
+    shift_strips_onto,
+    strips_from_pose,
+)
+from estimators.planar_pose import (
+    POSE_METHODS,
+    PointObservations,
+    PoseChoice,
+    choose_pose,
+    fit_from_starts,
+    ippe_poses,
+)
+from estimators.target import TargetModel
+
+SYSTEM = "lines"
+
+
+@dataclass(frozen=True, slots=True)
+class LineOptions:
+    """Tunable settings of the line system (defaults suit the reference study's set-up).
+
+    ``angle_gate_deg`` / ``distance_gate_m``: how far a Hough segment may lie from a predicted
+    edge in direction and (metres at the panel) in position; ``strip_px`` / ``band_px``: strip
+    length along an edge and half width across it; ``min_contrast_snr``: how clearly an edge's
+    two sides must differ; ``max_reduced_chi2``: the largest χ²/dof of the edge points' fit;
+    ``min_edge_support``: z-score every reprojected panel edge (and the strongest other model
+    contour in view) must reach; ``turn_margin``: by how much (z units) the model's asymmetric
+    parts must favour one quarter turn of the square panel (acquisition needs it; in tracking a
+    clearly better turn means a wrong lock), ``confirm_margin`` when it confirms the turn the
+    acquisition hypothesis already chose; ``pose_method``: ``gauss_newton`` or ``lhm``.
+    """
+
+    angle_gate_deg: float = 10.0
+    distance_gate_m: float = 0.04
+    strip_px: float = 6.0
+    band_px: float = 3.0
+    min_contrast_snr: float = 3.5
+    max_reduced_chi2: float = 5.0
+    min_edge_support: float = 3.0
+    pose_method: str = "gauss_newton"
+    max_hypotheses: int = 3
+    turn_margin: float = 6.0
+    confirm_margin: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.pose_method not in POSE_METHODS:
+            raise ValueError(
+                f"pose_method must be one of {', '.join(POSE_METHODS)}; got {self.pose_method!r}"
+            )
+        if not 0.0 < self.angle_gate_deg < 45.0:
+            raise ValueError(f"angle_gate_deg must be in (0, 45); got {self.angle_gate_deg}")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Solution:
+    X_CT: Pose
+    covariance: np.ndarray
+    rms_px: float
+    ambiguous: bool
+    segments: np.ndarray  # (S,4) Hough segments x1 y1 x2 y2
+    edge_points: np.ndarray  # (M,2) image px
+    corners_uv: np.ndarray  # (4,2) image px
+    reason: str = ""
+
+
+def _polarity(target: TargetModel) -> float:
+    corners = [f for f in target.point_features if f.kind == "corner"]
+    return 1.0 if (not corners or corners[0].brighter) else -1.0
+
+
+class LineEstimator:
+    """Pose of the mock-up from its panel's edges (see module docstring)."""
+
+    system = SYSTEM
+
+    def __init__(self, target: TargetModel, camera: CameraInfo, options: LineOptions):
+        self.target = target
+        self.camera = camera
+        self.options = options
+        self.support = ModelSupport(target, camera)
+        self.polarity = _polarity(target)
+        self._z_panel = float(target.panel_corners_T[:, 2].mean())
+        discs = [f for f in target.point_features if f.kind == "disc"]
+        self._disc_xy = np.array([f.p_T[:2] for f in discs]).reshape(-1, 2)
+        self._disc_r = np.array([f.diameter / 2 for f in discs])
+        self._ring_inner = (
+            target.circle("ring_inner").radius if target.has_circle("ring_inner") else math.inf
+        )
+        self.turns = TurnChecker(target, self.support)
+
+    # --- entry point ----------------------------------------------------------------------
+    def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
+        started = time.perf_counter()
+        image = gray_image(frame)
+        if isinstance(image, str):
+            return Measurement.lost(SYSTEM, frame, image, started=started)
+        gradients = GradientImage.of(image.pixels, 2.0, image.noise_sigma)
+        reasons = []
+        segments = np.zeros((0, 4))
+        if prior_X_CT is not None:
+            solution = self._solve(image, gradients, prior_X_CT, tracking=True)
+            if not solution.reason:
+                return self._measurement(frame, solution, "tracking", started)
+            segments = solution.segments
+            reasons.append(f"tracking failed ({solution.reason})")
+        solution = self._acquire(image, gradients)
+        if not solution.reason:
+            return self._measurement(frame, solution, "acquired", started)
+        reasons.append(f"acquisition failed ({solution.reason})")
+        features = {"extracted": segments.reshape(-1, 2)} if len(segments) else {}
+        return Measurement.lost(
+            SYSTEM, frame, "; ".join(reasons), started=started, features=features
+        )
+
+    def _measurement(self, frame: Frame, s: _Solution, status: str, started: float) -> Measurement:
+        return Measurement(
+            system=SYSTEM,
+            status=status,  # type: ignore[arg-type]
+            stamp=frame.stamp,
+            seq=frame.seq,
+            X_CT=s.X_CT,
+            covariance=s.covariance,
+            residual_px=s.rms_px,
+            ambiguous=s.ambiguous,
+            features={
+                "extracted": s.segments.reshape(-1, 2),
+                "labeled": s.edge_points,
+                "corners": s.corners_uv,
+            },
+            time_ms=1000.0 * (time.perf_counter() - started),
+        )
+
+    @staticmethod
+    def _failure(reason: str, segments: np.ndarray | None = None) -> _Solution:
+        empty = np.zeros((0, 2))
+        return _Solution(
+            Pose.identity(),
+            np.eye(6),
+            math.nan,
+            False,
+            np.zeros((0, 4)) if segments is None else segments,
+            empty,
+            empty,
+            reason,
+        )
+
+    # --- acquisition ------------------------------------------------------------------------
+    def _acquire(self, image: GrayImage, gradients: GradientImage) -> _Solution:
+        coarse = coarse_gradients(image)
+        hypotheses = pose_hypotheses(
+            image, gradients, coarse, self.camera, self.target, self.support, self.turns
+        )
+        if not hypotheses:
+            return self._failure("no panel-like quadrilateral in the image")
+        failures, tried = [], []
+        for hypothesis in hypotheses:
+            if len(tried) >= self.options.max_hypotheses:
+                break
+            if any(rotation_error_geodesic(hypothesis.X_CT, X) < 0.05 for X in tried):
+                continue
+            tried.append(hypothesis.X_CT)
+            solution = self._solve(image, gradients, hypothesis.X_CT, tracking=False)
+            if not solution.reason:
+                return solution
+            failures.append(solution.reason)
+        return self._failure(f"{len(tried)} hypotheses rejected: {failures[0]}")
+
+    # --- extraction and labeling ------------------------------------------------------------
+    def _segments(self, image: GrayImage, corners_uv: np.ndarray, margin: float) -> np.ndarray:
+        """Hough segments (S,4) near the predicted panel, in image pixels."""
+        h, w = image.shape
+        lo = np.maximum(np.floor(corners_uv.min(axis=0) - margin), 0).astype(int)
+        hi = np.minimum(np.ceil(corners_uv.max(axis=0) + margin), [w - 1, h - 1]).astype(int)
+        if np.any(hi - lo < 8):
+            return np.zeros((0, 4))
+        crop = image.pixels[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1]
+        smoothed = smooth(crop, max(1.0, smoothing_sigma_px(image.noise_sigma)))
+        as_uint8 = np.clip(smoothed * 255.0, 0, 255).astype(np.uint8)
+        gx = cv2.Sobel(as_uint8, cv2.CV_32F, 1, 0, ksize=3)
+        gy = cv2.Sobel(as_uint8, cv2.CV_32F, 0, 1, ksize=3)
+        magnitude = np.abs(gx) + np.abs(gy)
+        # Edges are sparse: the median gradient is the noise's; Canny's hysteresis above it.
+        reference = float(np.median(magnitude)) + 1.0
+        edges = cv2.Canny(as_uint8, 1.5 * reference, 3.0 * reference, L2gradient=False)
+        lengths = np.linalg.norm(corners_uv - np.roll(corners_uv, -1, axis=0), axis=1)
+        shortest = float(lengths.min())
+        lines = cv2.HoughLinesP(
+            edges,
+            rho=1.0,
+            theta=math.pi / 180.0,
+            threshold=max(8, int(0.25 * shortest)),
+            minLineLength=max(6.0, 0.3 * shortest),
+            maxLineGap=max(3.0, 0.1 * shortest),
+        )
+        if lines is None:
+            return np.zeros((0, 4))
+        return lines.reshape(-1, 4).astype(float) + np.array([lo[0], lo[1], lo[0], lo[1]])
+
+    def _label(
+        self, segments: np.ndarray, corners_uv: np.ndarray, gradients: GradientImage, gate_px: float
+    ) -> list[np.ndarray | None]:
+        """Per model edge, the search line (point, direction) from its labeled segments, or
+        None when no segment passes the gates."""
+        centre = corners_uv.mean(axis=0)
+        lines: list[np.ndarray | None] = []
+        gate_angle = math.radians(self.options.angle_gate_deg)
+        for i in range(4):
+            a, b = corners_uv[i], corners_uv[(i + 1) % 4]
+            length = float(np.linalg.norm(b - a))
+            direction = (b - a) / max(length, 1e-9)
+            normal = np.array([-direction[1], direction[0]])
+            if normal @ (centre - a) < 0:
+                normal = -normal  # toward the panel
+            chosen = []
+            for x1, y1, x2, y2 in segments:
+                p, q = np.array([x1, y1]), np.array([x2, y2])
+                seg = q - p
+                seg_length = float(np.linalg.norm(seg))
+                if seg_length < 1e-6:
+                    continue
+                angle = math.acos(min(1.0, abs(float(seg @ direction)) / seg_length))
+                middle = 0.5 * (p + q)
+                offset = float((middle - a) @ normal)
+                along = float((middle - a) @ direction)
+                if angle > gate_angle or abs(offset) > gate_px:
+                    continue
+                if not -0.1 * length <= along <= 1.1 * length:
+                    continue
+                # Polarity: brighter (or darker) on the panel's side of the segment.
+                samples = p + np.linspace(0.2, 0.8, 5)[:, None] * seg
+                derivative = gradients.directional(samples, normal)
+                if self.polarity * float(np.mean(derivative)) <= 0:
+                    continue
+                chosen.append((seg_length, p, q))
+            if not chosen:
+                lines.append(None)
+                continue
+            chosen.sort(key=lambda c: -c[0])
+            _, p0, q0 = chosen[0]
+            d0 = (q0 - p0) / np.linalg.norm(q0 - p0)
+            n0 = np.array([-d0[1], d0[0]])
+            points = [p0, q0]
+            for _, p, q in chosen[1:]:
+                if abs((p - p0) @ n0) < 1.5 and abs((q - p0) @ n0) < 1.5:
+                    points += [p, q]
+            points = np.array(points)
+            middle = points.mean(axis=0)
+            _, _, vt = np.linalg.svd(points - middle)
+            lines.append(np.concatenate([middle, vt[0]]))
+        return lines
+
+    def _keep_mask(self, X_CT: Pose):
+        """Pixels to use for edge fits: not on a disc (bolt head near the panel) and inside the
+        ring's inner rim, judged on the panel plane under ``X_CT``."""
+        depth = float(np.median(X_CT.apply(self.target.panel_corners_T)[:, 2]))
+        margin_m = 1.5 * depth / self.camera.K[0, 0]
+        ring_limit = self._ring_inner - margin_m
+        disc_xy, disc_r = self._disc_xy, self._disc_r
+
+        def keep(coords: np.ndarray) -> np.ndarray:
+            xy = plane_coordinates(coords, X_CT, self.camera, self._z_panel)
+            ok = np.isfinite(xy[:, 0])
+            xy = np.nan_to_num(xy)
+            ok &= np.hypot(xy[:, 0], xy[:, 1]) < ring_limit
+            if len(disc_xy):
+                gap = np.hypot(
+                    xy[:, None, 0] - disc_xy[None, :, 0], xy[:, None, 1] - disc_xy[None, :, 1]
+                )
+                ok &= np.all(gap > disc_r + margin_m, axis=1)
+            return ok
+
+        return keep
+
+    # --- the pipeline from a pose guess -----------------------------------------------------
+    def _solve(
+        self,
+        image: GrayImage,
+        gradients: GradientImage,
+        X0: Pose,
+        *,
+        tracking: bool,
+    ) -> _Solution:
+        options = self.options
+        strips = strips_from_pose(X0, self.camera, self.target, options.strip_px)
+        if strips is None:
+            return self._failure("the panel is not fully in view at the prior")
+        corners_uv = self.camera.project(X0.apply(self.target.panel_corners_T))
+        depth = float(np.median(X0.apply(self.target.panel_corners_T)[:, 2]))
+        gate_px = float(np.clip(options.distance_gate_m * self.camera.K[0, 0] / depth, 4.0, 40.0))
+        segments = self._segments(image, corners_uv, gate_px + 6.0)
+        labeled = self._label(segments, corners_uv, gradients, gate_px)
+        search_strips: list[EdgeStrips] = []
+        search = []
+        for strip, line in zip(strips, labeled, strict=True):
+            if line is None:
+                search_strips.append(strip)
+                search.append(min(gate_px, 3.0 * options.band_px))
+            else:
+                search_strips.append(shift_strips_onto(strip, line[:2], line[2:]))
+                search.append(2.0)
+        edges = fit_panel_edges(
+            image.pixels,
+            search_strips,
+            self.camera,
+            half_width_px=options.band_px,
+            search_px=search,
+            min_contrast_snr=options.min_contrast_snr,
+            polarity=self.polarity,
+            keep=self._keep_mask(X0),
+            fallback=strips,  # a wrong segment must not hide an edge the prior predicts
+            fallback_search_px=min(gate_px, 2.0 * options.band_px),
+        )
+        if not edges.all_found:
+            missing = [i for i, e in enumerate(edges.edges) if not e.found]
+            return self._failure(f"panel edge(s) {missing} not found", segments)
+        choice = self._fit_pose(edges, X0, tracking)
+        if choice is None:
+            return self._failure("no pose fits the edges", segments)
+        fit = choice.fit
+        support = self.support.score(gradients, fit.X_CT)
+        ambiguous = choice.ambiguous
+        if not tracking and choice.ambiguous and choice.alternative is not None:
+            # The residuals did not decide the planar flip: the ring, standing in front of the
+            # panel, moves differently in the two poses — the whole model's support decides.
+            other = self.support.score(gradients, choice.alternative.X_CT)
+            if other.total > support.total:
+                fit, support = choice.alternative, other
+        X = fit.X_CT
+        reason = self._validate(fit.reduced_chi2, support)
+        if not reason:
+            # The square panel looks the same after a quarter turn: the model's asymmetric
+            # parts (the thruster) decide — in tracking too, so that a wrong lock cannot last.
+            # A pose from the panel's edges alone may be degrees off in tilt, which moves the
+            # asymmetric parts (far from the panel) by pixels: out of tracking, let them search.
+            turn = self.turns.check(gradients, X, search_px=0.0 if tracking else 6.0)
+            if turn.best != 0 and turn.margin >= options.turn_margin:
+                if tracking:
+                    reason = "a quarter turn of the pose fits the image better"
+                else:
+                    X = X @ self.turns.turns[turn.best]
+                    support = self.support.score(gradients, X)
+            elif not tracking and self.turns.decidable:
+                # The hypothesis came with its turn already chosen (on smoother gradients, from
+                # the quad): confirming it needs less margin than overturning it.
+                needed = options.confirm_margin if turn.best == 0 else options.turn_margin
+                if not turn.margin >= needed:
+                    reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
+        corners_image = self.camera.project(X.apply(self.target.panel_corners_T))
+        return _Solution(
+            X,
+            fit.covariance,
+            fit.rms_px,
+            ambiguous,
+            segments,
+            edges.image_points(),
+            corners_image,
+            reason,
+        )
+
+    def _fit_pose(self, edges: PanelEdges, X0: Pose, tracking: bool) -> PoseChoice | None:
+        observations = edges.observations(self.target)
+        K = self.camera.K
+        starts = [X0] + ippe_poses(self.target.panel_corners_T, edges.corners_ideal, K)
+        lhm_points = None
+        if self.options.pose_method == "lhm":
+            sigma = corner_sigma_px(edges)
+            covariance = np.tile(np.eye(2) * max(sigma, 0.05) ** 2, (4, 1, 1))
+            lhm_points = PointObservations(
+                self.target.panel_corners_T, edges.corners_ideal, covariance
+            )
+        fits = fit_from_starts(
+            [observations],
+            starts,
+            K,
+            method=self.options.pose_method,
+            lhm_points=lhm_points,  # type: ignore[arg-type]
+        )
+        if not fits:
+            return None
+        return choose_pose(fits, X0 if tracking else None)
+
+    def _validate(self, reduced_chi2: float, support: Support) -> str:
+        options = self.options
+        if reduced_chi2 > options.max_reduced_chi2:
+            return f"edge points disagree with the model (χ²/dof {reduced_chi2:.1f})"
+        panel = support.panel()
+        if len(panel) < 4 or min(panel) < options.min_edge_support:
+            weakest = min(panel) if panel else float("nan")
+            return f"a reprojected panel edge has no edge support (z {weakest:.1f})"
+        others = support.others()
+        if others and max(others.values()) < options.min_edge_support:
+            return "the reprojected ring/thruster have no edge support"
+        return ""
+
+
+def build(target: TargetModel, camera: CameraInfo, **options) -> LineEstimator:
+    """The registry's factory: options are ``LineOptions`` fields."""
+    return LineEstimator(target, camera, LineOptions(**options))

@@ -1,0 +1,279 @@
+"""How well a pose explains the image: edge support of the reprojected target model.
+
+For every contour of the model (the panel's four edges, the outline of the face it sits on,
+each circle: ring rims, thruster exit)
+sample points are projected with the pose and the smoothed image gradient is read there. On a
+true edge the gradient is across the contour (|g·n| large); off any edge it is isotropic noise,
+so |g·n| and |g·t| (along the contour) have the same distribution. The support of a contour is
+the z-score of mean|g·n| − mean|g·t| over its samples (counting as independent only samples a
+correlation length, 2σ of the smoothing, apart) — near 0 for a wrong pose, large for a right
+one, and independent of contrast calibration. Point discs contribute a polarity test
+(darker or brighter than their surroundings, as the model says).
+
+This is the validation of every pose an estimator returns (a wrong lock is reported ``lost``)
+and the tie-breaker among hypotheses the features themselves cannot separate: the square
+panel's four-fold symmetry (the thruster breaks it) and the planar two-fold ambiguity (the ring
+stands in front of the panel, so it moves differently). ``shift_px`` lets each contour take its
+best image offset within a few pixels, so that rough hypotheses can still be ranked.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from drivers.base import CameraInfo
+from estimators.geometry import Pose, field_radius
+from estimators.target import TargetModel
+
+_SAMPLES_PER_EDGE = 24
+_SAMPLES_PER_CIRCLE = 96
+_MIN_SAMPLES = 8
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class GradientImage:
+    """A smoothed image with the noise standard deviations left in it and in a directional
+    derivative; derivatives are read on demand by central differences (``directional``)."""
+
+    smoothed: np.ndarray
+    noise_sigma: float
+    gradient_noise: float
+    sigma_px: float = 1.0
+
+    @staticmethod
+    def of(pixels: np.ndarray, sigma_px: float, noise_sigma: float) -> GradientImage:
+        """Gaussian smoothing by ``sigma_px`` of an image with white noise ``noise_sigma``."""
+        size = 2 * math.ceil(3.0 * sigma_px) + 1
+        smoothed = cv2.GaussianBlur(pixels, (size, size), sigma_px, borderType=cv2.BORDER_REPLICATE)
+        # White noise through a 2-D Gaussian of σ_b keeps σ / (2√π σ_b) of its deviation; its
+        # derivative along one direction has deviation σ_s / (√2 σ_b). The floor keeps
+        # noise-free images from dividing by zero.
+        residual = noise_sigma / (2.0 * math.sqrt(math.pi) * sigma_px) + 0.002
+        return GradientImage(smoothed, residual, residual / (math.sqrt(2.0) * sigma_px), sigma_px)
+
+    def sample(self, uv: np.ndarray) -> np.ndarray:
+        """Bilinear samples of the smoothed image at pixel positions (N,2)."""
+        map_xy = np.asarray(uv, dtype=np.float32).reshape(1, -1, 2)
+        return cv2.remap(
+            self.smoothed, map_xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )[0].astype(float)
+
+    def directional(self, uv: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Derivative of the smoothed image at points (N,2) along unit directions (N,2) or (2,)
+        (central difference over ±1 px)."""
+        direction = np.broadcast_to(np.asarray(direction, dtype=float), np.shape(uv))
+        both = self.sample(np.concatenate([uv + direction, uv - direction]))
+        return 0.5 * (both[: len(uv)] - both[len(uv) :])
+
+
+@dataclass(frozen=True, slots=True)
+class Support:
+    """Edge support z-score per contour in view (with at least 8 samples), the disc polarity
+    z-score (NaN without discs in view), and how many non-panel contours were in view."""
+
+    contours: dict[str, float]
+    discs: float
+
+    def panel(self) -> list[float]:
+        return [z for name, z in self.contours.items() if name.startswith("panel_edge")]
+
+    def others(self) -> dict[str, float]:
+        return {n: z for n, z in self.contours.items() if not n.startswith("panel_edge")}
+
+    @property
+    def total(self) -> float:
+        """Sum of all z-scores (a log-likelihood-like score to rank hypotheses)."""
+        values = list(self.contours.values())
+        if math.isfinite(self.discs):
+            values.append(self.discs)
+        return float(sum(values))
+
+
+class ModelSupport:
+    """The target's contours, sampled once, and their support at any pose."""
+
+    def __init__(self, target: TargetModel, camera: CameraInfo):
+        self.target = target
+        self.camera = camera
+        names, points, across = [], [], []
+        corners = target.panel_corners_T
+        centre = corners.mean(axis=0)
+        for i in range(4):
+            a, b = corners[i], corners[(i + 1) % 4]
+            t = np.linspace(0.06, 0.94, _SAMPLES_PER_EDGE)[:, None]
+            out = 0.5 * (a + b) - centre
+            out -= out @ (b - a) / ((b - a) @ (b - a)) * (b - a)
+            names.append(f"panel_edge_{i}")
+            points.append(a + t * (b - a))
+            across.append(np.broadcast_to(out / np.linalg.norm(out), (len(t), 3)))
+        outline = target.outline_corners_T
+        if outline is not None:
+            middle = outline.mean(axis=0)
+            for i in range(4):
+                a, b = outline[i], outline[(i + 1) % 4]
+                t = np.linspace(0.03, 0.97, 2 * _SAMPLES_PER_EDGE)[:, None]
+                out = 0.5 * (a + b) - middle
+                out -= out @ (b - a) / ((b - a) @ (b - a)) * (b - a)
+                names.append(f"outline_edge_{i}")
+                points.append(a + t * (b - a))
+                across.append(np.broadcast_to(out / np.linalg.norm(out), (len(t), 3)))
+        for circle in target.circles:
+            n = circle.normal_T
+            u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+            u /= np.linalg.norm(u)
+            v = np.cross(n, u)
+            angles = np.linspace(0.0, 2.0 * np.pi, _SAMPLES_PER_CIRCLE, endpoint=False)
+            radial = np.cos(angles)[:, None] * u + np.sin(angles)[:, None] * v
+            names.append(circle.name)
+            points.append(circle.center_T + circle.radius * radial)
+            across.append(radial)
+        self.names = tuple(names)
+        self.points_T = np.concatenate(points)
+        self.across_T = np.concatenate(across)
+        self.contour_of = np.concatenate([np.full(len(p), i) for i, p in enumerate(points)])
+        discs = [f for f in target.point_features if f.kind == "disc"]
+        self.disc_centres_T = np.array([f.p_T for f in discs]).reshape(-1, 3)
+        self.disc_signs = np.array([1.0 if f.brighter else -1.0 for f in discs])
+        self.disc_radius_m = np.array([f.diameter / 2 for f in discs])
+        self._field_radius = field_radius(camera.K, camera.dist, camera.width, camera.height)
+
+    def _project(self, X_CT: Pose, points_T: np.ndarray, margin_px: float):
+        """Pixels (N,2) and an in-view mask (N,) of model points seen at ``X_CT``."""
+        camera = self.camera
+        P = X_CT.apply(points_T)
+        ok = P[:, 2] > 1e-6
+        uv = np.full((len(P), 2), np.nan)
+        if not np.any(ok):
+            return uv, ok
+        xy = P[ok, :2] / P[ok, 2:3]
+        ok[ok] = np.linalg.norm(xy, axis=1) <= 1.02 * self._field_radius
+        if np.any(ok):
+            uv[ok] = camera.project(P[ok])
+        ok &= (uv[:, 0] >= margin_px) & (uv[:, 0] <= camera.width - 1 - margin_px)
+        ok &= (uv[:, 1] >= margin_px) & (uv[:, 1] <= camera.height - 1 - margin_px)
+        return uv, ok
+
+    def symmetric_under(self, turn: Pose, tolerance_m: float = 1e-3) -> tuple[set[str], bool]:
+        """Which contours map onto the model's own contours under ``turn`` (X_TT'), and whether
+        the disc layout does — parts that cannot tell ``X_CT`` from ``X_CT @ turn``."""
+        symmetric = set()
+        for i, name in enumerate(self.names):
+            moved = turn.apply(self.points_T[self.contour_of == i])
+            gap = np.min(
+                np.linalg.norm(moved[:, None, :] - self.points_T[None, :, :], axis=2), axis=1
+            )
+            if np.max(gap) < tolerance_m + 0.05 * np.max(
+                np.linalg.norm(np.diff(self.points_T, axis=0), axis=1)
+            ):
+                symmetric.add(name)
+        discs_symmetric = True
+        if len(self.disc_centres_T):
+            moved = turn.apply(self.disc_centres_T)
+            for p, r, sign in zip(moved, self.disc_radius_m, self.disc_signs, strict=True):
+                match = (
+                    (np.linalg.norm(self.disc_centres_T - p, axis=1) < tolerance_m)
+                    & (np.abs(self.disc_radius_m - r) < tolerance_m)
+                    & (self.disc_signs == sign)
+                )
+                discs_symmetric &= bool(np.any(match))
+        return symmetric, discs_symmetric
+
+    def score(
+        self,
+        gradients: GradientImage,
+        X_CT: Pose,
+        *,
+        shift_px: float = 0.0,
+        only: frozenset[str] | None = None,
+        discs: bool = True,
+    ) -> Support:
+        """Support of every contour (or of those named in ``only``) and of the discs (unless
+        ``discs`` is False) at ``X_CT`` (see module docstring)."""
+        margin = 4.0 + shift_px
+        if only is None:
+            points_T, across_T, contour_of = self.points_T, self.across_T, self.contour_of
+        else:
+            chosen = np.isin(self.contour_of, [i for i, n in enumerate(self.names) if n in only])
+            points_T = self.points_T[chosen]
+            across_T = self.across_T[chosen]
+            contour_of = self.contour_of[chosen]
+        uv, visible = self._project(X_CT, points_T, margin)
+        depth = np.maximum(np.abs(X_CT.apply(points_T)[:, 2]), 1e-3)
+        ahead_uv, ahead_ok = self._project(
+            X_CT, points_T + (0.002 * depth)[:, None] * across_T, 0.0
+        )
+        visible &= ahead_ok
+        normal = ahead_uv - uv
+        length = np.linalg.norm(np.nan_to_num(normal), axis=1)
+        visible &= length > 1e-9
+        normal = normal / np.where(length > 1e-9, length, 1.0)[:, None]
+        scores: dict[str, float] = {}
+        counts = np.bincount(contour_of[visible], minlength=len(self.names))
+        if np.any(counts >= _MIN_SAMPLES):
+            shifts = [(0.0, 0.0)]
+            if shift_px > 0:
+                # A grid of image offsets 1.5 px apart within ±shift_px.
+                half = max(1, round(shift_px / 1.5))
+                steps = np.linspace(-shift_px, shift_px, 2 * half + 1)
+                shifts = [(dx, dy) for dx in steps for dy in steps]
+            points = uv[visible]
+            n = normal[visible]
+            contour = contour_of[visible]
+            best = np.full(len(self.names), -np.inf)
+            tangent = np.column_stack([-n[:, 1], n[:, 0]])
+            # Samples closer than the smoothing's correlation length (≈ 2σ) are not independent:
+            # count the contour's image length in units of it.
+            step = np.zeros(len(points))
+            same = contour[1:] == contour[:-1]
+            step[1:][same] = np.linalg.norm(np.diff(points, axis=0), axis=1)[same]
+            length = np.bincount(contour, step, minlength=len(self.names))
+            independent = np.clip(length / (2.0 * gradients.sigma_px), 1.0, np.maximum(counts, 1))
+            for dx, dy in shifts:
+                shifted = points + np.array([dx, dy])
+                across = np.abs(gradients.directional(shifted, n))
+                along = np.abs(gradients.directional(shifted, tangent))
+                diff_sum = np.bincount(contour, across - along, minlength=len(self.names))
+                along_sq = np.bincount(contour, along * along, minlength=len(self.names))
+                along_sum = np.bincount(contour, along, minlength=len(self.names))
+                safe = np.maximum(counts, 1)
+                spread = np.sqrt(np.maximum(along_sq / safe - (along_sum / safe) ** 2, 0)) + 1e-12
+                z = (diff_sum / safe) / (spread * np.sqrt(2.0 / independent))
+                best = np.maximum(best, z)
+            for i, name in enumerate(self.names):
+                if counts[i] >= _MIN_SAMPLES:
+                    scores[name] = float(best[i])
+        polarity = self._disc_polarity(gradients, X_CT, shift_px) if discs else math.nan
+        return Support(scores, polarity)
+
+    def _disc_polarity(self, gradients: GradientImage, X_CT: Pose, shift_px: float) -> float:
+        """z-score of Σ sign·(disc centre − ring around it) over the discs in view."""
+        if len(self.disc_centres_T) == 0:
+            return math.nan
+        uv, visible = self._project(X_CT, self.disc_centres_T, 6.0 + shift_px)
+        if visible.sum() < 2:
+            return math.nan
+        depth = X_CT.apply(self.disc_centres_T[visible])[:, 2]
+        radius_px = np.maximum(self.disc_radius_m[visible] * self.camera.K[0, 0] / depth, 0.5)
+        signs = self.disc_signs[visible]
+        angles = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
+        ring_offsets = (2.2 * radius_px + 1.0)[:, None, None] * np.stack(
+            [np.cos(angles), np.sin(angles)], axis=1
+        )
+        best = -math.inf
+        shifts = [(0.0, 0.0)]
+        if shift_px > 0:
+            steps = (-0.5 * shift_px, 0.0, 0.5 * shift_px)
+            shifts = [(dx, dy) for dx in steps for dy in steps]
+        for dx, dy in shifts:
+            centre = uv[visible] + np.array([dx, dy])
+            inner = gradients.sample(centre)
+            ring = gradients.sample((centre[:, None, :] + ring_offsets).reshape(-1, 2))
+            difference = signs * (inner - ring.reshape(-1, 8).mean(axis=1))
+            # Noise of one smoothed sample minus the mean of eight: σ_s·√(1 + 1/8).
+            z = difference.sum() / (gradients.noise_sigma * math.sqrt(len(difference) * 1.125))
+            best = max(best, float(z))
+        return best

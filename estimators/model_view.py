@@ -1,0 +1,39 @@
+"""The target model as a camera at a given pose sees it: local affine maps of its planes and
+image pixels mapped back onto them. Used to shape fitting windows and to mask other features.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from drivers.base import CameraInfo
+from estimators.geometry import Pose, as_points, undistort_pixels
+
+
+def local_affine(X_CT: Pose, points_T: np.ndarray, camera: CameraInfo, *, step_m: float = 1e-4):
+    """∂(pixel)/∂(x_T, y_T) (N,2,2, px per metre) at points (N,3) of planes parallel to T's
+    xy plane — how a small disc or patch there is imaged (lens distortion included)."""
+    points = as_points(points_T, 3, "points_T")
+    A = np.empty((len(points), 2, 2))
+    for axis in range(2):
+        step = np.zeros(3)
+        step[axis] = step_m
+        plus = camera.project(X_CT.apply(points + step))
+        minus = camera.project(X_CT.apply(points - step))
+        A[:, :, axis] = (plus - minus) / (2.0 * step_m)
+    return A
+
+
+def plane_coordinates(uv: np.ndarray, X_CT: Pose, camera: CameraInfo, z_T: float) -> np.ndarray:
+    """T-frame (x, y) (N,2) where the viewing rays of pixels (N,2) meet the plane z = z_T of T
+    (NaN where a ray misses it in front of the camera)."""
+    xy = undistort_pixels(as_points(uv, 2, "uv"), camera.K, camera.dist)
+    rays_C = np.column_stack([xy, np.ones(len(xy))])
+    # In T: origin o = camera centre, direction d; solve (o + s·d)_z = z_T.
+    R_TC = X_CT.R.T
+    o = -R_TC @ X_CT.p
+    d = rays_C @ R_TC.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (z_T - o[2]) / d[:, 2]
+    s = np.where(s > 0, s, np.nan)
+    return o[:2] + s[:, None] * d[:, :2]

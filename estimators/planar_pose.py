@@ -1,0 +1,654 @@
+"""Pose of a (nearly) planar target from image features: closed-form start, nonlinear least
+squares on reprojection error with its covariance, an orthogonal-iteration alternative, and the
+planar two-fold ambiguity.
+
+Image measurements enter in *ideal pixels*: undistorted normalized coordinates mapped through
+K (``ideal_pixels``), so that the pose math is a pinhole model for any camera.
+
+Pose perturbation (matches ``estimators.measurement``): δ = [δθ, δp] with
+R_true = Exp(δθ)·R_est and p_true = p_est + δp, in the camera frame C. A point P_T maps to
+P_C = R·P_T + p, so ∂P_C/∂δθ = −[R·P_T]ₓ and ∂P_C/∂δp = I.
+
+Algorithms:
+* IPPE — T. Collins and A. Bartoli, "Infinitesimal Plane-Based Pose Estimation", IJCV 109(3),
+  2014 (OpenCV's ``SOLVEPNP_IPPE``): both poses of the planar two-fold ambiguity in closed form.
+* Gauss–Newton / Levenberg–Marquardt on the whitened reprojection residuals (the reference's
+  GLSDC, "Gaussian least-squares differential correction", is Gauss–Newton on this cost);
+  covariance s²·(JᵀJ)⁻¹ with s² = χ²/(m − 6) from the residuals.
+* Orthogonal iteration — C.-P. Lu, G. D. Hager and E. Mjolsness, "Fast and globally
+  convergent pose estimation from video images", IEEE PAMI 22(6), 2000: minimises the
+  object-space collinearity error by alternating translation and absolute orientation.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal, Protocol
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from estimators.geometry import Pose, as_points, nearest_rotation, rotation_error_geodesic
+from estimators.geometry import undistort_pixels as _undistort
+
+PoseMethod = Literal["gauss_newton", "lhm"]
+POSE_METHODS: tuple[str, ...] = ("gauss_newton", "lhm")
+
+
+# --- camera coordinates ----------------------------------------------------------------------
+
+
+def ideal_pixels(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
+    """Pixels (N,2) of a distorted camera mapped to the pinhole image with the same K."""
+    uv = as_points(uv, 2, "uv")
+    if dist is None or not np.any(np.asarray(dist) != 0):
+        return uv.copy()
+    xy = _undistort(uv, K, dist)
+    return np.column_stack(
+        [K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]]
+    )
+
+
+def ideal_pixel_jacobians(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
+    """∂(ideal pixel)/∂(pixel) (N,2,2) at each pixel, by central differences (identity without
+    distortion) — maps a measured pixel covariance into ideal pixels."""
+    uv = as_points(uv, 2, "uv")
+    n = len(uv)
+    if dist is None or not np.any(np.asarray(dist) != 0):
+        return np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
+    h = 0.25
+    J = np.empty((n, 2, 2))
+    for axis in range(2):
+        step = np.zeros(2)
+        step[axis] = h
+        J[:, :, axis] = (ideal_pixels(uv + step, K, dist) - ideal_pixels(uv - step, K, dist)) / (
+            2 * h
+        )
+    return J
+
+
+def project_ideal(X_CT: Pose, points_T: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Ideal (pinhole) pixels (N,2) of points in T; points behind the camera give NaN."""
+    P = X_CT.apply(as_points(points_T, 3, "points_T"))
+    z = np.where(P[:, 2] > 1e-9, P[:, 2], np.nan)
+    x, y = P[:, 0] / z, P[:, 1] / z
+    return np.column_stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]])
+
+
+def _projection_jacobian(X_CT: Pose, points_T: np.ndarray, K: np.ndarray):
+    """Ideal pixels (N,2), their Jacobian (N,2,6) w.r.t. [δθ, δp], and the depths (N,)."""
+    q = points_T @ X_CT.R.T  # R·P_T (N,3)
+    P = q + X_CT.p
+    x, y, z = P[:, 0], P[:, 1], P[:, 2]
+    safe_z = np.where(z > 1e-9, z, np.nan)
+    fx, s, fy = K[0, 0], K[0, 1], K[1, 1]
+    uv = np.column_stack([(fx * x + s * y) / safe_z + K[0, 2], fy * y / safe_z + K[1, 2]])
+    dUV_dP = np.zeros((len(P), 2, 3))
+    dUV_dP[:, 0, 0] = fx / safe_z
+    dUV_dP[:, 0, 1] = s / safe_z
+    dUV_dP[:, 0, 2] = -(fx * x + s * y) / safe_z**2
+    dUV_dP[:, 1, 1] = fy / safe_z
+    dUV_dP[:, 1, 2] = -fy * y / safe_z**2
+    dP = np.zeros((len(P), 3, 6))
+    # −[q]ₓ
+    dP[:, 0, 1], dP[:, 0, 2] = q[:, 2], -q[:, 1]
+    dP[:, 1, 0], dP[:, 1, 2] = -q[:, 2], q[:, 0]
+    dP[:, 2, 0], dP[:, 2, 1] = q[:, 1], -q[:, 0]
+    dP[:, :, 3:] = np.eye(3)
+    return uv, dUV_dP @ dP, z
+
+
+# --- observations ----------------------------------------------------------------------------
+
+
+class Observations(Protocol):
+    """Something that gives whitened residuals and their Jacobian at a pose: ``size``
+    residuals from ``count`` measured image features."""
+
+    @property
+    def size(self) -> int: ...
+
+    @property
+    def count(self) -> int: ...
+
+    def linearize(self, X_CT: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+
+def _whitener(covariance: np.ndarray) -> np.ndarray:
+    """L (N,2,2) with Lᵀ·L = Σ⁻¹ for each 2×2 covariance Σ (so L·r has unit covariance)."""
+    info = np.linalg.inv(covariance)
+    return np.linalg.cholesky(info).transpose(0, 2, 1)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PointObservations:
+    """Image points ``uv`` (N,2, ideal px) of model points ``points_T`` (N,3) with 2×2 pixel
+    covariances ``covariance`` (N,2,2). Residual: projected minus measured."""
+
+    points_T: np.ndarray
+    uv: np.ndarray
+    covariance: np.ndarray
+    _whitening: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        points = as_points(self.points_T, 3, "points_T")
+        uv = as_points(self.uv, 2, "uv")
+        cov = np.asarray(self.covariance, dtype=float)
+        if cov.shape != (len(points), 2, 2) or len(uv) != len(points):
+            raise ValueError(
+                f"PointObservations: {len(points)} points need {len(points)} uv and (N,2,2) "
+                f"covariances; got {uv.shape} and {cov.shape}"
+            )
+        object.__setattr__(self, "points_T", points)
+        object.__setattr__(self, "uv", uv)
+        object.__setattr__(self, "covariance", cov)
+        object.__setattr__(self, "_whitening", _whitener(cov) if len(cov) else np.zeros((0, 2, 2)))
+
+    @property
+    def size(self) -> int:
+        return 2 * len(self.points_T)
+
+    @property
+    def count(self) -> int:
+        """Measured points (the RMS residual is per point, in px)."""
+        return len(self.points_T)
+
+    def linearize(self, X_CT: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(residuals in px (2N,), whitened residuals (2N,), whitened Jacobian (2N,6))."""
+        uv, J, _ = _projection_jacobian(X_CT, self.points_T, K)
+        r = uv - self.uv
+        L = self._whitening
+        r_w = np.einsum("nij,nj->ni", L, r).reshape(-1)
+        J_w = np.einsum("nij,njk->nik", L, J).reshape(-1, 6)
+        return r.reshape(-1), r_w, J_w
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class EdgeObservations:
+    """Points measured on the images of straight model edges.
+
+    ``ends_T`` (E,2,3): each edge's end points in T. ``edge`` (M,): which edge each measured
+    point ``uv`` (M,2, ideal px) lies on, with standard deviation ``sigma_px`` (M,) across the
+    edge. Residual: the signed distance of the point from the line through the projected ends
+    (the point's position along the edge carries no information and is not modelled).
+    """
+
+    ends_T: np.ndarray
+    edge: np.ndarray
+    uv: np.ndarray
+    sigma_px: np.ndarray
+
+    def __post_init__(self) -> None:
+        ends = np.asarray(self.ends_T, dtype=float)
+        if ends.ndim != 3 or ends.shape[1:] != (2, 3):
+            raise ValueError(f"EdgeObservations.ends_T must be (E,2,3); got {ends.shape}")
+        uv = as_points(self.uv, 2, "uv")
+        edge = np.asarray(self.edge, dtype=int).reshape(-1)
+        sigma = np.asarray(self.sigma_px, dtype=float).reshape(-1)
+        if not (len(edge) == len(uv) == len(sigma)):
+            raise ValueError("EdgeObservations: edge, uv and sigma_px must have the same length")
+        if len(edge) and (edge.min() < 0 or edge.max() >= len(ends)):
+            raise ValueError("EdgeObservations.edge indexes an edge that does not exist")
+        if np.any(sigma <= 0):
+            raise ValueError("EdgeObservations.sigma_px must be positive")
+        for name, value in (("ends_T", ends), ("edge", edge), ("uv", uv), ("sigma_px", sigma)):
+            object.__setattr__(self, name, value)
+
+    @property
+    def size(self) -> int:
+        return len(self.uv)
+
+    @property
+    def count(self) -> int:
+        return len(self.uv)
+
+    def linearize(self, X_CT: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ends_uv, J_ends, _ = _projection_jacobian(X_CT, self.ends_T.reshape(-1, 3), K)
+        ends_uv = ends_uv.reshape(-1, 2, 2)
+        J_ends = J_ends.reshape(-1, 2, 2, 6)
+        a = ends_uv[self.edge, 0]
+        b = ends_uv[self.edge, 1]
+        e = b - a
+        length = np.linalg.norm(e, axis=1)
+        w = self.uv - a
+        r = (e[:, 0] * w[:, 1] - e[:, 1] * w[:, 0]) / length  # n·(m − a), n = (−e_y, e_x)/|e|
+        n = np.column_stack([-e[:, 1], e[:, 0]]) / length[:, None]
+        dr_db = (
+            np.column_stack([w[:, 1], -w[:, 0]]) / length[:, None] - (r / length**2)[:, None] * e
+        )
+        dr_da = -n - dr_db  # moving a, b and the point together leaves r unchanged
+        J = np.einsum("mi,mik->mk", dr_da, J_ends[self.edge, 0]) + np.einsum(
+            "mi,mik->mk", dr_db, J_ends[self.edge, 1]
+        )
+        return r, r / self.sigma_px, J / self.sigma_px[:, None]
+
+
+def _linearize_all(observations: Sequence[Observations], X_CT: Pose, K: np.ndarray):
+    parts = [o.linearize(X_CT, K) for o in observations]
+    return (
+        np.concatenate([p[0] for p in parts]),
+        np.concatenate([p[1] for p in parts]),
+        np.concatenate([p[2] for p in parts]),
+    )
+
+
+# --- least squares ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PoseFit:
+    """A refined pose ``X_CT`` with its 6×6 covariance over [δθ, δp] (see module docstring).
+
+    ``chi2`` is the whitened cost at the solution, ``dof`` = residuals − 6, ``scale2`` the
+    variance factor χ²/dof that multiplies (JᵀJ)⁻¹, ``rms_px`` the RMS residual in pixels.
+    """
+
+    X_CT: Pose
+    covariance: np.ndarray
+    chi2: float
+    dof: int
+    scale2: float
+    rms_px: float
+    iterations: int
+    converged: bool
+    method: str = "gauss_newton"
+    unit_covariance: np.ndarray | None = None  # (JᵀJ)⁻¹: the covariance for s² = 1
+
+    @property
+    def reduced_chi2(self) -> float:
+        return self.chi2 / max(self.dof, 1)
+
+
+def exp_so3(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix of an axis-angle vector (Rodrigues' formula)."""
+    theta = float(np.sqrt(rotvec @ rotvec))
+    W = np.array(
+        [[0.0, -rotvec[2], rotvec[1]], [rotvec[2], 0.0, -rotvec[0]], [-rotvec[1], rotvec[0], 0.0]]
+    )
+    if theta < 1e-8:
+        return np.eye(3) + W + 0.5 * W @ W
+    return (
+        np.eye(3) + (math.sin(theta) / theta) * W + ((1.0 - math.cos(theta)) / theta**2) * (W @ W)
+    )
+
+
+def retract(X_CT: Pose, delta: np.ndarray) -> Pose:
+    """The pose moved by δ = [δθ, δp]: (Exp(δθ)·R, p + δp)."""
+    moved = _retract_raw(X_CT, delta)
+    return Pose(moved.R, moved.p)
+
+
+@dataclass(frozen=True, slots=True)
+class _RawPose:
+    """R and p without ``Pose``'s validation, for the inner loop of the least squares (the
+    result is validated once, when it becomes a ``Pose``)."""
+
+    R: np.ndarray
+    p: np.ndarray
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        return points @ self.R.T + self.p
+
+
+def _retract_raw(X_CT: Pose | _RawPose, delta: np.ndarray) -> _RawPose:
+    R = exp_so3(np.asarray(delta[:3], dtype=float)) @ X_CT.R
+    if abs(float(np.linalg.det(R)) - 1.0) > 1e-9:
+        R = nearest_rotation(R)
+    return _RawPose(R, X_CT.p + delta[3:])
+
+
+def pose_difference(X_a: Pose, X_b: Pose) -> np.ndarray:
+    """δ with X_a = retract(X_b, δ)."""
+    return np.concatenate([Rotation.from_matrix(X_a.R @ X_b.R.T).as_rotvec(), X_a.p - X_b.p])
+
+
+def _covariance(J_w: np.ndarray, scale2: float) -> np.ndarray:
+    H = J_w.T @ J_w
+    try:
+        cov = np.linalg.inv(H) * scale2
+    except np.linalg.LinAlgError:
+        cov = np.linalg.pinv(H) * scale2
+    return 0.5 * (cov + cov.T)
+
+
+def _fit_at(
+    observations: Sequence[Observations],
+    X_CT: Pose,
+    K: np.ndarray,
+    iterations: int,
+    converged: bool,
+    method: str,
+    min_scale2: float,
+) -> PoseFit:
+    r_px, r_w, J_w = _linearize_all(observations, X_CT, K)
+    chi2 = float(r_w @ r_w)
+    dof = len(r_w) - 6
+    scale2 = max(chi2 / dof, min_scale2) if dof > 0 else 1.0
+    count = sum(o.count for o in observations)
+    rms = float(np.sqrt(np.sum(r_px**2) / count)) if count else math.nan
+    unit = _covariance(J_w, 1.0)
+    return PoseFit(
+        X_CT=X_CT,
+        covariance=unit * scale2,
+        chi2=chi2,
+        dof=dof,
+        scale2=scale2,
+        rms_px=rms,
+        iterations=iterations,
+        converged=converged,
+        method=method,
+        unit_covariance=unit,
+    )
+
+
+def refine_pose(
+    observations: Sequence[Observations],
+    X0_CT: Pose,
+    K: np.ndarray,
+    *,
+    max_iterations: int = 30,
+    min_scale2: float = 0.0,
+) -> PoseFit:
+    """Levenberg–Marquardt (Gauss–Newton with damping only when a step fails) on the whitened
+    reprojection residuals of ``observations`` from ``X0_CT``.
+
+    The covariance is s²·(JᵀJ)⁻¹ at the solution with s² = max(χ²/dof, ``min_scale2``).
+    """
+    total = sum(o.size for o in observations)
+    if total < 6:
+        raise ValueError(f"refine_pose needs at least 6 residuals; got {total}")
+    X = X0_CT
+    _, r_w, J_w = _linearize_all(observations, X, K)
+    cost = float(r_w @ r_w) if np.all(np.isfinite(r_w)) else math.inf
+    if not math.isfinite(cost):
+        raise ValueError("refine_pose: the start pose puts model points behind the camera")
+    damping = 0.0
+    converged = False
+    iteration = 0
+    for iteration in range(1, max_iterations + 1):  # noqa: B007 (reported)
+        H = J_w.T @ J_w
+        g = J_w.T @ r_w
+        step_taken = False
+        for _ in range(12):
+            A = H + damping * np.diag(np.diag(H) + 1e-12)
+            try:
+                delta = -np.linalg.solve(A, g)
+            except np.linalg.LinAlgError:
+                delta = -np.linalg.lstsq(A, g, rcond=None)[0]
+            candidate = _retract_raw(X, delta)
+            _, r_new, J_new = _linearize_all(observations, candidate, K)  # type: ignore[arg-type]
+            new_cost = float(r_new @ r_new) if np.all(np.isfinite(r_new)) else math.inf
+            if new_cost <= cost:
+                step_taken = True
+                X, r_w, J_w = candidate, r_new, J_new
+                decrease = cost - new_cost
+                cost = new_cost
+                damping = 0.0 if damping < 1e-3 else damping / 10.0
+                break
+            damping = 1e-4 if damping == 0.0 else damping * 10.0
+        if not step_taken:
+            converged = True  # no step lowers the cost: at a minimum to numerical precision
+            break
+        # Converged when the last step changed the cost by a negligible fraction of one unit
+        # of χ² (the noise moves it by ~√(2·dof)): further digits are not information.
+        if decrease <= 1e-6 * (1.0 + cost):
+            converged = True
+            break
+    X_final = Pose(nearest_rotation(X.R), X.p)
+    return _fit_at(observations, X_final, K, iteration, converged, "gauss_newton", min_scale2)
+
+
+def refine_pose_robust(
+    observations: PointObservations,
+    X0_CT: Pose,
+    K: np.ndarray,
+    *,
+    cauchy_scale2: float = 9.0,
+    iterations: int = 12,
+) -> tuple[Pose, np.ndarray]:
+    """Gauss–Newton with Cauchy reweighting per point (weight 1/(1 + χ²ᵢ/c²) on each point's
+    whitened χ², c² = ``cauchy_scale2``), re-weighted every step: an M-estimator that a good
+    share of wrong correspondences cannot pull far from a nearby start. Returns the pose and
+    each point's χ² there (for an inlier test); the covariance comes from ``refine_pose`` on
+    the inliers."""
+    X = X0_CT
+    n = len(observations.points_T)
+    chi2 = np.zeros(n)
+    for _ in range(iterations):
+        _, r_w, J_w = observations.linearize(X, K)
+        if not np.all(np.isfinite(r_w)):
+            raise ValueError("refine_pose_robust: model points behind the camera")
+        chi2 = np.sum(r_w.reshape(n, 2) ** 2, axis=1)
+        weight = np.repeat(np.sqrt(1.0 / (1.0 + chi2 / cauchy_scale2)), 2)
+        Jw = J_w * weight[:, None]
+        H = Jw.T @ Jw + 1e-9 * np.eye(6)
+        delta = -np.linalg.solve(H, Jw.T @ (r_w * weight))
+        X = _retract_raw(X, delta)  # type: ignore[assignment]
+        if np.linalg.norm(delta[:3]) < 1e-8 and np.linalg.norm(delta[3:]) < 1e-8 * (
+            1 + np.linalg.norm(X.p)
+        ):
+            break
+    X = Pose(nearest_rotation(X.R), X.p)
+    _, r_w, _ = observations.linearize(X, K)
+    return X, np.sum(r_w.reshape(n, 2) ** 2, axis=1)
+
+
+# --- closed-form starts ----------------------------------------------------------------------
+
+
+def plane_frame(points_T: np.ndarray) -> Pose:
+    """``X_TP``: a frame P whose xy plane is the least-squares plane of ``points_T`` (N≥3)."""
+    points = as_points(points_T, 3, "points_T")
+    centre = points.mean(axis=0)
+    _, _, Vt = np.linalg.svd(points - centre)
+    z = Vt[2]
+    if z[2] < 0:
+        z = -z
+    x = Vt[0]
+    y = np.cross(z, x)
+    return Pose(np.column_stack([x, y, z]), centre)
+
+
+def ippe_poses(points_T: np.ndarray, uv_ideal: np.ndarray, K: np.ndarray) -> list[Pose]:
+    """Both poses of the planar two-fold ambiguity (IPPE, Collins & Bartoli 2014) from N ≥ 4
+    points near a plane; off-plane offsets are ignored (use the result as a start)."""
+    points = as_points(points_T, 3, "points_T")
+    uv = as_points(uv_ideal, 2, "uv_ideal")
+    if len(points) < 4 or len(points) != len(uv):
+        raise ValueError(f"ippe_poses needs ≥ 4 matched points; got {len(points)} and {len(uv)}")
+    X_TP = plane_frame(points)
+    flat = X_TP.inverse().apply(points)
+    flat[:, 2] = 0.0
+    try:
+        count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+            flat.reshape(-1, 1, 3),
+            uv.reshape(-1, 1, 2),
+            np.asarray(K, dtype=float),
+            None,
+            flags=cv2.SOLVEPNP_IPPE,
+        )
+    except cv2.error:
+        return []
+    poses = []
+    for rvec, tvec in zip(rvecs[:count], tvecs[:count], strict=True):
+        rvec, tvec = np.asarray(rvec).reshape(3), np.asarray(tvec).reshape(3)
+        if np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec)):
+            poses.append(Pose.from_rotvec(rvec, tvec) @ X_TP.inverse())
+    return poses
+
+
+# --- orthogonal iteration ---------------------------------------------------------------------
+
+
+def _absolute_orientation(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """R minimising Σ|R·(p_i − p̄) − (q_i − q̄)|² (Horn/Arun, SVD)."""
+    M = (q - q.mean(axis=0)).T @ (p - p.mean(axis=0))
+    return nearest_rotation(M)
+
+
+def orthogonal_iteration(
+    points_T: np.ndarray,
+    xy_normalized: np.ndarray,
+    R0_CT: np.ndarray,
+    *,
+    max_iterations: int = 200,
+    tolerance: float = 1e-12,
+) -> tuple[Pose, int]:
+    """Lu–Hager–Mjolsness orthogonal iteration from rotation ``R0_CT``.
+
+    Minimises the object-space error Σ‖(I − V_i)(R·p_i + t)‖² with V_i = v_i v_iᵀ / v_iᵀv_i the
+    projector onto the line of sight v_i = (x_i, y_i, 1). Returns (X_CT, iterations).
+    """
+    p = as_points(points_T, 3, "points_T")
+    xy = as_points(xy_normalized, 2, "xy_normalized")
+    n = len(p)
+    v = np.column_stack([xy, np.ones(n)])
+    V = np.einsum("ni,nj->nij", v, v) / np.einsum("ni,ni->n", v, v)[:, None, None]
+    I3 = np.eye(3)
+    # t(R) = (1/n)(I − (1/n)ΣV_i)⁻¹ Σ(V_i − I)·R·p_i
+    F = np.linalg.inv(I3 - V.mean(axis=0)) / n
+    VmI = V - I3
+
+    def translation(R: np.ndarray) -> np.ndarray:
+        return F @ np.einsum("nij,nj->i", VmI, p @ R.T)
+
+    def error(R: np.ndarray, t: np.ndarray) -> float:
+        e = np.einsum("nij,nj->ni", VmI, p @ R.T + t)
+        return float(np.sum(e * e))
+
+    R = nearest_rotation(R0_CT)
+    t = translation(R)
+    previous = error(R, t)
+    iteration = 0
+    for iteration in range(1, max_iterations + 1):  # noqa: B007
+        q = np.einsum("nij,nj->ni", V, p @ R.T + t)
+        R = _absolute_orientation(p, q)
+        t = translation(R)
+        current = error(R, t)
+        if abs(previous - current) <= tolerance * max(previous, 1e-30):
+            break
+        previous = current
+    return Pose(R, t), iteration
+
+
+def lhm_fit(
+    observations: PointObservations, X0_CT: Pose, K: np.ndarray, *, min_scale2: float = 0.0
+) -> PoseFit:
+    """Orthogonal iteration on point observations from ``X0_CT``'s rotation; covariance and
+    residuals from the image-space linearisation at its solution (same convention as
+    ``refine_pose``)."""
+    K = np.asarray(K, dtype=float)
+    y = (observations.uv[:, 1] - K[1, 2]) / K[1, 1]
+    x = (observations.uv[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    X, iterations = orthogonal_iteration(observations.points_T, np.column_stack([x, y]), X0_CT.R)
+    if np.any(X.apply(observations.points_T)[:, 2] <= 0):
+        raise ValueError("orthogonal iteration ended with model points behind the camera")
+    return _fit_at([observations], X, K, iterations, True, "lhm", min_scale2)
+
+
+# --- choosing among local minima -------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PoseChoice:
+    """The chosen fit, the best distinct alternative (or None), and how the choice was made:
+    ``residual`` (decisively lower χ²), ``prior`` (closer to the prior when χ² did not decide),
+    ``lower_residual`` (no prior; lower χ² but not decisively) or ``only``.
+    ``ambiguous`` is set when the residuals did not decide between distinct poses."""
+
+    fit: PoseFit
+    alternative: PoseFit | None
+    decided_by: str
+
+    @property
+    def ambiguous(self) -> bool:
+        return self.decided_by in ("prior", "lower_residual")
+
+
+#: Floor of the variance factor when judging minima: noise-free data (χ² → 0) must not make
+#: two numerically equal solutions look distinct.
+_MIN_SCALE2 = 0.25
+
+
+def _distinct(a: PoseFit, b: PoseFit, mahalanobis2: float) -> bool:
+    delta = pose_difference(b.X_CT, a.X_CT)
+    unit = (
+        a.unit_covariance if a.unit_covariance is not None else a.covariance / max(a.scale2, 1e-300)
+    )
+    covariance = unit * max(a.scale2, _MIN_SCALE2)
+    try:
+        d2 = float(delta @ np.linalg.solve(covariance, delta))
+    except np.linalg.LinAlgError:
+        d2 = math.inf
+    return d2 > mahalanobis2
+
+
+def choose_pose(
+    fits: Sequence[PoseFit],
+    prior_X_CT: Pose | None = None,
+    *,
+    decisive_chi2: float = 9.0,
+    same_mahalanobis2: float = 25.0,
+) -> PoseChoice:
+    """Resolve among local minima (e.g. the planar two-fold ambiguity).
+
+    A fit whose χ² is lower than every distinct alternative's by ``decisive_chi2`` (in units
+    of the best fit's variance factor) wins outright. Otherwise the prior decides (the fit
+    closest to it in rotation), or without a prior the lower χ² — and the choice is marked
+    ambiguous. Fits within ``same_mahalanobis2`` of the best (under its covariance) count as
+    the same solution.
+    """
+    if not fits:
+        raise ValueError("choose_pose needs at least one fit")
+    ordered = sorted(fits, key=lambda f: f.chi2)
+    best = ordered[0]
+    distinct = [f for f in ordered[1:] if _distinct(best, f, same_mahalanobis2)]
+    if not distinct:
+        return PoseChoice(best, None, "only")
+    runner_up = distinct[0]
+    scale2 = max(best.scale2, _MIN_SCALE2)
+    if (runner_up.chi2 - best.chi2) / scale2 >= decisive_chi2:
+        return PoseChoice(best, runner_up, "residual")
+    contenders = [best, *[f for f in distinct if (f.chi2 - best.chi2) / scale2 < decisive_chi2]]
+    if prior_X_CT is not None:
+        chosen = min(contenders, key=lambda f: rotation_error_geodesic(prior_X_CT, f.X_CT))
+        other = next(f for f in contenders if f is not chosen)
+        return PoseChoice(chosen, other, "prior")
+    return PoseChoice(best, runner_up, "lower_residual")
+
+
+def fit_from_starts(
+    observations: Sequence[Observations],
+    starts: Sequence[Pose],
+    K: np.ndarray,
+    *,
+    method: PoseMethod = "gauss_newton",
+    lhm_points: PointObservations | None = None,
+    min_scale2: float = 0.0,
+) -> list[PoseFit]:
+    """Refine every start with ``method``; starts that fail (points behind the camera, no
+    convergence to a finite cost) are dropped. ``lhm`` needs ``lhm_points`` (the point
+    observations it iterates on); its covariance is then evaluated on ``observations``."""
+    if method not in POSE_METHODS:
+        raise ValueError(f"pose method must be one of {', '.join(POSE_METHODS)}; got {method!r}")
+    fits = []
+    for X0 in starts:
+        try:
+            if method == "gauss_newton":
+                fits.append(refine_pose(observations, X0, K, min_scale2=min_scale2))
+            else:
+                points = lhm_points if lhm_points is not None else observations[0]
+                if not isinstance(points, PointObservations):
+                    raise ValueError("the lhm pose method needs point observations")
+                solved = lhm_fit(points, X0, K, min_scale2=min_scale2)
+                fits.append(
+                    _fit_at(
+                        observations, solved.X_CT, K, solved.iterations, True, "lhm", min_scale2
+                    )
+                )
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+    return fits

@@ -1,0 +1,332 @@
+"""Sub-pixel refinement of point features by fitting an intensity model to the raw pixels.
+
+Under additive Gaussian noise the maximum-likelihood position of a feature whose appearance is
+known up to two grey levels is the least-squares fit of that appearance to the pixels (the
+estimator that attains the Cramér–Rao bound, cf. ../shared/LIMITS.md). Two models:
+
+* a disc (bolt head or hole) of known metric radius, seen through the local affine map A
+  (px per metre) of its plane: I(x) = b + (a − b)·Φ(ρ(x)/s), ρ the signed distance (px) from
+  the disc's rim, positive inside;
+* a corner (wedge) of two straight edges through c: I(x) = b + (a − b)·Φ(d₁/s)·Φ(d₂/s), d_k the
+  signed distance from edge k, positive on the inner side.
+
+Φ is the normal CDF with s = 0.45 px, standing in for pixel area sampling (an aliased renderer
+averages to the same ramp). The smooth model is fitted to the *unsmoothed* pixels: smoothing
+first would correlate the noise and bias the covariance. Gauss–Newton on all parameters
+(position, shape, the two grey levels) for all features at once; the covariance is
+σ²·(JᵀJ)⁻¹ with σ² from each feature's residuals.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import ndtr
+
+EDGE_WIDTH_PX = 0.45
+_SQRT_2PI = math.sqrt(2.0 * math.pi)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PointFits:
+    """Fitted positions (N,2 px) and covariances (N,2,2), grey levels inside/outside and the
+    contrast's standard deviation, residual noise, pixels used, and whether each fit is usable
+    (converged, finite, enough pixels)."""
+
+    uv: np.ndarray
+    covariance: np.ndarray
+    inside: np.ndarray
+    outside: np.ndarray
+    contrast_sigma: np.ndarray
+    noise_sigma: np.ndarray
+    pixels_used: np.ndarray
+    ok: np.ndarray
+
+    @property
+    def contrast(self) -> np.ndarray:
+        return self.inside - self.outside
+
+    @property
+    def contrast_snr(self) -> np.ndarray:
+        """(inside − outside) / its standard deviation."""
+        return self.contrast / np.maximum(self.contrast_sigma, 1e-12)
+
+
+def fit_discs(
+    pixels: np.ndarray,
+    centers_uv: np.ndarray,
+    A_px_per_m: np.ndarray,
+    radius_m: np.ndarray,
+    window_m: np.ndarray,
+    *,
+    iterations: int = 4,
+) -> PointFits:
+    """Refine disc centres (N,2 px) by fitting a disc of metric radius ``radius_m`` (N,) seen
+    through the local affine maps ``A_px_per_m`` (N,2,2) of its plane, using the pixels within
+    ``window_m`` (N,) of the centre (metres in the disc's plane; keep it clear of other
+    structure). Starts may be off by about a pixel: the first iterations use a wider edge
+    (coarse to fine). All discs are fitted together on one flat array of their pixels."""
+    centers = np.asarray(centers_uv, dtype=float).reshape(-1, 2)
+    n = len(centers)
+    fits = _empty_fits(n)
+    if n == 0:
+        return fits
+    A = np.asarray(A_px_per_m, dtype=float).reshape(n, 2, 2)
+    radius = np.asarray(radius_m, dtype=float).reshape(n)
+    window = np.asarray(window_m, dtype=float).reshape(n)
+    A_inv = np.linalg.inv(A)
+    scale = np.sqrt(np.abs(np.linalg.det(A)))  # px per metre, geometric mean
+    h, w = pixels.shape
+    # Flat pixel list: every pixel within the window (plus the start's uncertainty) of a start.
+    reach = window * np.linalg.norm(A, ord=2, axis=(1, 2)) + 1.5
+    owner, u_int, v_int = _pixels_within(centers, reach, h, w)
+    u = u_int.astype(float)
+    v = v_int.astype(float)
+    values = pixels[v_int, u_int].astype(float)
+    a11, a12, a21, a22 = (A_inv[owner, i, j] for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)))
+    sc = scale[owner]
+    rad_px = radius[owner] * sc
+    win = window[owner]
+
+    def model(c: np.ndarray, s: float):
+        du = u - c[owner, 0]
+        dv = v - c[owner, 1]
+        wx = a11 * du + a12 * dv  # metres in the disc plane
+        wy = a21 * du + a22 * dv
+        d = np.sqrt(wx * wx + wy * wy)
+        z = (rad_px - d * sc) / s
+        inv_d = sc / np.maximum(d, 1e-12)
+        # ∂ρ/∂c = scale · A⁻ᵀ ŵ
+        gx = (a11 * wx + a21 * wy) * inv_d
+        gy = (a12 * wx + a22 * wy) * inv_d
+        return ndtr(z), np.exp(-0.5 * z * z) / (_SQRT_2PI * s), gx, gy, d < win
+
+    def sums(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        return np.bincount(owner, x * mask, minlength=n)
+
+    c = centers.copy()
+    a = np.zeros(n)
+    b = np.zeros(n)
+    schedule = [(1.2, 2), (0.7, 1), (EDGE_WIDTH_PX, iterations)]
+    converged = np.zeros(n, bool)
+    for s, count in schedule:
+        for _ in range(count):
+            inside, slope, gx, gy, mask = model(c, s)
+            # Grey levels by linear least squares at the current centre.
+            mask = mask.astype(float)
+            other = 1.0 - inside
+            s11, s12, s22 = (
+                sums(inside * inside, mask),
+                sums(inside * other, mask),
+                sums(other * other, mask),
+            )
+            t1, t2 = sums(inside * values, mask), sums(other * values, mask)
+            det = s11 * s22 - s12 * s12
+            det = np.where(np.abs(det) < 1e-12, np.nan, det)
+            a = (s22 * t1 - s12 * t2) / det
+            b = (s11 * t2 - s12 * t1) / det
+            r = values - b[owner] - (a - b)[owner] * inside
+            contrast = (a - b)[owner] * slope
+            jx, jy = contrast * gx, contrast * gy
+            hxx, hxy, hyy = sums(jx * jx, mask), sums(jx * jy, mask), sums(jy * jy, mask)
+            gxr, gyr = sums(jx * r, mask), sums(jy * r, mask)
+            det2 = hxx * hyy - hxy * hxy
+            det2 = np.where(np.abs(det2) < 1e-18, np.nan, det2)
+            step = np.column_stack([(hyy * gxr - hxy * gyr) / det2, (hxx * gyr - hxy * gxr) / det2])
+            step = np.nan_to_num(step)
+            norm = np.linalg.norm(step, axis=1, keepdims=True)
+            step = np.where(norm > 1.0, step / np.maximum(norm, 1e-12), step)
+            c = c + step
+            converged = norm[:, 0] < 0.1
+    # Statistics at the solution: full 4-parameter covariance (centre and grey levels).
+    inside, slope, gx, gy, mask = model(c, EDGE_WIDTH_PX)
+    mask = mask.astype(float)
+    other = 1.0 - inside
+    r = values - b[owner] - (a - b)[owner] * inside
+    contrast = (a - b)[owner] * slope
+    J = np.stack([contrast * gx, contrast * gy, inside, other], axis=1)
+    used = np.bincount(owner, mask, minlength=n)
+    H = np.zeros((n, 4, 4))
+    for i in range(4):
+        for j in range(i, 4):
+            H[:, i, j] = H[:, j, i] = sums(J[:, i] * J[:, j], mask)
+    sigma2 = sums(r * r, mask) / np.maximum(used - 4, 1)
+    H += 1e-12 * np.eye(4)
+    try:
+        cov = np.linalg.inv(H) * sigma2[:, None, None]
+    except np.linalg.LinAlgError:
+        cov = np.linalg.pinv(H) * sigma2[:, None, None]
+    contrast_var = cov[:, 2, 2] + cov[:, 3, 3] - 2.0 * cov[:, 2, 3]
+    ok = (
+        converged
+        & (used >= 12)
+        & np.all(np.isfinite(c), axis=1)
+        & np.isfinite(a)
+        & np.isfinite(b)
+        & (cov[:, 0, 0] > 0)
+        & (cov[:, 1, 1] > 0)
+    )
+    return PointFits(
+        uv=c,
+        covariance=0.5 * (cov[:, :2, :2] + cov[:, :2, :2].transpose(0, 2, 1)),
+        inside=a,
+        outside=b,
+        contrast_sigma=np.sqrt(np.maximum(contrast_var, 0.0)),
+        noise_sigma=np.sqrt(sigma2),
+        pixels_used=used,
+        ok=ok,
+    )
+
+
+def _pixels_within(centers: np.ndarray, reach: np.ndarray, height: int, width: int):
+    """(owner, u, v) of every in-image pixel within ``reach`` (N,) px of each centre (N,2),
+    as flat integer arrays — one vectorised pass over a common square."""
+    r = math.ceil(float(np.max(reach)))
+    dv, du = np.mgrid[-r : r + 1, -r : r + 1]
+    base = np.round(centers).astype(int)
+    u = base[:, 0:1] + du.reshape(1, -1)
+    v = base[:, 1:2] + dv.reshape(1, -1)
+    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    inside &= (u - centers[:, 0:1]) ** 2 + (v - centers[:, 1:2]) ** 2 <= reach[:, None] ** 2
+    owner = np.broadcast_to(np.arange(len(centers))[:, None], u.shape)
+    return owner[inside], u[inside], v[inside]
+
+
+def _empty_fits(n: int) -> PointFits:
+    return PointFits(
+        uv=np.full((n, 2), np.nan),
+        covariance=np.full((n, 2, 2), np.nan),
+        inside=np.full(n, np.nan),
+        outside=np.full(n, np.nan),
+        contrast_sigma=np.full(n, np.nan),
+        noise_sigma=np.full(n, np.nan),
+        pixels_used=np.zeros(n),
+        ok=np.zeros(n, dtype=bool),
+    )
+
+
+def fit_corners(
+    pixels: np.ndarray,
+    corners_uv: np.ndarray,
+    edge_directions: np.ndarray,
+    window_px: np.ndarray,
+    keep: Callable[[np.ndarray], np.ndarray] | None = None,
+    *,
+    iterations: int = 4,
+) -> PointFits:
+    """Refine wedge corners (N,2 px) whose two edges leave the corner along the unit image
+    directions ``edge_directions`` (N,2,2); both edge angles are fitted too. Pixels within
+    ``window_px`` (N,) of the start are used, less those ``keep(coords (P,2)) -> bool (P,)``
+    rejects (other features inside the window)."""
+    corners = np.asarray(corners_uv, dtype=float).reshape(-1, 2)
+    n = len(corners)
+    if n == 0:
+        return _empty_fits(0)
+    dirs = np.asarray(edge_directions, dtype=float).reshape(n, 2, 2)
+    window = np.asarray(window_px, dtype=float).reshape(n)
+    h, w = pixels.shape
+    owner, u_int, v_int = _pixels_within(corners, window, h, w)
+    coords = np.column_stack([u_int, v_int]).astype(float)
+    if keep is not None and len(coords):
+        kept = keep(coords)
+        owner, u_int, v_int, coords = owner[kept], u_int[kept], v_int[kept], coords[kept]
+    values = pixels[v_int, u_int].astype(float)
+    # Orientation: the interior lies on the side of edge 1 toward edge 2 and vice versa.
+    cross = dirs[:, 0, 0] * dirs[:, 1, 1] - dirs[:, 0, 1] * dirs[:, 1, 0]
+    side = np.where(cross >= 0, 1.0, -1.0)[owner]
+    params = np.column_stack([corners, np.arctan2(dirs[:, :, 1], dirs[:, :, 0])])
+
+    def sums(x: np.ndarray) -> np.ndarray:
+        return np.bincount(owner, x, minlength=n)
+
+    def terms(p: np.ndarray, s: float):
+        x = coords[:, 0] - p[owner, 0]
+        y = coords[:, 1] - p[owner, 1]
+        c1, s1 = np.cos(p[owner, 2]), np.sin(p[owner, 2])
+        c2, s2 = np.cos(p[owner, 3]), np.sin(p[owner, 3])
+        # Normals: edge 1 turned +90° and edge 2 turned −90°, times side, point inside.
+        n1x, n1y = -s1 * side, c1 * side
+        n2x, n2y = s2 * side, -c2 * side
+        d1 = (x * n1x + y * n1y) / s
+        d2 = (x * n2x + y * n2y) / s
+        f1, f2 = ndtr(d1), ndtr(d2)
+        p1 = np.exp(-0.5 * d1 * d1) / (_SQRT_2PI * s)
+        p2 = np.exp(-0.5 * d2 * d2) / (_SQRT_2PI * s)
+        inside = f1 * f2
+        # ∂inside/∂(u, v, α1, α2): ∂d_k/∂c = −n_k; ∂d1/∂α1 = −side·x·e1; ∂d2/∂α2 = side·x·e2
+        g_u = -(p1 * f2 * n1x + f1 * p2 * n2x)
+        g_v = -(p1 * f2 * n1y + f1 * p2 * n2y)
+        g_a1 = p1 * f2 * (-side) * (x * c1 + y * s1)
+        g_a2 = f1 * p2 * side * (x * c2 + y * s2)
+        return inside, np.stack([g_u, g_v, g_a1, g_a2], axis=1)
+
+    def levels(inside: np.ndarray):
+        other = 1.0 - inside
+        s11, s12, s22 = sums(inside * inside), sums(inside * other), sums(other * other)
+        t1, t2 = sums(inside * values), sums(other * values)
+        det = s11 * s22 - s12 * s12
+        det = np.where(np.abs(det) < 1e-12, np.nan, det)
+        return (s22 * t1 - s12 * t2) / det, (s11 * t2 - s12 * t1) / det
+
+    max_step = np.array([1.0, 1.0, 0.05, 0.05])
+    converged = np.zeros(n, bool)
+    for s, count in ((1.2, 1), (0.7, 1), (EDGE_WIDTH_PX, iterations)):
+        for _ in range(count):
+            inside, g = terms(params, s)
+            a, b = levels(inside)
+            r = values - b[owner] - (a - b)[owner] * inside
+            J = (a - b)[owner][:, None] * g
+            H = np.zeros((n, 4, 4))
+            for i in range(4):
+                for j in range(i, 4):
+                    H[:, i, j] = H[:, j, i] = sums(J[:, i] * J[:, j])
+            grad = np.stack([sums(J[:, i] * r) for i in range(4)], axis=1)
+            H += 1e-9 * np.eye(4)
+            try:
+                step = np.linalg.solve(H, grad[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                step = (np.linalg.pinv(H) @ grad[..., None])[..., 0]
+            step = np.nan_to_num(step)
+            ratio = np.max(np.abs(step) / max_step, axis=1, keepdims=True)
+            step = np.where(ratio > 1.0, step / np.maximum(ratio, 1e-12), step)
+            params = params + step
+            converged = np.all(np.abs(step[:, :2]) < 0.1, axis=1)
+    # Statistics: covariance of all six parameters (corner, angles, grey levels).
+    inside, g = terms(params, EDGE_WIDTH_PX)
+    a, b = levels(inside)
+    r = values - b[owner] - (a - b)[owner] * inside
+    J = np.column_stack([(a - b)[owner][:, None] * g, inside, 1.0 - inside])
+    used = np.bincount(owner, minlength=n).astype(float)
+    H = np.zeros((n, 6, 6))
+    for i in range(6):
+        for j in range(i, 6):
+            H[:, i, j] = H[:, j, i] = sums(J[:, i] * J[:, j])
+    sigma2 = sums(r * r) / np.maximum(used - 6, 1)
+    H += 1e-12 * np.eye(6)
+    try:
+        cov = np.linalg.inv(H) * sigma2[:, None, None]
+    except np.linalg.LinAlgError:
+        cov = np.linalg.pinv(H) * sigma2[:, None, None]
+    contrast_var = cov[:, 4, 4] + cov[:, 5, 5] - 2.0 * cov[:, 4, 5]
+    ok = (
+        converged
+        & (used >= 24)
+        & np.all(np.isfinite(params), axis=1)
+        & np.isfinite(a)
+        & np.isfinite(b)
+        & (cov[:, 0, 0] > 0)
+        & (cov[:, 1, 1] > 0)
+    )
+    return PointFits(
+        uv=params[:, :2].copy(),
+        covariance=0.5 * (cov[:, :2, :2] + cov[:, :2, :2].transpose(0, 2, 1)),
+        inside=a,
+        outside=b,
+        contrast_sigma=np.sqrt(np.maximum(contrast_var, 0.0)),
+        noise_sigma=np.sqrt(sigma2),
+        pixels_used=used,
+        ok=ok,
+    )

@@ -1,0 +1,76 @@
+import math
+
+import cv2
+import numpy as np
+
+from estimators.edge_fit import fit_edge_points, fit_line_robust, intersect
+
+SIZE = 80
+
+
+def _half_plane_image(normal, offset, inside, outside):
+    """Area-sampled image of the half plane n·x ≥ c (brighter ``inside``)."""
+    s = 8
+    grid = (np.arange(SIZE * s) + 0.5) / s - 0.5
+    v, u = np.meshgrid(grid, grid, indexing="ij")
+    fine = ((u * normal[0] + v * normal[1]) >= offset).astype(np.float32)
+    mask = cv2.resize(fine, (SIZE, SIZE), interpolation=cv2.INTER_AREA)
+    return outside + (inside - outside) * mask
+
+
+def test_fit_edge_points_locates_a_slanted_edge_from_an_offset_prediction():
+    angle = math.radians(12.0)
+    normal = np.array([math.cos(angle), math.sin(angle)])
+    offset = 40.3
+    clean = _half_plane_image(normal, offset, 0.63, 0.35)
+    tangent = np.array([-normal[1], normal[0]])
+    foot = normal * offset
+    foot = foot + ((np.array([40.0, 40.0]) - foot) @ tangent) * tangent  # mid-image
+    rng = np.random.default_rng(8)
+    errors, z = [], []
+    for _ in range(30):
+        noisy = clean + rng.normal(0, 0.22, clean.shape).astype(np.float32)
+        # Prediction 2.5 px off and tilted 2°: the search absorbs it.
+        t = np.linspace(-25, 25, 9)
+        predicted_normal = np.array([math.cos(angle + 0.035), math.sin(angle + 0.035)])
+        centers = foot + t[:, None] * tangent - 2.5 * normal
+        points = fit_edge_points(
+            noisy, centers, np.tile(predicted_normal, (9, 1)), 3.0, 3.0, search_px=4.0
+        )
+        assert points.ok.sum() >= 8
+        assert points.contrast_snr > 6
+        distance = points.uv[points.ok] @ normal - offset
+        errors.extend(distance)
+        z.extend(distance / points.sigma_px[points.ok])
+    errors = np.array(errors)
+    assert abs(errors.mean()) < 0.05
+    # A 6-px strip of a 0.28 step in σ = 0.22 noise: ~0.32 px per point.
+    assert np.sqrt(np.mean(errors**2)) < 0.45
+    assert 0.7 < np.sqrt(np.mean(np.square(z))) < 1.5
+
+
+def test_fit_edge_points_reports_nothing_without_an_edge():
+    flat = np.full((SIZE, SIZE), 0.5, np.float32) + np.random.default_rng(0).normal(
+        0, 0.2, (SIZE, SIZE)
+    ).astype(np.float32)
+    centers = np.column_stack([np.full(8, 40.0), np.linspace(15, 65, 8)])
+    points = fit_edge_points(flat, centers, np.tile([1.0, 0.0], (8, 1)), 3.0, 3.0, search_px=3.0)
+    assert abs(points.contrast_snr) < 5
+
+
+def test_fit_line_robust_ignores_outliers_and_intersects():
+    rng = np.random.default_rng(1)
+    t = np.linspace(0, 100, 30)
+    points = np.column_stack([t, 0.5 * t + 3.0]) + rng.normal(0, 0.2, (30, 2))
+    points[[4, 17, 25]] += [0.0, 6.0]
+    line = fit_line_robust(points, np.full(30, 0.2))
+    assert line is not None
+    assert set(np.flatnonzero(~line.inliers)) == {4, 17, 25}
+    slope = -line.normal[0] / line.normal[1]
+    assert abs(slope - 0.5) < 0.005
+    other = fit_line_robust(np.column_stack([np.full(5, 20.0), np.linspace(0, 40, 5)]), np.ones(5))
+    assert other is not None
+    crossing = intersect(line, other)
+    assert crossing is not None and np.allclose(crossing, [20.0, 13.0], atol=0.2)
+    assert intersect(line, line) is None
+    assert fit_line_robust(points[:2], np.ones(2)) is None

@@ -1,0 +1,53 @@
+import numpy as np
+
+from estimators.acquisition import TurnChecker, quarter_turns
+from estimators.imaging import gray_image
+from estimators.model_support import GradientImage, ModelSupport
+from estimators.planar_pose import retract
+from tests.estimators import rendered
+
+
+def _gradients(f):
+    image = gray_image(f)
+    return GradientImage.of(image.pixels, 2.0, image.noise_sigma)
+
+
+def test_model_support_is_high_at_the_true_pose_and_near_zero_off_it():
+    f = rendered.frame(2.0, noise="high")
+    support = ModelSupport(rendered.target(), f.info)
+    gradients = _gradients(f)
+    at_truth = support.score(gradients, f.truth.X_CT)
+    assert min(at_truth.panel()) > 5 and at_truth.contours["ring_outer"] > 20
+    assert at_truth.discs > 3
+    # 12 cm sideways: every contour falls off its edge.
+    off = support.score(gradients, retract(f.truth.X_CT, np.array([0, 0, 0, 0.12, 0.09, 0])))
+    assert np.mean(list(off.contours.values())) < 3  # a stray crossing may score a few
+    assert min(off.panel()) < 4  # the validation needs every panel edge above 4
+    assert at_truth.total > 3 * off.total
+    # On coarser gradients a pose a couple of pixels off still scores.
+    near = retract(f.truth.X_CT, np.array([0, 0, 0, 0.008, 0, 0]))  # 2 px
+    coarse = GradientImage.of(gray_image(f).pixels, 4.0, gray_image(f).noise_sigma)
+    assert support.score(coarse, near).total > 0.7 * support.score(coarse, f.truth.X_CT).total
+
+
+def test_turn_checker_uses_only_the_asymmetric_parts():
+    target = rendered.target()
+    checker = TurnChecker(target, ModelSupport(target, rendered.render(2.0)[2]))
+    assert checker.parts == {"thruster_exit", "thruster_inner"}  # the outline is square
+    assert not checker.use_discs  # the default fastener layout has the panel's symmetry
+    other = rendered.target("other")
+    checker_other = TurnChecker(other, ModelSupport(other, rendered.render(2.0)[2]))
+    assert checker_other.use_discs and "ring_outer" not in checker_other.parts
+
+
+def test_turn_checker_finds_the_true_quarter_turn():
+    f = rendered.frame(3.0, noise="high", seed=4)
+    target = rendered.target()
+    checker = TurnChecker(target, ModelSupport(target, f.info))
+    gradients = _gradients(f)
+    assert checker.check(gradients, f.truth.X_CT).best == 0
+    turns = quarter_turns(target)
+    for k in (1, 2, 3):
+        wrong = f.truth.X_CT @ turns[k]
+        result = checker.check(gradients, wrong)
+        assert (result.best + k) % 4 == 0 and result.margin > 8
