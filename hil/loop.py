@@ -142,6 +142,7 @@ class ApproachLoop:
         self._start_t = 0.0
         self._standoff_error: tuple[float, float] | None = None
         self._read_ms = 0.0
+        self._gated = None  # the fusion update of this tick's frame, if any
 
     # --- helpers ------------------------------------------------------------------------
     def _event(self, t: float, kind: str, message: str, **data: Any) -> None:
@@ -210,7 +211,9 @@ class ApproachLoop:
             timings[system] = 1000.0 * (time.perf_counter() - start)
             measurements.append(m)
         start = time.perf_counter()
-        self.fusion.update(measurements, X_CM, frame.stamp)
+        # What fusion made of this frame's measurements (accepted, rejected and why) is only in
+        # the update's answer; a later prediction no longer lists them.
+        self._gated = self.fusion.update(measurements, X_CM, frame.stamp)
         return measurements, timings, 1000.0 * (time.perf_counter() - start)
 
     # --- one tick -------------------------------------------------------------------------
@@ -245,6 +248,7 @@ class ApproachLoop:
         timings: dict[str, float] = {}
         fusion_ms = 0.0
         self._read_ms = 0.0
+        self._gated = None
         if t >= self._next_frame_t and self.sequencer.phase not in TERMINAL:
             self._next_frame_t = t + 1.0 / self.camera_fps - 1e-9
             measurements, timings, fusion_ms = self._vision(t, arm, track, problems)
@@ -398,8 +402,10 @@ class ApproachLoop:
                 "covariance": np.asarray(estimate.covariance)[:6, :6].tolist()
                 if getattr(estimate, "covariance", None) is not None
                 else None,
-                "accepted": list(estimate.accepted),
-                "rejected": [{"system": s, "reason": r} for s, r in estimate.rejected],
+                "accepted": list(self._gated.accepted) if self._gated is not None else [],
+                "rejected": [{"system": s, "reason": r} for s, r in self._gated.rejected]
+                if self._gated is not None
+                else [],
                 "age_s": estimate.age_s,
             },
             "command": {
