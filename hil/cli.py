@@ -562,6 +562,69 @@ def campaign(
 
 
 @app.command()
+def calibrate(
+    logs: Annotated[list[Path], typer.Argument(help="Trial logs (MCAP) of simulated runs.")],
+    out_path: Annotated[
+        Path | None, typer.Option("--out", help="Write the fusion settings (YAML) here.")
+    ] = None,
+) -> None:
+    """Fit each estimator's covariance calibration (scale × stated + model-error floor) from
+    the measurements and ground truth in simulated trial logs, so that the NEES is honest from
+    near to far; prints the `fusion:` settings for a simulation config."""
+    import math
+
+    import numpy as np
+    import yaml
+
+    from estimators.geometry import Pose
+    from estimators.measurement import Measurement
+    from hil.calibration import fit_scale_and_floor
+    from hil.trial_analysis import target_from_header
+    from hil.triallog import TrialLog, TrialLogError
+
+    samples, target = [], None
+    for path in logs:
+        try:
+            log = TrialLog.open(path)
+        except (TrialLogError, OSError) as exc:
+            raise _fail(str(exc)) from None
+        target = target or target_from_header(log.header)
+        for tick in log.ticks():
+            truth = (tick.get("truth") or {}).get("X_CT")
+            if truth is None:
+                continue
+            X_CT_true = Pose.from_matrix(np.array(truth), orthonormalize=True)
+            for record in tick.get("measurements") or []:
+                m = Measurement.from_dict(record)
+                if m.valid:
+                    samples.append((m, X_CT_true))
+    if target is None or not samples:
+        raise _fail("no measurements with ground truth in these logs (simulated runs needed)")
+    result = fit_scale_and_floor(samples, target)
+    for c in result.values():
+        out.print(
+            f"{c.system}: scale {c.scale:.2f}, floor {1000 * c.floor[1]:.2f} mm / "
+            f"{math.degrees(c.floor[0]):.3f}°"
+        )
+        for edge, count, before, after in c.bins:
+            out.print(
+                f"  range ≤ {edge:.1f} m: {count} measurements, NEES/dof {before:.2f} → {after:.2f}"
+            )
+    settings = {
+        "fusion": {
+            "covariance_scale": {c.system: round(c.scale, 3) for c in result.values()},
+            "covariance_floor": {
+                c.system: [round(c.floor[0], 6), round(c.floor[1], 6)] for c in result.values()
+            },
+        }
+    }
+    text = yaml.safe_dump(settings, sort_keys=False)
+    out.print(text, markup=False, highlight=False)
+    if out_path is not None:
+        out_path.write_text(text, encoding="utf-8")
+
+
+@app.command()
 def demo(
     out_dir: Annotated[
         Path, typer.Option(help="Directory for the trial log and its report.")

@@ -683,7 +683,8 @@ class SimulationConfig(Strict):
     @field_serializer("fusion")
     def _fusion_as_dict(self, fusion: FusionParams) -> dict:
         values = {f.name: getattr(fusion, f.name) for f in dataclasses.fields(fusion)}
-        values["covariance_scale"] = dict(fusion.covariance_scale)  # a read-only mapping
+        values["covariance_scale"] = dict(fusion.covariance_scale)  # read-only mappings
+        values["covariance_floor"] = {k: list(v) for k, v in fusion.covariance_floor.items()}
         return values
 
     @model_validator(mode="after")

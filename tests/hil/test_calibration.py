@@ -185,3 +185,50 @@ def test_nees_statistics_and_scales_reject_bad_input_clearly():
     assert stats["lines"].scale < 0.01
     assert covariance_scales(stats)["lines"] == 1.0
     assert covariance_scales(stats, floor=0.0)["lines"] == pytest.approx(stats["lines"].scale)
+
+
+def test_calibrated_covariance_adds_the_floor_in_each_measurement_order():
+    from estimators.fusion import calibrated_covariance
+
+    pose = Measurement("a", "tracking", 0.0, 0, X_CT=Pose.identity(), covariance=np.eye(6) * 1e-8)
+    cov = calibrated_covariance(pose, 2.0, (0.01, 0.002))
+    assert np.allclose(np.diag(cov), [2e-8 + 1e-4] * 3 + [2e-8 + 4e-6] * 3)
+    circle = Measurement(
+        "e",
+        "tracking",
+        0.0,
+        0,
+        circle="ring_outer",
+        center_C=np.zeros(3),
+        normal_C=np.array([0.0, 0.0, 1.0]),
+        covariance_5dof=np.eye(5) * 1e-8,
+    )
+    cov = calibrated_covariance(circle, 1.0, (0.01, 0.002))
+    assert np.allclose(np.diag(cov), [1e-8 + 4e-6] * 3 + [1e-8 + 1e-4] * 2)
+    with pytest.raises(ValueError, match="covariance_floor"):
+        FusionParams(covariance_floor={"a": (-1.0, 0.0)})
+
+
+def test_fit_scale_and_floor_recovers_a_model_error_floor_over_range():
+    """Stated covariances that shrink with range as a fit's do, true errors with an extra fixed
+    millimetre: the fit finds that floor, and makes every range band honest."""
+    from hil.calibration import FLOOR_LEVER_ARM_M, fit_scale_and_floor
+
+    rng = np.random.default_rng(8)
+    samples = []
+    floor_m = 0.001
+    for i in range(600):
+        depth = rng.uniform(0.4, 3.0)
+        X_CT = Pose(exp_so3(rng.normal(size=3) * 0.1), np.array([0.0, 0.0, depth]))
+        stated = np.diag([(2e-4 * depth) ** 2] * 3 + [(2e-4 * depth**2) ** 2] * 3)
+        true = stated + np.diag([(floor_m / FLOOR_LEVER_ARM_M) ** 2] * 3 + [floor_m**2] * 3)
+        X = sample_pose(rng, X_CT, true)
+        samples.append(
+            (Measurement("corners", "tracking", 0.0, i, X_CT=X, covariance=stated), X_CT)
+        )
+    result = fit_scale_and_floor(samples, TARGET)["corners"]
+    assert result.floor[1] == pytest.approx(floor_m, rel=0.3)
+    assert result.scale < 1.6
+    for _, count, _before, after in result.bins:
+        assert count >= 20 and 0.7 < after < 1.4
+    assert result.bins[0][2] > 5  # near range: the stated covariance alone was far too small
