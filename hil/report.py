@@ -259,6 +259,13 @@ def summary_rows(analysis: TrialAnalysis) -> list[list[str]]:
                 f"translation {_pct(p)}, rotation {_pct(a)} of {n} ticks",
             ]
         )
+        p, a, n = analysis.fused_below_all_1s
+        rows.append(
+            [
+                "fused median error below every estimator's median, per 1 s window",
+                f"translation {_pct(p)}, rotation {_pct(a)} of {n} windows",
+            ]
+        )
     return rows
 
 

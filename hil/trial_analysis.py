@@ -121,6 +121,9 @@ class TrialAnalysis:
     fused_below_all: tuple[float, float, int]  # position fraction, attitude fraction, ticks
     standoff: StandoffState | None
     notes: list[str] = field(default_factory=list)
+    #: The same on 1 s medians: per 1 s window, the fused median error against every system's
+    #: median (position fraction, attitude fraction, windows).
+    fused_below_all_1s: tuple[float, float, int] = (math.nan, math.nan, 0)
 
     @property
     def duration_s(self) -> float:
@@ -291,6 +294,9 @@ def analyse(log: TrialLog) -> TrialAnalysis:
         abort_reason=abort_reason,
         summaries=summaries,
         fused=fused,
+        fused_below_all_1s=_fused_below_all_windowed(t, systems, position, attitude)
+        if has_truth
+        else (math.nan, math.nan, 0),
         fused_below_all=_fused_below_all(systems, position, attitude)
         if has_truth
         else (math.nan, math.nan, 0),
@@ -365,6 +371,43 @@ def _fused_below_all(
         if not compared.any():
             return math.nan, 0
         return float(np.mean(errors[FUSED][compared] < best[compared])), int(compared.sum())
+
+    p, count = fraction(position)
+    a, _ = fraction(attitude)
+    return p, a, count
+
+
+def _fused_below_all_windowed(
+    t: np.ndarray,
+    systems: Sequence[str],
+    position: dict[str, np.ndarray],
+    attitude: dict[str, np.ndarray],
+    window_s: float = 1.0,
+    min_samples: int = 3,
+) -> tuple[float, float, int]:
+    """Per ``window_s`` window: is the fused estimate's median error below the median error of
+    every system with at least ``min_samples`` estimates in the window? (A single estimator's
+    error crosses zero now and then; medians compare accuracy, not luck.)"""
+    if not systems or len(t) == 0:
+        return math.nan, math.nan, 0
+    edges = np.arange(t[0], t[-1] + window_s, window_s)
+    index = np.digitize(t, edges)
+
+    def fraction(errors: dict[str, np.ndarray]) -> tuple[float, int]:
+        wins = []
+        for w in np.unique(index):
+            inside = index == w
+            fused = errors[FUSED][inside]
+            fused = fused[np.isfinite(fused)]
+            others = []
+            for s in systems:
+                e = errors[s][inside]
+                e = e[np.isfinite(e)]
+                if len(e) >= min_samples:
+                    others.append(np.median(e))
+            if len(fused) >= min_samples and others:
+                wins.append(np.median(fused) < min(others))
+        return (float(np.mean(wins)), len(wins)) if wins else (math.nan, 0)
 
     p, count = fraction(position)
     a, _ = fraction(attitude)
