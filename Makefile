@@ -35,6 +35,8 @@ lint: $(STAMP_DEV)
 
 bench: $(STAMP_RUN)
 	$(BIN)/satgrasp bench render
+	$(BIN)/satgrasp bench estimate --system corners --system lines --system ellipses
+	$(BIN)/satgrasp bench loop
 
 clean:
 	rm -rf $(VENV) build *.egg-info $(RUNS)
