@@ -72,6 +72,9 @@ from estimators.planar_pose import (
 from estimators.target import TargetModel
 
 SYSTEM = "lines"
+#: The variance factor never goes below 1: the points' σ come from their own fits and the
+#: edges' common errors are modelled, so a χ²/dof below 1 is luck, not precision.
+MIN_SCALE2 = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,12 +107,19 @@ class LineOptions:
     max_outline_search_px: float = 20.0
     outline_strips: int = 20
     tilt_change_deg: float = 2.0
-    edge_offset_sigma_px: float = 0.15
-    edge_turn_sigma_px: float = 0.10
+    edge_point_floor_px: float = 0.03
+    edge_offset_sigma_px: float = 0.08
+    edge_offset_noise_ratio: float = 0.4
+    edge_turn_sigma_px: float = 0.05
     covariance_scale: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("edge_offset_sigma_px", "edge_turn_sigma_px", "covariance_scale"):
+        for name in (
+            "edge_point_floor_px",
+            "edge_offset_sigma_px",
+            "edge_turn_sigma_px",
+            "covariance_scale",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive; got {getattr(self, name)}")
         if self.pose_method not in POSE_METHODS:
@@ -138,10 +148,11 @@ _GOOD_OUTLINE_SHARE = 0.7
 
 @dataclass(frozen=True, slots=True, eq=False)
 class _Joint:
-    """A joint fit of panel and outline: the pose choice and the outline edges it used."""
+    """A joint fit of panel and outline: the pose choice and the edges it used."""
 
     choice: PoseChoice
     outline: OutlineEdges
+    panel: PanelEdges  # the panel's edges the fit used (measured again if they disagreed)
 
     @property
     def points(self) -> int:
@@ -421,7 +432,7 @@ class LineEstimator:
             return self._failure(f"panel edge(s) {missing} not found", segments)
         joint = self._with_outline(image, edges, X0, tracking)
         if joint is not None:
-            choice, outline = joint.choice, joint.outline
+            choice, outline, edges = joint.choice, joint.outline, joint.panel
         else:
             panel = self._fit_pose(edges, X0, tracking)
             if panel is None:
@@ -442,8 +453,10 @@ class LineEstimator:
             # The square panel looks the same after a quarter turn: the model's asymmetric
             # parts (the thruster) decide — in tracking too, so that a wrong lock cannot last.
             # A pose from the panel's edges alone may be degrees off in tilt, which moves the
-            # asymmetric parts (far from the panel) by pixels: out of tracking, let them search.
-            turn = self.turns.check(gradients, X, search_px=0.0 if tracking else 6.0)
+            # asymmetric parts (far from the panel) by pixels: out of tracking, let them search
+            # — unless the outline fixed the tilt (then a search only lets noise compete).
+            rough = not tracking and outline is None
+            turn = self.turns.check(gradients, X, search_px=6.0 if rough else 0.0)
             if turn.best != 0 and turn.margin >= options.turn_margin:
                 if tracking:
                     reason = "a quarter turn of the pose fits the image better"
@@ -485,10 +498,24 @@ class LineEstimator:
             index = np.concatenate([panel.edge, extra.edge + len(panel.ends_T)])
             uv = np.concatenate([panel.uv, extra.uv])
             sigma = np.concatenate([panel.sigma_px, extra.sigma_px])
+        options = self.options
+        # A floor under each point's σ: the edge's fine shape departs from a straight step by a
+        # few hundredths of a pixel (rendering, relief) even where the noise is nil.
+        sigma = np.hypot(sigma, options.edge_point_floor_px)
+        # Each edge's common offset: a part of its own (pixel quantisation, a plate's side
+        # wall) and a part that grows with the noise (clipped noise at a dark side shifts the
+        # step) — in proportion to the edge's point σ, which carries noise over contrast.
+        typical = np.full(len(ends), np.inf)
+        for e in np.unique(index):
+            typical[e] = float(np.median(sigma[index == e]))
+        offset = np.hypot(
+            options.edge_offset_sigma_px,
+            options.edge_offset_noise_ratio * np.where(np.isfinite(typical), typical, 0.0),
+        )
         return CorrelatedEdgeObservations(
             EdgeObservations(ends, index, uv, sigma),
-            np.full(len(ends), self.options.edge_offset_sigma_px),
-            np.full(len(ends), self.options.edge_turn_sigma_px),
+            offset,
+            np.full(len(ends), options.edge_turn_sigma_px),
         )
 
     def _outline_keep(self, X_CT: Pose):
@@ -597,15 +624,18 @@ class LineEstimator:
         prior: Pose | None,
     ) -> _Joint | None:
         """Outline edges searched around ``X_pred`` (within 4σ of its ``covariance``), then
-        the joint fit of panel and outline from ``X_pred`` (and ``other_starts``); an outline
-        edge that disagrees with the rest (χ² per point of its points, common error included,
-        above ``max_reduced_chi2``) is something else — dropped, and the pose refitted. When
-        the joint pose predicts the outline well away (3 px) from where ``X_pred`` did, or
-        most of it was not found, the outline is fitted once more, narrowly, around the joint
-        pose's prediction."""
+        the joint fit of panel and outline from ``X_pred`` (and ``other_starts``).
+
+        An outline edge that disagrees with the rest (χ² per point, common error included,
+        above ``max_reduced_chi2``) is something else: it is dropped and the pose refitted. A
+        panel edge that disagrees was measured partly on something else (a fastener, the ring):
+        the panel's edges are measured again, narrowly, around the joint pose — which the
+        outline holds far better than the panel alone did. When the joint pose predicts the
+        outline well away (3 px) from where ``X_pred`` did, or most of it was not found, the
+        outline is fitted once more, narrowly, around the joint pose's prediction."""
         options = self.options
         starts = [X_pred, *other_starts]
-        refreshed = False
+        refreshed = remeasured = False
         while True:
             outline = fit_outline_edges(
                 image.pixels,
@@ -623,21 +653,30 @@ class LineEstimator:
             joint = None
             while outline.found:
                 observations = self._observations(edges, outline)
-                fits = fit_from_starts([observations], starts, self.camera.K)
+                fits = fit_from_starts([observations], starts, self.camera.K, min_scale2=MIN_SCALE2)
                 if not fits:
                     return None
                 joint = choose_pose(fits, prior)
-                worst, worst_chi2 = self._worst_outline_edge(observations, joint.fit)
-                if worst_chi2 <= options.max_reduced_chi2:
-                    break
-                outline = outline.without(worst)
-                joint = None
+                chi2 = self._edge_chi2(observations, joint.fit)
+                panel_count = len(self._panel_ends)
+                worst = max(range(panel_count, len(chi2)), key=lambda e: chi2[e])
+                if chi2[worst] > options.max_reduced_chi2:
+                    outline = outline.without(worst - panel_count)
+                    joint = None
+                    continue
+                if not remeasured and max(chi2[:panel_count]) > options.max_reduced_chi2:
+                    remeasured = True
+                    again = self._panel_edges_at(image, joint.fit.X_CT)
+                    if again is not None:
+                        edges, starts = again, [joint.fit.X_CT]
+                        continue
+                break
             if joint is None:
                 return None
             moved = np.max(
                 np.abs(self._outline_image(joint.fit.X_CT) - self._outline_image(X_pred))
             )
-            result = _Joint(joint, outline)
+            result = _Joint(joint, outline, edges)
             if refreshed or (moved < 3.0 and result.good):
                 return result
             # Predict again from the joint pose, narrowly (its own covariance): strips that
@@ -645,24 +684,37 @@ class LineEstimator:
             X_pred, covariance, refreshed = joint.fit.X_CT, joint.fit.covariance, True
             starts = [X_pred]
 
-    def _worst_outline_edge(
-        self, observations: CorrelatedEdgeObservations, fit: PoseFit
-    ) -> tuple[int, float]:
-        """(outline edge index, χ² per point) of the outline edge that fits worst."""
+    def _panel_edges_at(self, image: GrayImage, X_CT: Pose) -> PanelEdges | None:
+        """The panel's edges measured narrowly (±2 px) around their projection under a pose
+        held by more than the panel (None when one is not found)."""
+        strips = strips_from_pose(X_CT, self.camera, self.target, self.options.strip_px)
+        if strips is None:
+            return None
+        edges = fit_panel_edges(
+            image.pixels,
+            strips,
+            self.camera,
+            half_width_px=self.options.band_px,
+            search_px=2.0,
+            min_contrast_snr=self.options.min_contrast_snr,
+            polarity=self.polarity,
+            keep=self._keep_mask(X_CT),
+        )
+        return edges if edges.all_found else None
+
+    def _edge_chi2(self, observations: CorrelatedEdgeObservations, fit: PoseFit) -> np.ndarray:
+        """χ² per point of every model edge's points at ``fit`` (their common error included;
+        0 for an edge without points): panel edges first, then the outline's."""
         _, r_w, _ = observations.edges.linearize(fit.X_CT, self.camera.K)
         whitened = observations.whiten(r_w)
         count = len(r_w)
-        worst, worst_chi2 = -1, -math.inf
+        chi2 = np.zeros(len(observations.edges.ends_T))
         for k, (index, *_rest) in enumerate(observations.groups):
             edge = int(observations.edges.edge[index[0]])
-            if edge < len(self._panel_ends):
-                continue
-            chi2 = float(whitened[index] @ whitened[index])
-            chi2 += float(np.sum(whitened[count + 2 * k : count + 2 * k + 2] ** 2))
-            per_point = chi2 / len(index)
-            if per_point > worst_chi2:
-                worst, worst_chi2 = edge - len(self._panel_ends), per_point
-        return worst, worst_chi2
+            total = float(whitened[index] @ whitened[index])
+            total += float(np.sum(whitened[count + 2 * k : count + 2 * k + 2] ** 2))
+            chi2[edge] = total / len(index)
+        return chi2
 
     def _fit_pose(self, edges: PanelEdges, X0: Pose, tracking: bool) -> PoseChoice | None:
         observations = self._observations(edges)
@@ -681,6 +733,7 @@ class LineEstimator:
             K,
             method=self.options.pose_method,
             lhm_points=lhm_points,  # type: ignore[arg-type]
+            min_scale2=MIN_SCALE2,
         )
         if not fits:
             return None

@@ -90,6 +90,10 @@ def predicted_offset_sigma_px(
     return float(math.sqrt(max(float(np.max(variance)), 0.0)))
 
 
+#: Parts of an edge closer than this (px) to the image border are not used: the step fits
+#: need a few pixels on both of its sides (bands running off the image are cut to it).
+BORDER_PX = 3.0
+
 #: Search windows (px) up to this go straight to the step fits, without the coarse search.
 _NARROW_PX = 3.0
 
@@ -155,7 +159,7 @@ def fit_outline_edges(
     if ends is None:
         return OutlineEdges((None, None, None, None), 0.0, 0)
     inside_T = target.outline_corners_T.mean(axis=0)
-    border = band_px + 1.5 + 2.0  # the fine pass's band stays inside the image
+    border = BORDER_PX
     fitted: list[FittedEdge | None] = []
     expected = 0
     for a, b in ends:
