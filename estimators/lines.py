@@ -41,25 +41,40 @@ from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
 from estimators.measurement import Measurement
 from estimators.model_support import GradientImage, ModelSupport, Support
 from estimators.model_view import plane_coordinates
+from estimators.outline_edges import (
+    OutlineEdges,
+    fit_outline_edges,
+    outline_edge_ends,
+    outline_observations,
+)
 from estimators.panel_edges import (
     EdgeStrips,
     PanelEdges,
     corner_sigma_px,
     fit_panel_edges,
+    panel_edge_ends,
     shift_strips_onto,
     strips_from_pose,
 )
 from estimators.planar_pose import (
     POSE_METHODS,
+    CorrelatedEdgeObservations,
+    EdgeObservations,
     PointObservations,
     PoseChoice,
+    PoseFit,
     choose_pose,
     fit_from_starts,
     ippe_poses,
+    project_ideal,
+    refine_pose,
 )
 from estimators.target import TargetModel
 
 SYSTEM = "lines"
+#: The variance factor never goes below 1: the points' σ come from their own fits and the
+#: edges' common errors are modelled, so a χ²/dof below 1 is luck, not precision.
+MIN_SCALE2 = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,8 +103,25 @@ class LineOptions:
     max_hypotheses: int = 3
     turn_margin: float = 6.0
     confirm_margin: float = 3.0
+    use_outline: bool = True
+    max_outline_search_px: float = 20.0
+    outline_strips: int = 20
+    tilt_change_deg: float = 2.0
+    edge_point_floor_px: float = 0.03
+    edge_offset_sigma_px: float = 0.08
+    edge_offset_noise_ratio: float = 0.4
+    edge_turn_sigma_px: float = 0.05
+    covariance_scale: float = 1.0
 
     def __post_init__(self) -> None:
+        for name in (
+            "edge_point_floor_px",
+            "edge_offset_sigma_px",
+            "edge_turn_sigma_px",
+            "covariance_scale",
+        ):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive; got {getattr(self, name)}")
         if self.pose_method not in POSE_METHODS:
             raise ValueError(
                 f"pose_method must be one of {', '.join(POSE_METHODS)}; got {self.pose_method!r}"
@@ -108,6 +140,28 @@ class _Solution:
     edge_points: np.ndarray  # (M,2) image px
     corners_uv: np.ndarray  # (4,2) image px
     reason: str = ""
+
+
+#: A joint fit is taken as found when it used this share of the outline's strips in view.
+_GOOD_OUTLINE_SHARE = 0.7
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Joint:
+    """A joint fit of panel and outline: the pose choice and the edges it used."""
+
+    choice: PoseChoice
+    outline: OutlineEdges
+    panel: PanelEdges  # the panel's edges the fit used (measured again if they disagreed)
+
+    @property
+    def points(self) -> int:
+        return self.outline.points
+
+    @property
+    def good(self) -> bool:
+        """Most of the outline in view was found and used."""
+        return self.outline.points >= _GOOD_OUTLINE_SHARE * self.outline.expected
 
 
 def _polarity(target: TargetModel) -> float:
@@ -134,6 +188,22 @@ class LineEstimator:
             target.circle("ring_inner").radius if target.has_circle("ring_inner") else math.inf
         )
         self.turns = TurnChecker(target, self.support)
+        self._outline_ends = outline_edge_ends(target) if options.use_outline else None
+        self._panel_ends = panel_edge_ends(target)
+        # Parts that may stand in front of the outline's edges (fasteners, circles and their
+        # feet on the face): their images are masked out of the outline's edge fits.
+        z_face = (
+            float(target.outline_corners_T[:, 2].mean())
+            if target.outline_corners_T is not None
+            else self._z_panel
+        )
+        centres = [f.p_T for f in discs]
+        radii = [f.diameter / 2 for f in discs]
+        for circle in target.circles:
+            centres += [circle.center_T, np.array([*circle.center_T[:2], z_face])]
+            radii += [circle.radius, circle.radius]
+        self._masked_T = np.array(centres).reshape(-1, 3)
+        self._masked_radius = np.array(radii)
 
     # --- entry point ----------------------------------------------------------------------
     def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
@@ -360,9 +430,14 @@ class LineEstimator:
         if not edges.all_found:
             missing = [i for i, e in enumerate(edges.edges) if not e.found]
             return self._failure(f"panel edge(s) {missing} not found", segments)
-        choice = self._fit_pose(edges, X0, tracking)
-        if choice is None:
-            return self._failure("no pose fits the edges", segments)
+        joint = self._with_outline(image, edges, X0, tracking)
+        if joint is not None:
+            choice, outline, edges = joint.choice, joint.outline, joint.panel
+        else:
+            panel = self._fit_pose(edges, X0, tracking)
+            if panel is None:
+                return self._failure("no pose fits the edges", segments)
+            choice, outline = panel, None
         fit = choice.fit
         support = self.support.score(gradients, fit.X_CT)
         ambiguous = choice.ambiguous
@@ -378,8 +453,10 @@ class LineEstimator:
             # The square panel looks the same after a quarter turn: the model's asymmetric
             # parts (the thruster) decide — in tracking too, so that a wrong lock cannot last.
             # A pose from the panel's edges alone may be degrees off in tilt, which moves the
-            # asymmetric parts (far from the panel) by pixels: out of tracking, let them search.
-            turn = self.turns.check(gradients, X, search_px=0.0 if tracking else 6.0)
+            # asymmetric parts (far from the panel) by pixels: out of tracking, let them search
+            # — unless the outline fixed the tilt (then a search only lets noise compete).
+            rough = not tracking and outline is None
+            turn = self.turns.check(gradients, X, search_px=6.0 if rough else 0.0)
             if turn.best != 0 and turn.margin >= options.turn_margin:
                 if tracking:
                     reason = "a quarter turn of the pose fits the image better"
@@ -393,19 +470,254 @@ class LineEstimator:
                 if not turn.margin >= needed:
                     reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
         corners_image = self.camera.project(X.apply(self.target.panel_corners_T))
+        points = edges.image_points()
+        if outline is not None:
+            points = np.concatenate([points, outline.image_points()])
         return _Solution(
             X,
-            fit.covariance,
+            options.covariance_scale * fit.covariance,
             fit.rms_px,
             ambiguous,
             segments,
-            edges.image_points(),
+            points,
             corners_image,
             reason,
         )
 
+    def _observations(
+        self, edges: PanelEdges, outline: OutlineEdges | None = None
+    ) -> CorrelatedEdgeObservations:
+        """The panel's (and the outline's) edge points as one set of observations, with each
+        edge's common error (``CorrelatedEdgeObservations``)."""
+        panel = edges.observations(self.target)
+        extra = outline_observations(self.target, outline) if outline is not None else None
+        if extra is None:
+            ends, index, uv, sigma = panel.ends_T, panel.edge, panel.uv, panel.sigma_px
+        else:
+            ends = np.concatenate([panel.ends_T, extra.ends_T])
+            index = np.concatenate([panel.edge, extra.edge + len(panel.ends_T)])
+            uv = np.concatenate([panel.uv, extra.uv])
+            sigma = np.concatenate([panel.sigma_px, extra.sigma_px])
+        options = self.options
+        # A floor under each point's σ: the edge's fine shape departs from a straight step by a
+        # few hundredths of a pixel (rendering, relief) even where the noise is nil.
+        sigma = np.hypot(sigma, options.edge_point_floor_px)
+        # Each edge's common offset: a part of its own (pixel quantisation, a plate's side
+        # wall) and a part that grows with the noise (clipped noise at a dark side shifts the
+        # step) — in proportion to the edge's point σ, which carries noise over contrast.
+        typical = np.full(len(ends), np.inf)
+        for e in np.unique(index):
+            typical[e] = float(np.median(sigma[index == e]))
+        offset = np.hypot(
+            options.edge_offset_sigma_px,
+            options.edge_offset_noise_ratio * np.where(np.isfinite(typical), typical, 0.0),
+        )
+        return CorrelatedEdgeObservations(
+            EdgeObservations(ends, index, uv, sigma),
+            offset,
+            np.full(len(ends), options.edge_turn_sigma_px),
+        )
+
+    def _outline_keep(self, X_CT: Pose):
+        """Pixels to use for outline edge fits: not on the image of a fastener or circle."""
+        P = X_CT.apply(self._masked_T)
+        in_front = P[:, 2] > 1e-6
+        uv = self.camera.project(P[in_front])
+        radius = self._masked_radius[in_front] * self.camera.K[0, 0] / P[in_front, 2] + 2.0
+
+        def keep(coords: np.ndarray) -> np.ndarray:
+            ok = np.ones(len(coords), bool)
+            if not len(coords) or not len(uv):
+                return ok
+            lo, hi = coords.min(axis=0), coords.max(axis=0)
+            near = np.all((uv + radius[:, None] >= lo) & (uv - radius[:, None] <= hi), axis=1)
+            for centre, r in zip(uv[near], radius[near], strict=True):
+                ok &= np.hypot(coords[:, 0] - centre[0], coords[:, 1] - centre[1]) > r
+            return ok
+
+        return keep
+
+    def _with_outline(
+        self, image: GrayImage, edges: PanelEdges, X0: Pose, tracking: bool
+    ) -> _Joint | None:
+        """The pose from the panel's and the outline's edges together (None when the model has
+        no outline or none of it is found).
+
+        Where to look for the outline: the panel alone fixes the target's position and roll
+        well but its tilt poorly (degrees at 3 m, sometimes tens at high noise), and the
+        outline, five times larger, moves with the tilt. So it is predicted first with the
+        tilt of ``X0`` (the prior; or an acquisition hypothesis, found from the outline itself
+        when it was in view) and the panel's position and roll, searched within what the tilt
+        may have changed since (``tilt_change_deg``) in tracking. When that finds less than
+        most of the outline in view, the panel's own pose (all starts, as without an outline)
+        predicts it, searched within its covariance, and the prediction that explains more of
+        the outline wins."""
+        if self._outline_ends is None:
+            return None
+        best: _Joint | None = None
+        tried: list[np.ndarray] = []
+        X_tilt = self._with_tilt_of(X0, edges)
+        if X_tilt is not None and tracking:
+            best = self._joint_fit(image, edges, X_tilt, self._tilt_change(X_tilt), [], X0)
+            tried.append(self._outline_image(X_tilt))
+            if best is not None and best.good:
+                return best
+        panel = self._fit_pose(edges, X0, tracking)
+        if panel is None:
+            return best
+        fit = panel.fit
+        # Without a prior the planar flip is a distinct start while it is undecided.
+        flip = (
+            [panel.alternative.X_CT]
+            if panel.ambiguous and panel.alternative and not tracking
+            else []
+        )
+        prior = X0 if tracking else None
+        predictions = [fit.X_CT] + ([X_tilt] if X_tilt is not None and not tracking else [])
+        for X_pred in predictions:
+            corners = self._outline_image(X_pred)
+            if any(np.max(np.abs(corners - c)) < 2.0 for c in tried):
+                continue
+            tried.append(corners)
+            joint = self._joint_fit(image, edges, X_pred, fit.covariance, flip, prior)
+            if joint is not None and (best is None or joint.points > best.points):
+                best = joint
+            if best is not None and best.good:
+                break
+        return best
+
+    def _tilt_change(self, X_CT: Pose) -> np.ndarray:
+        """Covariance (6×6) of a prediction whose tilt may be ``tilt_change_deg`` off (per
+        axis, about the two axes across the panel's normal); position and roll are measured."""
+        normal = X_CT.R[:, 2]
+        covariance = np.zeros((6, 6))
+        covariance[:3, :3] = math.radians(self.options.tilt_change_deg) ** 2 * (
+            np.eye(3) - np.outer(normal, normal)
+        )
+        return covariance
+
+    def _outline_image(self, X_CT: Pose) -> np.ndarray:
+        assert self.target.outline_corners_T is not None
+        return project_ideal(X_CT, self.target.outline_corners_T, self.camera.K)
+
+    def _with_tilt_of(self, X0: Pose, edges: PanelEdges) -> Pose | None:
+        """``X0``'s tilt with the position and roll that fit the panel's edges (a pose for
+        predicting the outline; None if the fit fails)."""
+        normal = X0.R[:, 2]  # the panel's normal in C: rotations about it keep the tilt
+        free = np.zeros((6, 4))
+        free[:3, 0] = normal
+        free[3:, 1:] = np.eye(3)
+        try:
+            return refine_pose(
+                [edges.observations(self.target)], X0, self.camera.K, free=free, max_iterations=10
+            ).X_CT
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+
+    def _joint_fit(
+        self,
+        image: GrayImage,
+        edges: PanelEdges,
+        X_pred: Pose,
+        covariance: np.ndarray,
+        other_starts: list[Pose],
+        prior: Pose | None,
+    ) -> _Joint | None:
+        """Outline edges searched around ``X_pred`` (within 4σ of its ``covariance``), then
+        the joint fit of panel and outline from ``X_pred`` (and ``other_starts``).
+
+        An outline edge that disagrees with the rest (χ² per point, common error included,
+        above ``max_reduced_chi2``) is something else: it is dropped and the pose refitted. A
+        panel edge that disagrees was measured partly on something else (a fastener, the ring):
+        the panel's edges are measured again, narrowly, around the joint pose — which the
+        outline holds far better than the panel alone did. When the joint pose predicts the
+        outline well away (3 px) from where ``X_pred`` did, or most of it was not found, the
+        outline is fitted once more, narrowly, around the joint pose's prediction."""
+        options = self.options
+        starts = [X_pred, *other_starts]
+        refreshed = remeasured = False
+        while True:
+            outline = fit_outline_edges(
+                image.pixels,
+                X_pred,
+                covariance,
+                self.camera,
+                self.target,
+                strip_px=options.strip_px,
+                band_px=options.band_px,
+                min_contrast_snr=options.min_contrast_snr,
+                max_search_px=options.max_outline_search_px,
+                max_strips=options.outline_strips,
+                keep=self._outline_keep(X_pred),
+            )
+            joint = None
+            while outline.found:
+                observations = self._observations(edges, outline)
+                fits = fit_from_starts([observations], starts, self.camera.K, min_scale2=MIN_SCALE2)
+                if not fits:
+                    return None
+                joint = choose_pose(fits, prior)
+                chi2 = self._edge_chi2(observations, joint.fit)
+                panel_count = len(self._panel_ends)
+                worst = max(range(panel_count, len(chi2)), key=lambda e: chi2[e])
+                if chi2[worst] > options.max_reduced_chi2:
+                    outline = outline.without(worst - panel_count)
+                    joint = None
+                    continue
+                if not remeasured and max(chi2[:panel_count]) > options.max_reduced_chi2:
+                    remeasured = True
+                    again = self._panel_edges_at(image, joint.fit.X_CT)
+                    if again is not None:
+                        edges, starts = again, [joint.fit.X_CT]
+                        continue
+                break
+            if joint is None:
+                return None
+            moved = np.max(
+                np.abs(self._outline_image(joint.fit.X_CT) - self._outline_image(X_pred))
+            )
+            result = _Joint(joint, outline, edges)
+            if refreshed or (moved < 3.0 and result.good):
+                return result
+            # Predict again from the joint pose, narrowly (its own covariance): strips that
+            # missed the edge, or ran past its corners, are placed right.
+            X_pred, covariance, refreshed = joint.fit.X_CT, joint.fit.covariance, True
+            starts = [X_pred]
+
+    def _panel_edges_at(self, image: GrayImage, X_CT: Pose) -> PanelEdges | None:
+        """The panel's edges measured narrowly (±2 px) around their projection under a pose
+        held by more than the panel (None when one is not found)."""
+        strips = strips_from_pose(X_CT, self.camera, self.target, self.options.strip_px)
+        if strips is None:
+            return None
+        edges = fit_panel_edges(
+            image.pixels,
+            strips,
+            self.camera,
+            half_width_px=self.options.band_px,
+            search_px=2.0,
+            min_contrast_snr=self.options.min_contrast_snr,
+            polarity=self.polarity,
+            keep=self._keep_mask(X_CT),
+        )
+        return edges if edges.all_found else None
+
+    def _edge_chi2(self, observations: CorrelatedEdgeObservations, fit: PoseFit) -> np.ndarray:
+        """χ² per point of every model edge's points at ``fit`` (their common error included;
+        0 for an edge without points): panel edges first, then the outline's."""
+        _, r_w, _ = observations.edges.linearize(fit.X_CT, self.camera.K)
+        whitened = observations.whiten(r_w)
+        count = len(r_w)
+        chi2 = np.zeros(len(observations.edges.ends_T))
+        for k, (index, *_rest) in enumerate(observations.groups):
+            edge = int(observations.edges.edge[index[0]])
+            total = float(whitened[index] @ whitened[index])
+            total += float(np.sum(whitened[count + 2 * k : count + 2 * k + 2] ** 2))
+            chi2[edge] = total / len(index)
+        return chi2
+
     def _fit_pose(self, edges: PanelEdges, X0: Pose, tracking: bool) -> PoseChoice | None:
-        observations = edges.observations(self.target)
+        observations = self._observations(edges)
         K = self.camera.K
         starts = [X0] + ippe_poses(self.target.panel_corners_T, edges.corners_ideal, K)
         lhm_points = None
@@ -421,6 +733,7 @@ class LineEstimator:
             K,
             method=self.options.pose_method,
             lhm_points=lhm_points,  # type: ignore[arg-type]
+            min_scale2=MIN_SCALE2,
         )
         if not fits:
             return None

@@ -10,7 +10,7 @@ fitted — so lens distortion never bends a fitted line.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,14 +36,22 @@ def edge_span(length_px: float, strip_px: float) -> tuple[float, float]:
     return margin, 1.0 - margin
 
 
+def panel_edge_ends(target: TargetModel) -> np.ndarray:
+    """The panel's four edges as (4,2,3) end points in T; edge i runs from corner i to i+1."""
+    corners = target.panel_corners_T
+    return np.stack([corners, np.roll(corners, -1, axis=0)], axis=1)
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class EdgeStrips:
     """Where to look for one edge: strip centres (K,2 px) on the predicted edge, unit normals
-    (K,2) toward the panel's inside, and the strips' half length (px)."""
+    (K,2) toward the panel's inside, the strips' half length (px), and — when predicted from
+    a pose — the model points (K,3, in T) the centres are images of."""
 
     centers_uv: np.ndarray
     normals: np.ndarray
     half_length_px: float
+    points_T: np.ndarray | None = None
 
 
 def strip_count(length_px: float, strip_px: float) -> int:
@@ -56,28 +64,106 @@ def strips_from_pose(
 ) -> list[EdgeStrips] | None:
     """Strips along the four projected panel edges (None if the panel is not in view)."""
     corners = target.panel_corners_T
-    corners_C = X_CT.apply(corners)
-    if not np.all(camera.in_view(corners_C, margin_px=1.0)):
+    if not np.all(camera.in_view(X_CT.apply(corners), margin_px=1.0)):
         return None
-    centre_uv = camera.project(X_CT.apply(corners.mean(axis=0)[None]))[0]
-    corners_uv = camera.project(corners_C)
+    centre = corners.mean(axis=0)
     strips = []
     for i in range(4):
-        a, b = corners[i], corners[(i + 1) % 4]
-        length = float(np.linalg.norm(corners_uv[(i + 1) % 4] - corners_uv[i]))
-        count = strip_count(length, strip_px)
-        t0, t1 = edge_span(length, strip_px)
-        t = np.linspace(t0, t1, count)[:, None]
-        uv = camera.project(X_CT.apply(a + t * (b - a)))
-        ahead = camera.project(X_CT.apply(a + (t + 1e-3) * (b - a)))
-        tangent = ahead - uv
-        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-        normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
-        if np.mean(np.sum((centre_uv - uv) * normal, axis=1)) < 0:
-            normal = -normal
-        spacing = length * (t1 - t0) / max(count - 1, 1)
-        strips.append(EdgeStrips(uv, normal, 0.5 * spacing))
+        strip = strips_along_edge(X_CT, camera, corners[i], corners[(i + 1) % 4], centre, strip_px)
+        if strip is None:
+            return None
+        strips.append(strip)
     return strips
+
+
+#: Samples along a model edge when looking for its part in view.
+_VIEW_SAMPLES = 257
+
+
+def _visible_run(
+    X_CT: Pose, camera: CameraInfo, a_T: np.ndarray, b_T: np.ndarray, border_px: float
+) -> tuple[float, float] | None:
+    """The longest stretch [t0, t1] of the edge a + t·(b − a) imaged at least ``border_px``
+    inside the image (None if none is), to 1/256 of the edge."""
+    ends = camera.in_view(X_CT.apply(np.array([a_T, b_T])), margin_px=border_px)
+    if ends.all() and not camera.has_distortion:
+        return 0.0, 1.0  # a straight image segment between two points inside the image
+    t = np.linspace(0.0, 1.0, _VIEW_SAMPLES)
+    seen = camera.in_view(X_CT.apply(a_T + t[:, None] * (b_T - a_T)), margin_px=border_px)
+    if seen.all():
+        return 0.0, 1.0
+    if not seen.any():
+        return None
+    # Longest run of consecutive visible samples.
+    padded = np.concatenate([[False], seen, [False]])
+    changes = np.flatnonzero(np.diff(padded.astype(int)))
+    starts, stops = changes[::2], changes[1::2] - 1
+    k = int(np.argmax(stops - starts))
+    return float(t[starts[k]]), float(t[stops[k]])
+
+
+def strips_along_edge(
+    X_CT: Pose,
+    camera: CameraInfo,
+    a_T: np.ndarray,
+    b_T: np.ndarray,
+    inside_T: np.ndarray,
+    strip_px: float,
+    *,
+    border_px: float = 0.0,
+    min_length_px: float = 0.0,
+    max_strips: int | None = None,
+) -> EdgeStrips | None:
+    """Strips along the part of the model edge a→b (T) that ``X_CT`` images at least
+    ``border_px`` inside the image, normals toward ``inside_T`` (a point on the side whose grey
+    level is ``inside``). Where the edge ends in view (a model corner) the strips keep clear of
+    the corner (``edge_span``); where the image border cuts it they run up to the border. None
+    when less than ``min_length_px`` of it is in view. Strips are contiguous (at most 60,
+    longer on a longer edge); with ``max_strips`` at most that many, ``strip_px`` long, spread
+    out with gaps between them on a longer edge (fewer pixels to fit)."""
+    a = np.asarray(a_T, dtype=float)
+    b = np.asarray(b_T, dtype=float)
+    run = _visible_run(X_CT, camera, a, b, border_px)
+    if run is None:
+        return None
+    t0, t1 = run
+    ends_uv = camera.project(X_CT.apply(np.array([a + t0 * (b - a), a + t1 * (b - a)])))
+    visible_px = float(np.linalg.norm(ends_uv[1] - ends_uv[0]))
+    if visible_px < max(min_length_px, 1e-6):
+        return None
+    if t0 == 0.0 and t1 == 1.0:
+        lo, hi = edge_span(visible_px, strip_px)
+    else:
+        # Corner clearance in pixels, as a fraction of the visible part, at model corners only.
+        clearance = (CORNER_CLEARANCE_PX + 0.5 * strip_px) / visible_px
+        span = t1 - t0
+        lo = t0 + (max(MIN_CORNER_FRACTION, clearance) * span if t0 == 0.0 else 0.0)
+        hi = t1 - (max(MIN_CORNER_FRACTION, clearance) * span if t1 == 1.0 else 0.0)
+        if hi - lo < 0.2 * span:
+            return None
+    # Strips evenly spaced in the image (a receding edge is foreshortened unevenly): places
+    # along the edge by its image arc length.
+    dense = np.linspace(lo, hi, 65)
+    dense_uv = camera.project(X_CT.apply(a + dense[:, None] * (b - a)))
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense_uv, axis=0), axis=1))])
+    span_px = float(arc[-1])
+    count = int(np.clip(round(span_px / strip_px), 3, 60 if max_strips is None else max_strips))
+    t = np.interp(np.linspace(0.0, span_px, count), arc, dense)[:, None]
+    points = a + t * (b - a)
+    uv = camera.project(X_CT.apply(points))
+    ahead = camera.project(X_CT.apply(a + (t + 1e-3) * (b - a)))
+    tangent = ahead - uv
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
+    toward = np.asarray(inside_T, dtype=float) - points
+    toward /= np.maximum(np.linalg.norm(toward, axis=1, keepdims=True), 1e-12)
+    step_m = 1e-3 * float(np.median(X_CT.apply(points)[:, 2]))
+    inward = camera.project(X_CT.apply(points + step_m * toward)) - uv
+    if np.mean(np.sum(inward * normal, axis=1)) < 0:
+        normal = -normal
+    spacing = span_px / max(count - 1, 1)
+    half_length = 0.5 * spacing if max_strips is None else 0.5 * min(spacing, strip_px)
+    return EdgeStrips(uv, normal, half_length, points)
 
 
 def strips_from_quad(corners_uv: np.ndarray, strip_px: float) -> list[EdgeStrips]:
@@ -110,8 +196,16 @@ def shift_strips_onto(strips: EdgeStrips, point: np.ndarray, direction: np.ndarr
     safe = np.where(np.abs(denominator) < 0.2, np.nan, denominator)
     shift = ((point - strips.centers_uv) @ normal_line) / safe
     shift = np.where(np.isfinite(shift), shift, 0.0)
+    return shift_strips(strips, shift)
+
+
+def shift_strips(strips: EdgeStrips, shift_px: np.ndarray) -> EdgeStrips:
+    """Strips moved along their normals by ``shift_px`` (K,) (the model points they image are
+    no longer exact: dropped)."""
     return EdgeStrips(
-        strips.centers_uv + shift[:, None] * strips.normals, strips.normals, strips.half_length_px
+        strips.centers_uv + np.asarray(shift_px, dtype=float)[:, None] * strips.normals,
+        strips.normals,
+        strips.half_length_px,
     )
 
 
@@ -145,18 +239,7 @@ class PanelEdges:
 
     def observations(self, target: TargetModel) -> EdgeObservations:
         """Edge points as pose observations (point-to-projected-edge distances)."""
-        corners = target.panel_corners_T
-        ends = np.stack([corners, np.roll(corners, -1, axis=0)], axis=1)
-        uv, edge, sigma = [], [], []
-        for i, e in enumerate(self.edges):
-            if not e.found:
-                continue
-            uv.append(e.uv_ideal[e.used])
-            sigma.append(e.sigma_ideal[e.used])
-            edge.append(np.full(len(e.used), i))
-        return EdgeObservations(
-            ends, np.concatenate(edge), np.concatenate(uv), np.concatenate(sigma)
-        )
+        return edge_observations(panel_edge_ends(target), self.edges)
 
     def image_points(self) -> np.ndarray:
         """All inlier edge points in image pixels (for overlays)."""
@@ -164,9 +247,21 @@ class PanelEdges:
         return np.concatenate(parts) if parts else np.zeros((0, 2))
 
 
-def _fit_one_edge(
-    pixels, strip, camera, half_width_px, search_px, min_contrast_snr, polarity, keep
-):
+def fit_edge(
+    pixels: np.ndarray,
+    strip: EdgeStrips,
+    camera: CameraInfo,
+    *,
+    half_width_px: float = 3.0,
+    search_px: float = 2.0,
+    min_contrast_snr: float = 3.5,
+    polarity: float = 1.0,
+    keep: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> FittedEdge:
+    """One straight edge from its strips: step-edge points (``estimators.edge_fit``) converted
+    to ideal pixels, and a robust line through them. Found when the grey levels differ with
+    ``polarity`` (+1: brighter on the normals' side, −1: darker, 0: either) by
+    ``min_contrast_snr`` standard deviations and the line has at least three inliers."""
     points = fit_edge_points(
         pixels,
         strip.centers_uv,
@@ -178,7 +273,8 @@ def _fit_one_edge(
     )
     ok = np.flatnonzero(points.ok)
     empty = FittedEdge(points, np.zeros((0, 2)), np.zeros(0), None, np.zeros(0, int))
-    if len(ok) < 3 or polarity * points.contrast_snr < min_contrast_snr:
+    sign = polarity if polarity != 0 else math.copysign(1.0, points.contrast_snr)
+    if len(ok) < 3 or sign * points.contrast_snr < min_contrast_snr:
         return empty
     uv_ideal = ideal_pixels(points.uv[ok], camera.K, camera.dist)
     sigma = points.sigma_px[ok]
@@ -194,6 +290,19 @@ def _fit_one_edge(
     full_uv[ok] = uv_ideal
     full_sigma[ok] = sigma
     return FittedEdge(points, full_uv, full_sigma, line, ok[line.inliers])
+
+
+def edge_observations(ends_T: np.ndarray, edges: Sequence[FittedEdge | None]) -> EdgeObservations:
+    """The inlier points of fitted edges as pose observations of the model edges ``ends_T``
+    (E,2,3; edge i measured by ``edges[i]``, None or not found when it was not)."""
+    uv, edge, sigma = [np.zeros((0, 2))], [np.zeros(0, int)], [np.zeros(0)]
+    for i, e in enumerate(edges):
+        if e is None or not e.found:
+            continue
+        uv.append(e.uv_ideal[e.used])
+        sigma.append(e.sigma_ideal[e.used])
+        edge.append(np.full(len(e.used), i))
+    return EdgeObservations(ends_T, np.concatenate(edge), np.concatenate(uv), np.concatenate(sigma))
 
 
 def fit_panel_edges(
@@ -217,20 +326,15 @@ def fit_panel_edges(
     searches = list(search_px) if isinstance(search_px, list | tuple) else [search_px] * len(strips)
     fitted = []
     for i, strip in enumerate(strips):
-        edge = _fit_one_edge(
-            pixels, strip, camera, half_width_px, searches[i], min_contrast_snr, polarity, keep
+        settings = dict(
+            half_width_px=half_width_px,
+            min_contrast_snr=min_contrast_snr,
+            polarity=polarity,
+            keep=keep,
         )
+        edge = fit_edge(pixels, strip, camera, search_px=searches[i], **settings)
         if not edge.found and fallback is not None:
-            edge = _fit_one_edge(
-                pixels,
-                fallback[i],
-                camera,
-                half_width_px,
-                fallback_search_px,
-                min_contrast_snr,
-                polarity,
-                keep,
-            )
+            edge = fit_edge(pixels, fallback[i], camera, search_px=fallback_search_px, **settings)
         fitted.append(edge)
     corners = None
     if all(e.found for e in fitted):

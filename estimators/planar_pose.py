@@ -78,7 +78,7 @@ def project_ideal(X_CT: Pose, points_T: np.ndarray, K: np.ndarray) -> np.ndarray
     return np.column_stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]])
 
 
-def _projection_jacobian(X_CT: Pose, points_T: np.ndarray, K: np.ndarray):
+def projection_jacobian(X_CT: Pose, points_T: np.ndarray, K: np.ndarray):
     """Ideal pixels (N,2), their Jacobian (N,2,6) w.r.t. [δθ, δp], and the depths (N,)."""
     q = points_T @ X_CT.R.T  # R·P_T (N,3)
     P = q + X_CT.p
@@ -158,7 +158,7 @@ class PointObservations:
 
     def linearize(self, X_CT: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(residuals in px (2N,), whitened residuals (2N,), whitened Jacobian (2N,6))."""
-        uv, J, _ = _projection_jacobian(X_CT, self.points_T, K)
+        uv, J, _ = projection_jacobian(X_CT, self.points_T, K)
         r = uv - self.uv
         L = self._whitening
         r_w = np.einsum("nij,nj->ni", L, r).reshape(-1)
@@ -206,7 +206,7 @@ class EdgeObservations:
         return len(self.uv)
 
     def linearize(self, X_CT: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        ends_uv, J_ends, _ = _projection_jacobian(X_CT, self.ends_T.reshape(-1, 3), K)
+        ends_uv, J_ends, _ = projection_jacobian(X_CT, self.ends_T.reshape(-1, 3), K)
         ends_uv = ends_uv.reshape(-1, 2, 2)
         J_ends = J_ends.reshape(-1, 2, 2, 6)
         a = ends_uv[self.edge, 0]
@@ -224,6 +224,89 @@ class EdgeObservations:
             "mi,mik->mk", dr_db, J_ends[self.edge, 1]
         )
         return r, r / self.sigma_px, J / self.sigma_px[:, None]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CorrelatedEdgeObservations:
+    """Edge observations whose errors along one edge are not independent: besides each
+    point's own noise (``edges.sigma_px``) every edge carries a common error — an offset of
+    standard deviation ``offset_sigma_px`` and a turn that moves the ends of its measured
+    stretch by ``turn_sigma_px`` (both (E,) px, one per model edge) — the signature of what the
+    point noise does not describe: pixel quantisation of the edge, unmodelled relief beside it
+    (a plate's side wall), shading. The covariance of edge e's residuals is
+    Σ_e = D_e + A_e·Q_e·A_eᵀ with D_e the points' variances, A_e = [1, τ] (τ ∈ [−1, 1] the
+    point's place along the measured stretch) and Q_e = diag(σ_offset², σ_turn²).
+
+    Whitening without forming Σ_e: with ĉ = (Q⁻¹ + AᵀD⁻¹A)⁻¹AᵀD⁻¹r (the common error that best
+    explains r), the residuals [D^−½(r − A·ĉ); Q^−½·ĉ] are a linear map M·r with MᵀM = Σ⁻¹
+    (Woodbury), so least squares on them is generalised least squares under Σ, and (JᵀΣ⁻¹J)⁻¹
+    its covariance. ``size`` counts the measured points (the degrees of freedom), not the two
+    extra pseudo-residuals per edge.
+    """
+
+    edges: EdgeObservations
+    offset_sigma_px: np.ndarray
+    turn_sigma_px: np.ndarray
+    _groups: tuple = field(default=(), repr=False)
+
+    def __post_init__(self) -> None:
+        count = len(self.edges.ends_T)
+        offset = np.broadcast_to(np.asarray(self.offset_sigma_px, dtype=float), (count,)).copy()
+        turn = np.broadcast_to(np.asarray(self.turn_sigma_px, dtype=float), (count,)).copy()
+        if np.any(offset <= 0) or np.any(turn <= 0) or not np.all(np.isfinite(offset + turn)):
+            raise ValueError(
+                "CorrelatedEdgeObservations: offset_sigma_px and turn_sigma_px must be positive"
+            )
+        object.__setattr__(self, "offset_sigma_px", offset)
+        object.__setattr__(self, "turn_sigma_px", turn)
+        groups = []
+        uv, sigma = self.edges.uv, self.edges.sigma_px
+        for e in np.unique(self.edges.edge):
+            index = np.flatnonzero(self.edges.edge == e)
+            points = uv[index]
+            centre = points.mean(axis=0)
+            if len(index) > 1:
+                direction = np.linalg.svd(points - centre, full_matrices=False)[2][0]
+            else:
+                direction = np.array([1.0, 0.0])
+            along = (points - centre) @ direction
+            half = max(float(np.max(np.abs(along))), 1e-9)
+            A_w = np.column_stack([np.ones(len(index)), along / half]) / sigma[index, None]
+            Q_inv = np.diag([offset[e] ** -2, turn[e] ** -2])
+            H_inv = np.linalg.inv(Q_inv + A_w.T @ A_w)
+            Q_inv_half = np.diag([1.0 / offset[e], 1.0 / turn[e]])
+            groups.append((index, A_w, H_inv @ A_w.T, Q_inv_half))
+        object.__setattr__(self, "_groups", tuple(groups))
+
+    @property
+    def size(self) -> int:
+        return self.edges.size
+
+    @property
+    def count(self) -> int:
+        return self.edges.count
+
+    @property
+    def groups(self) -> tuple:
+        """Per measured edge, in order of edge index: (point indices, A_w, gain, Q^−½) — the
+        pseudo-residuals of the k-th group follow the points' residuals at 2k, 2k + 1."""
+        return self._groups
+
+    def whiten(self, values_w: np.ndarray) -> np.ndarray:
+        """M applied to point-whitened values (M,) or (M,k): (M + 2·edges,) or (M + 2·edges, k)."""
+        out = np.array(values_w, dtype=float, copy=True)
+        extra = []
+        for index, A_w, gain, Q_inv_half in self._groups:
+            common = gain @ values_w[index]  # ĉ
+            out[index] -= A_w @ common
+            extra.append(Q_inv_half @ common)
+        if not extra:
+            return out
+        return np.concatenate([out, np.concatenate(extra)])
+
+    def linearize(self, X_CT: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        r, r_w, J_w = self.edges.linearize(X_CT, K)
+        return r, self.whiten(r_w), self.whiten(J_w)
 
 
 def _linearize_all(observations: Sequence[Observations], X_CT: Pose, K: np.ndarray):
@@ -325,7 +408,7 @@ def _fit_at(
 ) -> PoseFit:
     r_px, r_w, J_w = _linearize_all(observations, X_CT, K)
     chi2 = float(r_w @ r_w)
-    dof = len(r_w) - 6
+    dof = sum(o.size for o in observations) - 6
     scale2 = max(chi2 / dof, min_scale2) if dof > 0 else 1.0
     count = sum(o.count for o in observations)
     rms = float(np.sqrt(np.sum(r_px**2) / count)) if count else math.nan
@@ -351,12 +434,16 @@ def refine_pose(
     *,
     max_iterations: int = 30,
     min_scale2: float = 0.0,
+    free: np.ndarray | None = None,
 ) -> PoseFit:
     """Levenberg–Marquardt (Gauss–Newton with damping only when a step fails) on the whitened
     reprojection residuals of ``observations`` from ``X0_CT``.
 
     The covariance is s²·(JᵀJ)⁻¹ at the solution with s² = max(χ²/dof, ``min_scale2``).
+    ``free`` (6×k) restricts the steps to δ = free·x (e.g. keep the start's tilt: rotations
+    about one axis and translations only); the covariance is then not meaningful.
     """
+    basis = np.eye(6) if free is None else np.asarray(free, dtype=float).reshape(6, -1)
     total = sum(o.size for o in observations)
     if total < 6:
         raise ValueError(f"refine_pose needs at least 6 residuals; got {total}")
@@ -369,8 +456,9 @@ def refine_pose(
     converged = False
     iteration = 0
     for iteration in range(1, max_iterations + 1):  # noqa: B007 (reported)
-        H = J_w.T @ J_w
-        g = J_w.T @ r_w
+        J_free = J_w @ basis
+        H = J_free.T @ J_free
+        g = J_free.T @ r_w
         step_taken = False
         for _ in range(12):
             A = H + damping * np.diag(np.diag(H) + 1e-12)
@@ -378,7 +466,7 @@ def refine_pose(
                 delta = -np.linalg.solve(A, g)
             except np.linalg.LinAlgError:
                 delta = -np.linalg.lstsq(A, g, rcond=None)[0]
-            candidate = _retract_raw(X, delta)
+            candidate = _retract_raw(X, basis @ delta)
             _, r_new, J_new = _linearize_all(observations, candidate, K)  # type: ignore[arg-type]
             new_cost = float(r_new @ r_new) if np.all(np.isfinite(r_new)) else math.inf
             if new_cost <= cost:
