@@ -530,7 +530,17 @@ def approach(
 @app.command()
 def campaign(
     config: SimOpt = "sim",
-    seeds: Annotated[int, typer.Option(min=1, help="Trials per noise level (seeds 1..N).")] = 20,
+    seeds: Annotated[
+        int, typer.Option(min=1, help="Trials per noise level (seeds S..S+N-1).")
+    ] = 20,
+    first_seed: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            help="First seed S; e.g. calibrate on seeds 101.. and evaluate on 1.. to keep "
+            "them apart.",
+        ),
+    ] = 1,
     noise: Annotated[str, typer.Option(help="Comma-separated noise levels.")] = "low,high",
     systems: Annotated[str | None, typer.Option(help="Comma-separated estimators.")] = None,
     jobs: Annotated[int, typer.Option(min=1, help="Trials run at once (processes).")] = 1,
@@ -554,7 +564,9 @@ def campaign(
             f"{row.abort_reason}".rstrip()
         )
 
-    rows = run_campaign(sim, range(1, seeds + 1), levels, out_dir, jobs=jobs, progress=progress)
+    rows = run_campaign(
+        sim, range(first_seed, first_seed + seeds), levels, out_dir, jobs=jobs, progress=progress
+    )
     table = campaign_markdown(rows)
     (out_dir / "summary.md").write_text(table, encoding="utf-8")
     out.print(table, markup=False, highlight=False)

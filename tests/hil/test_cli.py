@@ -132,3 +132,21 @@ def test_bench_estimate_times_a_plugged_in_estimator():
     )
     assert result.exit_code == 0, result.output
     assert "acquisition" in result.output and "0/2" in result.output
+
+
+def test_campaign_runs_the_seeds_asked_for_and_writes_a_summary(tmp_path):
+    camera = tmp_path / "small_camera.yaml"
+    camera.write_text("name: small\nwidth: 160\nheight: 120\nhfov_deg: 70\n")
+    config = tmp_path / "sim.yaml"
+    config.write_text(
+        f"name: campaign-test\ncamera: {camera}\n"
+        "systems: [tests.hil.fake_estimators:build_oracle]\nlog_frames_every_s: 0\n"
+    )
+    out_dir = tmp_path / "campaign"
+    args = ["campaign", "--config", str(config), "--seeds", "1", "--first-seed", "7"]
+    result = runner.invoke(app, [*args, "--noise", "none", "--out-dir", str(out_dir)])
+    assert result.exit_code == 0, result.output
+    assert "ok   noise none seed 7" in result.output
+    assert sorted(p.name for p in out_dir.glob("*.mcap")) == ["approach_none_seed007.mcap"]
+    summary = (out_dir / "summary.md").read_text()
+    assert "| none | 1 | 1/1 (100 %)" in summary
