@@ -33,7 +33,8 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from functools import partial
 from types import MappingProxyType
 from typing import Literal
 
@@ -468,6 +469,13 @@ class FusionParams:
                 )
             floors[system] = values
         object.__setattr__(self, "covariance_floor", MappingProxyType(floors))
+
+    def __reduce__(self):
+        # The read-only mappings do not pickle; campaigns hand configurations to processes.
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        values["covariance_scale"] = dict(self.covariance_scale)
+        values["covariance_floor"] = dict(self.covariance_floor)
+        return (partial(FusionParams, **values), ())
 
     def scale_for(self, system: str) -> float:
         return float(self.covariance_scale.get(system, 1.0))

@@ -1,7 +1,16 @@
+import pickle
+
 import numpy as np
 import pytest
 
-from hil.config import ArmConfig, GripperConfig, RigConfig, TrackConfig, load_rig
+from hil.config import (
+    ArmConfig,
+    GripperConfig,
+    RigConfig,
+    TrackConfig,
+    load_rig,
+    load_simulation,
+)
 from hil.configfile import ConfigError, parse_yaml_text
 
 
@@ -53,3 +62,11 @@ def test_pose_config_uses_fixed_axis_rpy():
     rig = load_rig()
     rotation = rig.track.X_MT.pose.R
     assert rotation == pytest.approx(np.array([[0, 0, -1], [-1, 0, 0], [0, 1, 0]]), abs=1e-12)
+
+
+def test_simulation_config_survives_pickling_for_campaign_processes():
+    sim = load_simulation("sim")
+    again = pickle.loads(pickle.dumps(sim))
+    assert again == sim
+    assert dict(again.fusion.covariance_scale) == dict(sim.fusion.covariance_scale)
+    assert again.fusion.floor_for("lines") == sim.fusion.floor_for("lines")
