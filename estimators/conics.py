@@ -272,6 +272,10 @@ def _conic_from_parameters(cx: float, cy: float, a: float, b: float, angle: floa
     return Q
 
 
+#: Semi-axes (px) the refinement keeps to: under a tenth of a pixel or beyond 10⁶ px is no ellipse.
+_LOG_AXIS_MIN, _LOG_AXIS_MAX = float(np.log(0.1)), float(np.log(1e6))
+
+
 def refine_ellipse(
     uv: np.ndarray, initial: Ellipse, *, iterations: int = 6
 ) -> tuple[Ellipse, np.ndarray, float]:
@@ -286,7 +290,10 @@ def refine_ellipse(
 
     def conic(delta: np.ndarray) -> np.ndarray:
         cx, cy, log_a, log_b, angle = state + delta
-        return _conic_from_parameters(cx, cy, np.exp(log_a), np.exp(log_b), angle)
+        # A trial step on a short, noisy arc may ask for absurd axes: keep them finite (the
+        # step is then refused for its cost, not for an overflow).
+        a, b = np.exp(np.clip([log_a, log_b], _LOG_AXIS_MIN, _LOG_AXIS_MAX))
+        return _conic_from_parameters(cx, cy, a, b, angle)
 
     def residuals(delta: np.ndarray) -> list[np.ndarray]:
         return [sampson_distances(conic(delta), uv)]
