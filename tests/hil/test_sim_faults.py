@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -211,3 +212,23 @@ def test_log_of_an_approach_killed_with_sigkill_keeps_all_but_the_last_second(tm
     must_have = [tick for tick, stamp in written if stamp <= kill_time - 1.0]
     assert must_have and set(must_have) <= ticks
     assert log.header["seed"] == 4
+
+
+def test_approach_drives_track_and_gripper_over_a_loopback_modbus_server(tmp_path):
+    """links: tcp — the track and gripper drivers talk to a real pymodbus server on 127.0.0.1,
+    which the trial stops when it ends."""
+    log_path = tmp_path / "trial.mcap"
+    with SimTrial(small_sim(tmp_path, links="tcp"), seed=2, log_path=log_path) as trial:
+        servers = list(trial.world._servers)
+        assert [s.host for s in servers] == ["127.0.0.1", "127.0.0.1"]
+        start = trial.world.track.state().position
+        into_the_approach(trial)
+        step(trial, 1.0)
+        moved = trial.world.track.state().position - start
+        assert trial.world.gripper.state() is not None
+    assert moved > 0.05, "the track should close the range over Modbus"
+    for server in servers:
+        assert not server.running
+        with pytest.raises(OSError):
+            socket.create_connection(("127.0.0.1", server.port), timeout=0.5).close()
+    assert len(list(TrialLog.open(log_path).ticks())) > 100
