@@ -5,6 +5,7 @@ import pytest
 
 from estimators.geometry import Pose, rotation_error_geodesic, translation_error
 from estimators.planar_pose import (
+    CorrelatedEdgeObservations,
     EdgeObservations,
     PointObservations,
     choose_pose,
@@ -188,3 +189,35 @@ def test_observations_reject_mismatched_shapes():
         )
     with pytest.raises(ValueError, match="pose method"):
         fit_from_starts([], [X_TRUE], K, method="ransac")  # type: ignore[arg-type]
+
+
+def test_correlated_edge_whitening_is_generalised_least_squares():
+    """‖M·(r/σ)‖² equals rᵀΣ⁻¹r with Σ_e = D_e + A_e·Q_e·A_eᵀ formed explicitly per edge."""
+    rng = np.random.default_rng(3)
+    ends_T = rng.normal(size=(2, 2, 3))
+    counts = (7, 12)
+    edge = np.repeat([0, 1], counts)
+    uv = np.concatenate(
+        [
+            np.array([100.0, 50.0]) + np.outer(np.linspace(0, 80, counts[0]), [1.0, 0.3]),
+            np.array([20.0, 200.0]) + np.outer(np.linspace(0, 150, counts[1]), [-0.2, 1.0]),
+        ]
+    ) + rng.normal(scale=0.2, size=(sum(counts), 2))
+    sigma = rng.uniform(0.05, 0.4, size=len(uv))
+    offset, turn = np.array([0.1, 0.3]), np.array([0.05, 0.2])
+    observations = CorrelatedEdgeObservations(
+        EdgeObservations(ends_T, edge, uv, sigma), offset, turn
+    )
+    r = rng.normal(scale=0.5, size=len(uv))
+    whitened = observations.whiten(r / sigma)
+    assert whitened.shape == (len(uv) + 4,)
+    expected = 0.0
+    for e in (0, 1):
+        points, r_e = uv[edge == e], r[edge == e]
+        centre = points.mean(axis=0)
+        direction = np.linalg.svd(points - centre)[2][0]
+        along = (points - centre) @ direction
+        A = np.column_stack([np.ones(len(points)), along / np.abs(along).max()])
+        Sigma = np.diag(sigma[edge == e] ** 2) + A @ np.diag([offset[e] ** 2, turn[e] ** 2]) @ A.T
+        expected += r_e @ np.linalg.solve(Sigma, r_e)
+    assert whitened @ whitened == pytest.approx(expected, rel=1e-9)
