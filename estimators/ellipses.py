@@ -368,6 +368,12 @@ class EllipseEstimator:
             roll = roll_of(full.X_CT, mirror_pose, self.outer)
             X0 = pose_with_roll(mirror_pose, self.outer, roll)
             other = self._refine_full(image, X0, self._visible_off_axis(X0), full.polarities, None)
+            if other is None:
+                # That roll may not suit the mirror pose (its thruster then lies elsewhere):
+                # look for the thruster on the mirror ring itself before trusting the first.
+                mirror = self._refine_ring(image, mirror_pose, ring.polarities)
+                if mirror is not None and not self._same_normal(ring, mirror):
+                    other = self._find_thruster(image, mirror, None)
             if other is None or self._same_normal(full, other):
                 return full, False
             best, second = sorted((full, other), key=lambda f: f.cost)

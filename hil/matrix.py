@@ -85,7 +85,7 @@ def _maneuver(name: str) -> Maneuver:
     raise ValueError(f"unknown maneuver {name!r}; known: {', '.join(m.name for m in MANEUVERS)}")
 
 
-def _case_seed(spec: MatrixSpec, distance_index: int, maneuver_index: int, noise_index: int) -> int:
+def case_seed(spec: MatrixSpec, distance_index: int, maneuver_index: int, noise_index: int) -> int:
     return spec.seed * 1_000_003 + distance_index * 10_007 + maneuver_index * 101 + noise_index
 
 
@@ -106,7 +106,7 @@ def run_case_group(spec: MatrixSpec, distance_m: float, maneuver_name: str) -> l
     results = []
     for noise_index, noise in enumerate(spec.noises):
         noise_config = NoiseConfig(preset=noise)
-        seed = _case_seed(spec, distance_index, maneuver_index, noise_index)
+        seed = case_seed(spec, distance_index, maneuver_index, noise_index)
         trackers = {
             s: Tracker(build_estimator(s, target, camera, **spec.estimator_options))
             for s in spec.systems

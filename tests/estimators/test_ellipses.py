@@ -16,7 +16,9 @@ from estimators.geometry import Pose
 from estimators.measurement import Tracker
 from hil.config import MockupConfig, NoiseConfig, RenderConfig, load_camera, load_mockup
 from hil.evaluation import measurement_error
-from hil.scenarios import camera_pose_for, target_offset
+from hil.matrix import MatrixSpec, case_seed
+from hil.scenarios import MANEUVERS, camera_pose_for, target_offset
+from hil.targets import is_wrong_lock
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene
 from sim_backends.sensor import expose, frame_rng
@@ -80,6 +82,26 @@ def test_ellipses_acquire_ring_and_thruster_without_prior(estimator, distance, n
     assert m.circle == "ring_outer" and abs(np.linalg.norm(m.normal_C) - 1) < 1e-9
     assert m.normal_C @ m.center_C < 0  # the face's normal points toward the camera
     assert len(m.features["labeled"]) > 50 and m.residual_px < 1.5
+
+
+def test_ellipses_without_prior_do_not_trust_a_thruster_found_on_the_mirror_pose(estimator):
+    """A 3 m high-noise frame (the reference matrix's turn_y case, frame 21) where the thruster
+    search succeeded on the mirror pose of the ring (19° off) and the refit from the other pose
+    with that roll failed: the other pose's own thruster must be looked for before the first
+    is trusted. The answer is the right pose, or says it is ambiguous."""
+    maneuver = next(m for m in MANEUVERS if m.name == "turn_y_10deg")
+    spec = MatrixSpec(systems=("ellipses",), noises=("low", "high"))
+    seed = case_seed(spec, 0, spec.maneuvers.index(maneuver.name), 1)
+    X_WC = camera_pose_for(3.0, maneuver.offset(21 / 30))[0]
+    with MockupScene(DEFAULT) as scene:
+        r = PybulletRenderer(scene, REFERENCE, RenderConfig()).render(X_WC)
+    image = expose(r.image, r.depth_m, REFERENCE.K, NoiseConfig(preset="high"), frame_rng(seed, 21))
+    frame = Frame(image, 0.0, REFERENCE, 21, GroundTruth(r.X_CT, r.X_WC))
+    m = estimator.estimate(frame)
+    assert m.status == "acquired", m.reason
+    error = _errors(m, frame)
+    assert not is_wrong_lock(error, 3.0, ambiguous=m.ambiguous)
+    assert m.ambiguous or error.normal_rad < math.radians(10.0)
 
 
 def test_ellipses_track_a_sequence_with_the_prior(estimator, sequence_2m):
