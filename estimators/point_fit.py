@@ -149,35 +149,55 @@ def fit_discs(
     contrast = (a - b)[owner] * slope
     J = np.stack([contrast * gx, contrast * gy, inside, other], axis=1)
     used = np.bincount(owner, mask, minlength=n)
-    H = np.zeros((n, 4, 4))
-    for i in range(4):
-        for j in range(i, 4):
-            H[:, i, j] = H[:, j, i] = sums(J[:, i] * J[:, j], mask)
-    sigma2 = sums(r * r, mask) / np.maximum(used - 4, 1)
-    H += 1e-12 * np.eye(4)
+    ok = converged & (used >= 12) & np.all(np.isfinite(c), axis=1) & np.isfinite(a) & np.isfinite(b)
+    return _point_fits(J, r, owner, mask, used, c, a, b, ok, contrast_columns=(2, 3))
+
+
+def _point_fits(
+    J: np.ndarray,
+    r: np.ndarray,
+    owner: np.ndarray,
+    weights: np.ndarray | float,
+    used: np.ndarray,
+    uv: np.ndarray,
+    inside: np.ndarray,
+    outside: np.ndarray,
+    ok: np.ndarray,
+    *,
+    contrast_columns: tuple[int, int],
+) -> PointFits:
+    """Statistics of N per-feature least-squares fits at their solution: the Gauss–Newton
+    covariance s²·(JᵀJ)⁻¹ of each feature's parameters from its pixels' Jacobian rows ``J``
+    (M,k) and residuals ``r`` (M,) (pixel m belongs to feature ``owner[m]``, weighted by
+    ``weights``), with s² the residual variance over ``used − k`` degrees of freedom. The
+    first two parameters are the image position; ``contrast_columns`` are the inside and
+    outside grey levels. ``ok`` is and-ed with a positive position variance."""
+    n, k = len(uv), J.shape[1]
+
+    def sums(x: np.ndarray) -> np.ndarray:
+        return np.bincount(owner, x * weights, minlength=n)
+
+    H = np.zeros((n, k, k))
+    for i in range(k):
+        for j in range(i, k):
+            H[:, i, j] = H[:, j, i] = sums(J[:, i] * J[:, j])
+    sigma2 = sums(r * r) / np.maximum(used - k, 1)
+    H += 1e-12 * np.eye(k)
     try:
         cov = np.linalg.inv(H) * sigma2[:, None, None]
     except np.linalg.LinAlgError:
         cov = np.linalg.pinv(H) * sigma2[:, None, None]
-    contrast_var = cov[:, 2, 2] + cov[:, 3, 3] - 2.0 * cov[:, 2, 3]
-    ok = (
-        converged
-        & (used >= 12)
-        & np.all(np.isfinite(c), axis=1)
-        & np.isfinite(a)
-        & np.isfinite(b)
-        & (cov[:, 0, 0] > 0)
-        & (cov[:, 1, 1] > 0)
-    )
+    i, j = contrast_columns
+    contrast_var = cov[:, i, i] + cov[:, j, j] - 2.0 * cov[:, i, j]
     return PointFits(
-        uv=c,
+        uv=uv,
         covariance=0.5 * (cov[:, :2, :2] + cov[:, :2, :2].transpose(0, 2, 1)),
-        inside=a,
-        outside=b,
+        inside=inside,
+        outside=outside,
         contrast_sigma=np.sqrt(np.maximum(contrast_var, 0.0)),
         noise_sigma=np.sqrt(sigma2),
         pixels_used=used,
-        ok=ok,
+        ok=ok & (cov[:, 0, 0] > 0) & (cov[:, 1, 1] > 0),
     )
 
 
@@ -300,33 +320,13 @@ def fit_corners(
     r = values - b[owner] - (a - b)[owner] * inside
     J = np.column_stack([(a - b)[owner][:, None] * g, inside, 1.0 - inside])
     used = np.bincount(owner, minlength=n).astype(float)
-    H = np.zeros((n, 6, 6))
-    for i in range(6):
-        for j in range(i, 6):
-            H[:, i, j] = H[:, j, i] = sums(J[:, i] * J[:, j])
-    sigma2 = sums(r * r) / np.maximum(used - 6, 1)
-    H += 1e-12 * np.eye(6)
-    try:
-        cov = np.linalg.inv(H) * sigma2[:, None, None]
-    except np.linalg.LinAlgError:
-        cov = np.linalg.pinv(H) * sigma2[:, None, None]
-    contrast_var = cov[:, 4, 4] + cov[:, 5, 5] - 2.0 * cov[:, 4, 5]
     ok = (
         converged
         & (used >= 24)
         & np.all(np.isfinite(params), axis=1)
         & np.isfinite(a)
         & np.isfinite(b)
-        & (cov[:, 0, 0] > 0)
-        & (cov[:, 1, 1] > 0)
     )
-    return PointFits(
-        uv=params[:, :2].copy(),
-        covariance=0.5 * (cov[:, :2, :2] + cov[:, :2, :2].transpose(0, 2, 1)),
-        inside=a,
-        outside=b,
-        contrast_sigma=np.sqrt(np.maximum(contrast_var, 0.0)),
-        noise_sigma=np.sqrt(sigma2),
-        pixels_used=used,
-        ok=ok,
+    return _point_fits(
+        J, r, owner, 1.0, used, params[:, :2].copy(), a, b, ok, contrast_columns=(4, 5)
     )
