@@ -748,11 +748,15 @@ class EllipseEstimator:
             sigma = self.settings.coarse_sigma_px * (1.0 if radius_px <= 20.0 else 2.0)
             width = float(max(2.5, 0.3 * radius_px))
             grad = image.field(sigma, None)
-            found = None
+            # Near the prior's roll first (when there is one), else all the way round.
+            roll_sets: list[np.ndarray | None] = [None]
             if prior is not None:
                 local = roll_of(prior, ring.ring, self.outer) + np.radians(
                     np.arange(-12.0, 12.5, 1.0)
                 )
+                roll_sets.insert(0, local)
+            found = None
+            for rolls in roll_sets:
                 found = search_roll(
                     grad,
                     ring.ring,
@@ -760,23 +764,12 @@ class EllipseEstimator:
                     probe,
                     self.camera,
                     polarity=None,
-                    rolls=local,
+                    rolls=rolls,
                     half_width_px=width,
                     field_radius_xy=self._field_radius,
                 )
-                if found is not None and found.score < _ROLL_SCORE_MIN:
-                    found = None
-            if found is None:
-                found = search_roll(
-                    grad,
-                    ring.ring,
-                    self.outer,
-                    probe,
-                    self.camera,
-                    polarity=None,
-                    half_width_px=width,
-                    field_radius_xy=self._field_radius,
-                )
+                if found is not None and found.score >= _ROLL_SCORE_MIN:
+                    break
             if found is None or found.score < max(
                 _ROLL_DISTINCTNESS * found.median_score, _ROLL_SCORE_MIN
             ):
