@@ -122,6 +122,20 @@ def run_approach(
     return results
 
 
+def _valid_errors(rows: list[ApproachFrame]) -> tuple[list[ApproachFrame], np.ndarray, np.ndarray]:
+    """The valid frames of ``rows``, their position errors (cm) and their normal errors (°) —
+    the attitude error for frames without a circle pose."""
+    valid = [r for r in rows if r.status != "lost"]
+    pos = np.array([r.error.position_m for r in valid]) * 100
+    att = np.degrees(
+        [
+            r.error.normal_rad if not math.isnan(r.error.normal_rad) else r.error.attitude_rad
+            for r in valid
+        ]
+    )
+    return valid, pos, att
+
+
 def markdown_approach(results: list[ApproachFrame], bins: tuple[float, ...]) -> str:
     """Errors binned by distance (``bins`` edges in m, descending): valid frames, position and
     attitude (normal for circle poses) mean / max, visible circumference, 6-DOF share."""
@@ -134,14 +148,7 @@ def markdown_approach(results: list[ApproachFrame], bins: tuple[float, ...]) -> 
         rows = [r for r in results if lo < r.distance_m <= hi]
         if not rows:
             continue
-        valid = [r for r in rows if r.status != "lost"]
-        pos = np.array([r.error.position_m for r in valid]) * 100
-        att = np.degrees(
-            [
-                r.error.normal_rad if not math.isnan(r.error.normal_rad) else r.error.attitude_rad
-                for r in valid
-            ]
-        )
+        valid, pos, att = _valid_errors(rows)
         visible = np.array([r.ring_visible for r in rows])
         lines.append(
             f"| {hi:.2f}–{lo:.2f} m | {len(rows)} | {len(valid)} | {sum(r.six_dof for r in valid)} "
@@ -166,14 +173,7 @@ def markdown_visible(results: list[ApproachFrame], bins: tuple[float, ...]) -> s
         rows = [r for r in results if lo <= r.ring_visible < hi]
         if not rows:
             continue
-        valid = [r for r in rows if r.status != "lost"]
-        pos = np.array([r.error.position_m for r in valid]) * 100
-        att = np.degrees(
-            [
-                r.error.normal_rad if not math.isnan(r.error.normal_rad) else r.error.attitude_rad
-                for r in valid
-            ]
-        )
+        valid, pos, att = _valid_errors(rows)
         lines.append(
             f"| {100 * lo:.0f}–{100 * hi:.0f} % | {len(rows)} | {len(valid)} "
             + (
