@@ -41,6 +41,22 @@ def _lit(color, lighting: Lighting) -> float:
     return gray(color) * (lighting.ambient + lighting.diffuse * cosine)
 
 
+def _edge_information(
+    X_CT: Pose,
+    camera: CameraInfo,
+    ends: np.ndarray,
+    points: list[np.ndarray],
+    edge: list[np.ndarray],
+    sigma_px: float,
+) -> np.ndarray:
+    """6×6 information JᵀJ of edge points (``points[i]`` on model edge ``edge[i]``, each with
+    σ ``sigma_px`` across its edge) about the pose."""
+    uv = np.concatenate(points)
+    obs = EdgeObservations(ends, np.concatenate(edge), uv, np.full(len(uv), sigma_px))
+    _, _, J = obs.linearize(X_CT, camera.K)
+    return J.T @ J
+
+
 def panel_edge_information(
     X_CT: Pose, camera: CameraInfo, mockup: MockupConfig, sigma: float, lighting: Lighting
 ) -> np.ndarray:
@@ -58,17 +74,14 @@ def panel_edge_information(
         t = (np.arange(count) + 0.5) / count
         points.append(project_ideal(X_CT, a + t[:, None] * (b - a), camera.K))
         edge.append(np.full(count, i))
-    uv = np.concatenate(points)
-    obs = EdgeObservations(ends, np.concatenate(edge), uv, np.full(len(uv), sigma / contrast))
-    _, _, J = obs.linearize(X_CT, camera.K)
-    return J.T @ J
+    return _edge_information(X_CT, camera, ends, points, edge, sigma / contrast)
 
 
 def outline_edge_information(
     X_CT: Pose, camera: CameraInfo, mockup: MockupConfig, sigma: float, lighting: Lighting
 ) -> np.ndarray:
     """6×6 information of the bus face's outline against the dark background (the parts in
-    view) — straight edges the mock-up has but the line system does not use."""
+    view) — the straight edges the line system fits besides the panel's."""
     face = mockup.bus_face
     contrast = _lit(face.color, lighting)  # against space black
     w, h, z = face.width / 2, face.height / 2, mockup.z_bus
@@ -87,10 +100,7 @@ def outline_edge_information(
         edge.append(np.full(len(uv[::step]), i))
     if not points:
         return np.zeros((6, 6))
-    uv = np.concatenate(points)
-    obs = EdgeObservations(ends, np.concatenate(edge), uv, np.full(len(uv), sigma / contrast))
-    _, _, J = obs.linearize(X_CT, camera.K)
-    return J.T @ J
+    return _edge_information(X_CT, camera, ends, points, edge, sigma / contrast)
 
 
 def disc_information(
