@@ -371,15 +371,15 @@ class EllipseEstimator:
             if other is None:
                 # That roll may not suit the mirror pose (its thruster then lies elsewhere):
                 # look for the thruster on the mirror ring itself before trusting the first.
-                mirror = self._refine_ring(image, mirror_pose, ring.polarities)
-                if mirror is not None and not self._same_normal(ring, mirror):
+                mirror = self._mirror(image, ring, mirror_pose)
+                if mirror is not None:
                     other = self._find_thruster(image, mirror, None)
             if other is None or self._same_normal(full, other):
                 return full, False
             best, second = sorted((full, other), key=lambda f: f.cost)
             return best, second.cost <= 1.15 * best.cost
-        mirror = self._refine_ring(image, mirror_pose, ring.polarities)
-        if mirror is None or self._same_normal(ring, mirror):
+        mirror = self._mirror(image, ring, mirror_pose)
+        if mirror is None:
             return ring, False
         mirror_full = self._find_thruster(image, mirror, None)
         if mirror_full is not None:  # the thruster decides
@@ -411,9 +411,11 @@ class EllipseEstimator:
             return None
         return other
 
-    def _mirror(self, image: _Image, ring: _Fit) -> _Fit | None:
-        """The ring's other pose, refined, when distinct and verified; None otherwise."""
-        pose = self._mirror_pose(ring)
+    def _mirror(self, image: _Image, ring: _Fit, pose: CirclePose | None = None) -> _Fit | None:
+        """The ring's other pose (``pose`` when already known), refined, when distinct and
+        verified; None otherwise."""
+        if pose is None:
+            pose = self._mirror_pose(ring)
         if pose is None:
             return None
         mirror = self._refine_ring(image, pose, ring.polarities)
