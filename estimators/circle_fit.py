@@ -18,18 +18,25 @@ Two parametrisations, matching ``estimators.measurement``:
 An edge set may have a free radius (a nuisance parameter, metres): its circle then contributes
 its position and shape but not its size — for circles whose apparent size is biased (a thin
 lip blurred into its neighbour, an edge whose exact radius is uncertain).
+
+The 6-DOF fit may also take labeled points with 2×2 covariances (``PointObservations``, e.g.
+small holes on the ring fitted as discs): their whitened reprojection errors join the cost as
+one more group, whose noise scale is at least 1 (the covariances are trusted as a floor). Edge
+samples that share pixels through the smoothing are not independent: ``edge_weight`` (< 1)
+scales their information so that they and the points are weighted by what they really hold.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from estimators.circle_pose import CirclePose
 from estimators.conics import circle_plane_basis
 from estimators.geometry import Pose, as_points
+from estimators.planar_pose import PointObservations
 from estimators.robust_lsq import Solution, gauss_newton, marginal_covariance
 from estimators.target import Circle3D
 
@@ -53,7 +60,9 @@ class FitResult:
     """A converged fit. ``pose`` is a ``CirclePose`` (5-DOF) or ``Pose`` X_CT (6-DOF);
     ``covariance`` is 5×5 or 6×6 in the conventions of ``estimators.measurement`` (nuisance
     radii marginalised out); ``residuals`` and ``inliers`` are per edge set (px, bool);
-    ``sigma_px`` the per-set noise scales; ``radius_offsets`` the fitted nuisance radii (m)."""
+    ``sigma_px`` the per-set noise scales; ``radius_offsets`` the fitted nuisance radii (m);
+    ``point_residuals`` the whitened residuals (2N,) of the points and ``point_sigma`` their
+    noise scale (NaN without points); ``edge_weight`` the information scale of edge samples."""
 
     pose: CirclePose | Pose
     covariance: np.ndarray
@@ -62,6 +71,9 @@ class FitResult:
     sigma_px: tuple[float, ...]
     radius_offsets: tuple[float, ...]
     iterations: int
+    point_residuals: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    point_sigma: float = float("nan")
+    edge_weight: float = 1.0
 
     @property
     def rms_px(self) -> float:
@@ -74,8 +86,20 @@ class FitResult:
         return int(sum(ok.sum() for ok in self.inliers))
 
 
-def _finish(pose, solution: Solution, n_pose: int, offsets: np.ndarray) -> FitResult:
+def _finish(
+    pose,
+    solution: Solution,
+    n_pose: int,
+    offsets: np.ndarray,
+    *,
+    with_points: bool = False,
+    edge_weight: float = 1.0,
+) -> FitResult:
     r, sigmas = solution.residuals, solution.sigmas
+    points, point_sigma = np.zeros(0), float("nan")
+    if with_points:
+        points, point_sigma = r[-1], sigmas[-1]
+        r, sigmas = r[:-1], sigmas[:-1]
     return FitResult(
         pose=pose,
         covariance=marginal_covariance(solution.information, n_pose),
@@ -84,6 +108,9 @@ def _finish(pose, solution: Solution, n_pose: int, offsets: np.ndarray) -> FitRe
         sigma_px=sigmas,
         radius_offsets=tuple(float(o) for o in offsets),
         iterations=solution.iterations,
+        point_residuals=points,
+        point_sigma=point_sigma,
+        edge_weight=edge_weight,
     )
 
 
@@ -262,19 +289,72 @@ def _target_problem(edge_sets, K, X_CT: Pose, radius_offsets=None):
     return _ConicModel(edge_sets, geometry, 6 + len(free), K), state, commit
 
 
+class _WithPoints:
+    """A 6-DOF edge model plus labeled points: the points' whitened reprojection errors are
+    one more residual group (no dependence on the nuisance radii)."""
+
+    def __init__(self, model: _ConicModel, state: dict, points: PointObservations, K):
+        self.model, self.state, self.points, self.K = model, state, points, K
+        self.n_params = model.n_params
+
+    def _pose(self, delta: np.ndarray) -> Pose:
+        return Pose(_exp_so3(delta[None, :3])[0] @ self.state["R"], self.state["p"] + delta[3:6])
+
+    def residuals(self, delta: np.ndarray) -> list[np.ndarray]:
+        _, r_w, _ = self.points.linearize(self._pose(delta), self.K)
+        return [*self.model.residuals(delta), r_w]
+
+    def jacobian(self) -> np.ndarray:
+        _, _, J_w = self.points.linearize(self._pose(np.zeros(6)), self.K)
+        padded = np.zeros((len(J_w), self.n_params))
+        padded[:, :6] = J_w
+        return np.vstack([self.model.jacobian(), padded])
+
+
+def _group_settings(n_sets: int, points, edge_weight: float):
+    """(group weights, noise-scale floors) for edge sets followed by the points' group."""
+    weights = [edge_weight] * n_sets
+    floors = [0.05] * n_sets
+    if points is not None:
+        weights.append(1.0)
+        floors.append(1.0)
+    return weights, floors
+
+
 def fit_target_pose(
     edge_sets: Sequence[EdgeSet],
     initial: Pose,
     K: np.ndarray,
     *,
     iterations: int = 6,
+    points: PointObservations | None = None,
+    edge_weight: float = 1.0,
 ) -> FitResult:
-    """6-DOF pose ``X_CT`` from edge sets on any circles of the target."""
+    """6-DOF pose ``X_CT`` from edge sets on any circles of the target (and labeled points,
+    when given; see the module docstring for ``edge_weight``)."""
     model, state, commit = _target_problem(edge_sets, K, initial)
+    if points is not None and points.count:
+        model = _WithPoints(model, state, points, K)
+    else:
+        points = None
+    weights, floors = _group_settings(len(edge_sets), points, edge_weight)
     solution = gauss_newton(
-        model.residuals, model.n_params, commit, iterations=iterations, jacobian=model.jacobian
+        model.residuals,
+        model.n_params,
+        commit,
+        iterations=iterations,
+        jacobian=model.jacobian,
+        group_weights=weights,
+        sigma_floors=floors,
     )
-    return _finish(Pose(state["R"], state["p"]), solution, 6, state["dr"])
+    return _finish(
+        Pose(state["R"], state["p"]),
+        solution,
+        6,
+        state["dr"],
+        with_points=points is not None,
+        edge_weight=edge_weight,
+    )
 
 
 def covariance_at(
@@ -284,9 +364,11 @@ def covariance_at(
     K: np.ndarray,
     *,
     reference: Circle3D | None = None,
+    points: PointObservations | None = None,
 ) -> np.ndarray:
-    """The covariance of a fit (its noise scales and nuisance radii) linearised at another
-    ``pose`` — a ``CirclePose`` (5-DOF, with ``reference``) or a ``Pose`` (6-DOF).
+    """The covariance of a fit (its noise scales, nuisance radii, edge weight and points)
+    linearised at another ``pose`` — a ``CirclePose`` (5-DOF, with ``reference``) or a
+    ``Pose`` (6-DOF, the only one that takes ``points``).
 
     Used where the linearisation at the solution is over-confident: near a head-on view a
     circle's tilt enters its image only quadratically, so at a slightly tilted estimate the
@@ -294,7 +376,7 @@ def covariance_at(
     covariance at the head-on pose does not make that mistake.
     """
     if isinstance(pose, Pose):
-        model, _, _ = _target_problem(edge_sets, K, pose, fit.radius_offsets)
+        model, state, _ = _target_problem(edge_sets, K, pose, fit.radius_offsets)
         keep = 6
     else:
         if reference is None:
@@ -305,6 +387,15 @@ def covariance_at(
         keep = 5
     J = model.jacobian()
     weights = np.concatenate(
-        [np.full(len(h), 1.0 / sigma**2) for h, sigma in zip(model.h, fit.sigma_px, strict=True)]
+        [
+            np.full(len(h), fit.edge_weight / sigma**2)
+            for h, sigma in zip(model.h, fit.sigma_px, strict=True)
+        ]
     )
-    return marginal_covariance(J.T @ (J * weights[:, None]), keep)
+    information = J.T @ (J * weights[:, None])
+    if points is not None and points.count:
+        if keep != 6:
+            raise ValueError("points need the 6-DOF pose")
+        J_points = _WithPoints(model, state, points, K).jacobian()[len(J) :]
+        information = information + J_points.T @ J_points / fit.point_sigma**2
+    return marginal_covariance(information, keep)

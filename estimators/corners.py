@@ -136,6 +136,17 @@ class FeatureLayout:
             tuple(f.name for f in features), points, radius, is_disc, brighter, window
         )
 
+    def select(self, keep: np.ndarray) -> FeatureLayout:
+        """The features where the boolean mask ``keep`` (N,) is true."""
+        return FeatureLayout(
+            tuple(n for n, k in zip(self.names, keep, strict=True) if k),
+            self.points_T[keep].reshape(-1, 3),
+            self.radius_m[keep],
+            self.is_disc[keep],
+            self.brighter[keep],
+            self.window_m[keep],
+        )
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class _Solution:

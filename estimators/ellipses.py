@@ -17,6 +17,12 @@ Pipeline (FEDALPE: extract → detect/label → pose), see DESIGN.md:
 * **Pose**: robust least squares of the sub-pixel edge points' distances to the projected
   circles (``circle_fit``): 5-DOF from the ring's coaxial edges, 6-DOF ``X_CT`` when the
   thruster is found.
+* **Ring holes**: once the roll is known (6-DOF), the small holes on the ring's face are
+  labeled by projection and fitted as discs on the raw pixels (``point_fit.fit_discs``, as the
+  corner system does), and join the edges in one last 6-DOF fit. Near a head-on view the
+  edges fix one tilt axis only weakly (a circle's tilt shows in its outline to second order);
+  a labeled point moves to first order with it, so a handful of holes cuts that axis's error
+  several-fold at 2–3 m (``hil.circle_bounds``).
 * **Ambiguity**: one circle has two poses. A prior picks the one nearer its normal; without a
   prior the thruster (found for only one of them) or the lower cost decides, and when nothing
   decides the measurement says ``ambiguous``.
@@ -57,6 +63,7 @@ from estimators.conics import (
     fit_ellipse_direct,
     sampson_distances,
 )
+from estimators.corners import FeatureLayout
 from estimators.edge_search import (
     GradientField,
     estimate_noise_sigma,
@@ -74,6 +81,9 @@ from estimators.ellipse_detection import (
 from estimators.ellipse_extraction import ExtractedEllipse, ExtractorSettings, extract_ellipses
 from estimators.geometry import Pose, normal_angle, skew
 from estimators.measurement import Measurement
+from estimators.model_view import local_affine
+from estimators.planar_pose import PointObservations, ideal_pixel_jacobians, ideal_pixels
+from estimators.point_fit import fit_discs
 from estimators.target import Circle3D, TargetModel
 
 SYSTEM = "ellipses"
@@ -81,6 +91,9 @@ SYSTEM = "ellipses"
 #: and stand this many times above the median over all rolls (a real circle, not clutter).
 _ROLL_SCORE_MIN = 3.0
 _ROLL_DISTINCTNESS = 4.0
+#: The ring's two poses refitted with its holes: a truncated-χ² difference this large (≈ 5σ)
+#: decides between them.
+_HOLES_DECIDE_CHI2 = 25.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,6 +128,13 @@ class EllipseSettings:
     #: The inner edge joins the fit (free radius) when its image lies this far inside the outer
     #: one: closer, the unresolved inner wall biases it (the wall's shading is unknown).
     inner_edge_min_gap_px: float = 15.0
+    #: Use the holes on the ring's face (the model's disc features there) in the 6-DOF fit:
+    #: at least ``min_holes`` fits, each with contrast SNR ≥ ``min_hole_snr`` and at least
+    #: ``min_hole_radius_px`` in radius.
+    ring_holes: bool = True
+    min_holes: int = 3
+    min_hole_snr: float = 4.0
+    min_hole_radius_px: float = 1.0
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -153,6 +173,7 @@ class _Fit:
     cost: float
     sigma_px: float  # smoothing of the final edge search
     spacing_px: float  # spacing of the reference circle's edge samples
+    holes: PointObservations | None = None  # ring holes in the fit, if any
 
     @property
     def polarities(self) -> dict[str, int]:
@@ -177,6 +198,7 @@ class EllipseEstimator:
         if self.inner is not None and not _coaxial(self.inner, self.outer):
             raise ValueError("target circle 'ring_inner' must be coaxial with 'ring_outer'")
         self.off_axis = tuple(c for c in target.circles if not _coaxial(c, self.outer))
+        self.holes = ring_hole_layout(target, self.outer, self.inner)
         self._K_inv = np.linalg.inv(camera.K)
         self._field_radius = camera_field_radius(camera)  # a property of the camera
 
@@ -223,6 +245,8 @@ class EllipseEstimator:
             )
             return Measurement.lost(SYSTEM, frame, reason, started=started)
         fit, ambiguous = found
+        fit, decided = self._with_holes(image, fit)
+        ambiguous = ambiguous and not decided
         return self._measurement(frame, status, fit, ambiguous, prior_X_CT, extracted, started)
 
     # --- tracking -------------------------------------------------------------------------
@@ -253,8 +277,13 @@ class EllipseEstimator:
                 fit = self._refine_full(image, prior, off_axis, None, width)
         if fit is None:
             ring = self._refine_ring(image, ring0, None, coarse_half_width=width)
-            if ring is None:
-                ring = self._track_by_extraction(image, prior, ring0, predicted)
+            if ring is None or off_axis or self._ring_moved_px(ring0, ring.ring) > width:
+                # No ring, or the ring and thruster that should be there did not verify, or the
+                # ring moved beyond the window: edges of something else may have been taken.
+                # The extraction around the prediction does not depend on the window.
+                extracted = self._track_by_extraction(image, prior, ring0, predicted)
+                if ring is None or (extracted is not None and extracted.cost < ring.cost):
+                    ring = extracted
             if ring is None:
                 return None
             fit = self._find_thruster(image, ring, prior) or ring
@@ -406,7 +435,10 @@ class EllipseEstimator:
         except ValueError:
             return None
         other = max(candidates, key=lambda c: normal_angle(c.normal_C, ring.ring.normal_C))
-        separation = max(np.radians(1.0), 3.0 * _normal_sigma(ring.result.covariance))
+        covariance = ring.result.covariance
+        if ring.X_CT is not None:
+            covariance = _five_from_six(covariance, ring.X_CT, self.outer)
+        separation = max(np.radians(1.0), 3.0 * _normal_sigma(covariance))
         if normal_angle(other.normal_C, ring.ring.normal_C) < separation:
             return None
         return other
@@ -709,6 +741,12 @@ class EllipseEstimator:
             np.max(np.linalg.norm(self.camera.project(a) - self.camera.project(b), axis=1))
         )
 
+    def _ring_moved_px(self, a: CirclePose, b: CirclePose) -> float:
+        """``_moved_px`` for two ring poses (the rim is symmetric: any common roll will do)."""
+        return self._moved_px(
+            pose_with_roll(a, self.outer, 0.0), pose_with_roll(b, self.outer, 0.0)
+        )
+
     def _locus_in_view(self, ring: CirclePose, circle: Circle3D, radius_px: float) -> bool:
         """Whether the off-axis circle's centre can be in view at some roll."""
         rolls = np.linspace(-np.pi, np.pi, 72, endpoint=False)
@@ -792,6 +830,94 @@ class EllipseEstimator:
                 return full
         return None
 
+    # --- ring holes -------------------------------------------------------------------------
+    def _with_holes(self, image: _Image, fit: _Fit) -> tuple[_Fit, bool]:
+        """The 6-DOF fit redone with the ring's holes, when enough of them are found around
+        their projections (``fit`` unchanged otherwise, and for 5-DOF fits: without the roll
+        the holes cannot be labeled). Returns (fit, whether the holes decided between the
+        ring's two poses).
+
+        Edges alone may have settled on the ring's other (mirror) pose — near head-on the two
+        fit the edges almost equally well — while the holes tell them apart to first order:
+        the joint fit starts from both and keeps the one that explains edges and holes better;
+        the holes decide when the other's truncated χ² is higher by ``_HOLES_DECIDE_CHI2``.
+        """
+        if fit.X_CT is None:
+            return fit, False
+        observed = self._find_holes(image, fit.X_CT)
+        if observed is None:
+            return fit, False
+        starts = [fit.X_CT]
+        mirror = self._mirror_pose(fit)
+        if mirror is not None:
+            starts.append(pose_with_roll(mirror, self.outer, roll_of(fit.X_CT, mirror, self.outer)))
+        edge_weight = 1.0 / _correlation_inflation(fit.sigma_px, fit.spacing_px)
+        sets = self._edge_sets(fit.edges)
+        tried: list[tuple[float, _Fit]] = []
+        for X_start in starts:
+            try:
+                result = fit_target_pose(
+                    sets,
+                    X_start,
+                    self.camera.K,
+                    iterations=6,
+                    points=observed,
+                    edge_weight=edge_weight,
+                )
+            except (ValueError, np.linalg.LinAlgError):
+                continue
+            X_CT = result.pose
+            if not np.all(np.isfinite(X_CT.p)) or not np.all(np.isfinite(result.covariance)):
+                continue
+            ring = CirclePose(X_CT.apply(self.outer.center_T), X_CT.R @ self.outer.normal_T)
+            refit = replace(fit, ring=ring, X_CT=X_CT, result=result, holes=observed)
+            tried.append((_joint_cost(result, fit.result.sigma_px), refit))
+        if not tried:
+            return fit, False
+        tried.sort(key=lambda item: item[0])
+        if len(tried) == 1:
+            return tried[0][1], False
+        (cost, best), (other_cost, other) = tried
+        # Decided: the other start is clearly worse, or ends at the same pose (the holes
+        # leave no second minimum).
+        decided = other_cost - cost > _HOLES_DECIDE_CHI2 or self._same_normal(best, other)
+        return best, decided
+
+    def _find_holes(self, image: _Image, X_CT: Pose) -> PointObservations | None:
+        """The ring's holes fitted as discs around their projections under ``X_CT``, in ideal
+        pixels with their covariances; None when fewer than ``min_holes`` are found."""
+        s = self.settings
+        holes = self.holes
+        if not s.ring_holes or len(holes.names) < s.min_holes:
+            return None
+        centres_C = X_CT.apply(holes.points_T)
+        toward_camera = -centres_C / np.linalg.norm(centres_C, axis=1, keepdims=True)
+        facing = toward_camera @ (X_CT.R @ self.outer.normal_T) > 0.3  # within ~70° of it
+        A = local_affine(X_CT, holes.points_T, self.camera)
+        scale = np.sqrt(np.abs(np.linalg.det(A)))
+        reach_px = holes.window_m * np.linalg.norm(A, ord=2, axis=(1, 2)) + 2.0
+        uv = self.camera.project(centres_C)
+        h, w = image.gray.shape
+        inside = np.all((uv >= reach_px[:, None]) & (uv <= [w - 1, h - 1] - reach_px[:, None]), 1)
+        keep = np.flatnonzero(facing & inside & (holes.radius_m * scale >= s.min_hole_radius_px))
+        if len(keep) < s.min_holes:
+            return None
+        fits = fit_discs(image.gray, uv[keep], A[keep], holes.radius_m[keep], holes.window_m[keep])
+        moved = np.linalg.norm(fits.uv - uv[keep], axis=1)
+        sign = np.where(holes.brighter[keep], 1.0, -1.0)
+        good = fits.ok & (moved <= np.maximum(2.0, 0.5 * holes.radius_m[keep] * scale[keep]))
+        good &= sign * fits.contrast_snr >= s.min_hole_snr
+        if good.sum() < s.min_holes:
+            return None
+        K, dist = self.camera.K, self.camera.dist
+        covariance = fits.covariance[good]
+        if self.camera.has_distortion:
+            J = ideal_pixel_jacobians(fits.uv[good], K, dist)
+            covariance = J @ covariance @ J.transpose(0, 2, 1)
+        return PointObservations(
+            holes.points_T[keep[good]], ideal_pixels(fits.uv[good], K, dist), covariance
+        )
+
     def _honest_covariance(self, fit: _Fit, inflation: float) -> np.ndarray:
         """The fit's covariance (scaled by ``inflation``), blended toward its linearisation at
         the head-on pose when the estimate is near head-on.
@@ -812,7 +938,7 @@ class EllipseEstimator:
             if fit.X_CT is not None:
                 R = turn @ fit.X_CT.R
                 X0 = Pose(R, center - R @ self.outer.center_T)
-                cov0 = covariance_at(sets, fit.result, X0, self.camera.K)
+                cov0 = covariance_at(sets, fit.result, X0, self.camera.K, points=fit.holes)
                 sigma0 = _normal_sigma(_five_from_six(cov0, X0, self.outer), weak=True)
             else:
                 cov0 = covariance_at(
@@ -843,9 +969,9 @@ class EllipseEstimator:
     ) -> Measurement:
         """5-DOF always (the ring's centre and normal); 6-DOF ``X_CT`` when the thruster was
         found; otherwise a full-pose hint with the roll carried over from the prior."""
-        inflation = self.settings.covariance_scale * _correlation_inflation(
-            fit.sigma_px, fit.spacing_px
-        )
+        inflation = self.settings.covariance_scale
+        if fit.holes is None:  # (a fit with holes weighed its edge samples' correlation already)
+            inflation *= _correlation_inflation(fit.sigma_px, fit.spacing_px)
         X_CT = covariance = hint = None
         if fit.X_CT is not None:
             X_CT = fit.X_CT
@@ -892,6 +1018,32 @@ def _blank(gray: np.ndarray, noise: float) -> bool:
         return True
     blocks = cv2.resize(gray, (w // 16, h // 16), interpolation=cv2.INTER_AREA)
     return float(blocks.std()) < max(3.0 * noise / 16.0, 0.004)
+
+
+def _joint_cost(result: FitResult, edge_sigmas: tuple[float, ...]) -> float:
+    """Truncated χ² of a fit with holes, edge residuals scaled by common noise scales, so that
+    fits from different starts compare on the same footing."""
+    total = float(np.sum(np.minimum(result.point_residuals**2, 9.0)))
+    for r, sigma in zip(result.residuals, edge_sigmas, strict=True):
+        total += result.edge_weight * float(np.sum(np.minimum((r / sigma) ** 2, 9.0)))
+    return total
+
+
+def ring_hole_layout(target: TargetModel, outer: Circle3D, inner: Circle3D | None) -> FeatureLayout:
+    """The model's disc features on the ring's face: between its two edges, in its plane."""
+    layout = FeatureLayout.of(target)
+    if inner is None or not len(layout.names):
+        return layout.select(np.zeros(len(layout.names), bool))
+    offset = layout.points_T - outer.center_T
+    height = offset @ outer.normal_T
+    radial = np.linalg.norm(offset - height[:, None] * outer.normal_T, axis=1)
+    on_face = (
+        layout.is_disc
+        & (np.abs(height) < outer.radius - inner.radius)
+        & (radial - layout.radius_m > inner.radius)
+        & (radial + layout.radius_m < outer.radius)
+    )
+    return layout.select(on_face)
 
 
 def _coaxial(circle: Circle3D, reference: Circle3D) -> bool:

@@ -9,7 +9,7 @@ rotations and unit normals on their manifolds (the increment is applied by ``com
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +52,8 @@ def gauss_newton(
     sigma_floor: float = 0.05,
     tolerance: float = 0.05,
     jacobian: Callable[[], np.ndarray] | None = None,
+    group_weights: Sequence[float] | None = None,
+    sigma_floors: Sequence[float] | None = None,
 ) -> Solution:
     """Minimise Σ_groups Σ ρ_Huber(r/σ_g) over a parameter increment.
 
@@ -60,8 +62,16 @@ def gauss_newton(
     given, returns ∂r/∂delta at the current state (rows in group order); otherwise forward
     differences are used. Iterates until an increment is smaller than ``tolerance`` standard
     deviations (its Mahalanobis length under the current information), or ``iterations`` are
-    done.
+    done. ``group_weights`` scale each group's information (e.g. below 1 for samples that are
+    not independent); ``sigma_floors`` replace ``sigma_floor`` per group (1 for residuals
+    already whitened by a covariance that is trusted as a lower bound).
     """
+
+    def noise_scales(groups: list[np.ndarray]) -> list[float]:
+        floors = sigma_floors if sigma_floors is not None else [sigma_floor] * len(groups)
+        return [robust_sigma(r, f) for r, f in zip(groups, floors, strict=True)]
+
+    weights = list(group_weights) if group_weights is not None else None
     information = np.eye(n_params)
     sigmas: list[float] = []
     done = 0
@@ -79,8 +89,13 @@ def gauss_newton(
                 step = np.zeros(n_params)
                 step[j] = _JACOBIAN_STEP
                 J[:, j] = (np.concatenate(residuals(step)) - flat) / _JACOBIAN_STEP
-        sigmas = [robust_sigma(r, sigma_floor) for r in groups]
-        w = np.concatenate([huber_weights(r, s) for r, s in zip(groups, sigmas, strict=True)])
+        sigmas = noise_scales(groups)
+        w = np.concatenate(
+            [
+                huber_weights(r, s) * (1.0 if weights is None else weights[g])
+                for g, (r, s) in enumerate(zip(groups, sigmas, strict=True))
+            ]
+        )
         information = J.T @ (J * w[:, None])
         gradient = J.T @ (w * flat)
         # A touch of Levenberg damping keeps nearly unobservable directions from exploding.
@@ -96,7 +111,7 @@ def gauss_newton(
             break
     groups = residuals(np.zeros(n_params))
     if not sigmas or len(sigmas) != len(groups):
-        sigmas = [robust_sigma(r, sigma_floor) for r in groups]
+        sigmas = noise_scales(groups)
     return Solution(information, tuple(groups), tuple(sigmas), done)
 
 

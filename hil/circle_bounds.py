@@ -7,6 +7,10 @@ the true pose. The tilt is reported as the standard deviations along the princip
 the normal's covariance — near head-on views one of them (tilt about the line from the ring's
 centre to the thruster) is far weaker than the other.
 
+Labeled points (the ring's holes, fitted as discs) may join with an isotropic position error
+``point_sigma_px``: unlike an edge, a point also moves along the curve, so it sees the tilt to
+first order.
+
 Run ``python -m hil.circle_bounds`` for the table quoted in docs/ellipses.md.
 """
 
@@ -16,7 +20,9 @@ import numpy as np
 
 from estimators.circle_fit import EdgeSet, _ConicModel, _exp_so3
 from estimators.conics import circle_points
+from estimators.ellipses import ring_hole_layout
 from estimators.geometry import Pose, intrinsics_from_fov, project
+from estimators.planar_pose import PointObservations
 from estimators.target import TargetModel
 
 
@@ -29,9 +35,12 @@ def tilt_bounds(
     free_radius: tuple[str, ...] = (),
     sigma_px: float = 0.5,
     spacing_px: float = 1.0,
+    points_T: np.ndarray | None = None,
+    point_sigma_px: float = 0.2,
 ) -> tuple[np.ndarray, float]:
-    """Bounds of a 6-DOF fit to edge points on ``circles``: the tilt's standard deviations
-    (rad; weak axis first, then strong) and the centre's (m, root of the trace)."""
+    """Bounds of a 6-DOF fit to edge points on ``circles`` (and labeled ``points_T``): the
+    tilt's standard deviations (rad; weak axis first, then strong) and the centre's (m, root
+    of the trace)."""
     sets = []
     for name in circles:
         c = target.circle(name)
@@ -53,7 +62,13 @@ def tilt_bounds(
         return centers, np.einsum("bij,sj->bsi", R, normals_T), r
 
     J = _ConicModel(sets, geometry, 6 + len(free), K).jacobian()
-    covariance = np.linalg.pinv(J.T @ J / sigma_px**2)[:6, :6]
+    information = J.T @ J / sigma_px**2
+    if points_T is not None and len(points_T):
+        uv = project(X_CT.apply(points_T), K)
+        cov = np.tile(point_sigma_px**2 * np.eye(2), (len(uv), 1, 1))
+        _, _, J_points = PointObservations(points_T, uv, cov).linearize(X_CT, K)
+        information[:6, :6] += J_points.T @ J_points
+    covariance = np.linalg.pinv(information)[:6, :6]
     n = X_CT.R[:, 2]
     nx = np.array([[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]])
     normal_cov = nx @ covariance[:3, :3] @ nx.T  # δn = δθ × n
@@ -67,21 +82,35 @@ def main() -> None:
     from hil.scenarios import camera_pose_for, target_offset
 
     target = load_mockup("default").target_model()
+    holes_T = ring_hole_layout(
+        target, target.circle("ring_outer"), target.circle("ring_inner")
+    ).points_T
     K = intrinsics_from_fov(640, 480, 70.0)
+    # (edges, those with a free radius, hole position error in px or None)
     feature_sets = (
-        (("ring_outer", "thruster_inner"), ("thruster_inner",)),
-        (("ring_outer", "ring_inner", "thruster_inner"), ("ring_inner", "thruster_inner")),
-        (("ring_outer", "ring_inner", "thruster_inner"), ("thruster_inner",)),
+        (("ring_outer", "thruster_inner"), ("thruster_inner",), None),
+        (("ring_outer", "ring_inner", "thruster_inner"), ("ring_inner", "thruster_inner"), None),
+        (("ring_outer", "thruster_inner"), ("thruster_inner",), 0.1),
+        (("ring_outer", "thruster_inner"), ("thruster_inner",), 0.3),
     )
-    print("| distance | edges (free radius) | tilt σ weak / strong | centre σ |")
-    print("|---|---|---|---|")
+    print("| distance | edges (free radius) | ring holes | tilt σ weak / strong | centre σ |")
+    print("|---|---|---|---|---|")
     for distance in (3.0, 2.0, 1.2):
         _, X_CT = camera_pose_for(distance, target_offset())
-        for circles, free in feature_sets:
-            tilts, center = tilt_bounds(target, K, X_CT, circles, free_radius=free)
+        for circles, free, hole_sigma in feature_sets:
+            tilts, center = tilt_bounds(
+                target,
+                K,
+                X_CT,
+                circles,
+                free_radius=free,
+                points_T=holes_T if hole_sigma is not None else None,
+                point_sigma_px=hole_sigma or 0.0,
+            )
             label = " + ".join(f"{c}{' (free)' if c in free else ''}" for c in circles)
+            holes = "—" if hole_sigma is None else f"{len(holes_T)} at {hole_sigma} px"
             print(
-                f"| {distance:.1f} m | {label} | {np.degrees(tilts[0]):.2f}° / "
+                f"| {distance:.1f} m | {label} | {holes} | {np.degrees(tilts[0]):.2f}° / "
                 f"{np.degrees(tilts[1]):.2f}° | {1000 * center:.1f} mm |"
             )
 

@@ -3,12 +3,15 @@ to outliers, nuisance radii, and the covariance against Monte-Carlo scatter."""
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from estimators.circle_fit import EdgeSet, fit_circle_pose, fit_target_pose
+from estimators.circle_fit import EdgeSet, covariance_at, fit_circle_pose, fit_target_pose
 from estimators.circle_pose import CirclePose
 from estimators.conics import circle_plane_basis, circle_points
 from estimators.geometry import Pose, intrinsics_from_fov, normal_angle, project
+from estimators.planar_pose import PointObservations
 from hil.config import load_mockup
+from hil.scenarios import camera_pose_for, target_offset
 
 K = intrinsics_from_fov(640, 480, 70.0)
 TARGET = load_mockup("default").target_model()
@@ -100,3 +103,56 @@ def test_fit_circle_pose_rejects_off_axis_circles():
             outer,
             K,
         )
+
+
+def _ring_holes_T() -> np.ndarray:
+    return np.array([f.p_T for f in TARGET.point_features if f.name.startswith("ring_bolt")])
+
+
+def test_fit_target_pose_with_labeled_points_fixes_the_weak_tilt_axis():
+    """Head-on at 3 m, the ring and the thruster's edges leave the tilt about the line through
+    them weak; eight labeled holes (0.15 px) move to first order with it. Monte Carlo: the
+    joint fit's normal error is several times smaller, its covariance predicts its scatter
+    (NEES ≈ 6), and ``covariance_at`` at the solution gives the fit's own covariance."""
+    _, X = camera_pose_for(3.0, target_offset())
+    ring, thruster = TARGET.circle("ring_outer"), TARGET.circle("thruster_inner")
+    holes_T = _ring_holes_T()
+    errors = {False: [], True: []}
+    nees = []
+    for seed in range(30):
+        rng = np.random.default_rng(300 + seed)
+        sets = [
+            EdgeSet(ring, edge_points(ring, X, 140, 0.5, rng)),
+            EdgeSet(thruster, edge_points(thruster, X, 40, 0.5, rng), free_radius=True),
+        ]
+        uv = project(X.apply(holes_T), K) + 0.15 * rng.standard_normal((len(holes_T), 2))
+        points = PointObservations(holes_T, uv, np.tile(0.15**2 * np.eye(2), (len(uv), 1, 1)))
+        for with_points in (False, True):
+            fit = fit_target_pose(sets, X, K, points=points if with_points else None)
+            errors[with_points].append(np.degrees(normal_angle(fit.pose.R[:, 2], X.R[:, 2])))
+        rotation = Rotation.from_matrix(X.R @ fit.pose.R.T).as_rotvec()
+        e = np.concatenate([rotation, X.p - fit.pose.p])
+        nees.append(e @ np.linalg.solve(fit.covariance, e))
+        assert fit.point_residuals.shape == (2 * len(holes_T),) and fit.point_sigma >= 1.0
+    assert np.mean(errors[True]) < 0.3 * np.mean(errors[False]), errors
+    assert np.mean(errors[True]) < 1.2
+    assert 3.5 < np.mean(nees) < 9.0, nees
+    again = covariance_at(sets, fit, fit.pose, K, points=points)
+    scale = 1.0 / np.sqrt(np.diag(fit.covariance))  # (the fit's Huber weights differ a little)
+    assert np.abs(scale[:, None] * (again - fit.covariance) * scale).max() < 0.1
+
+
+def test_edge_weight_scales_information_but_not_the_estimate():
+    """Edge samples that are not independent carry less information: an ``edge_weight`` of
+    ¼ leaves an edge-only estimate where it was and quadruples its covariance."""
+    rng = np.random.default_rng(7)
+    ring, thruster = TARGET.circle("ring_outer"), TARGET.circle("thruster_inner")
+    sets = [
+        EdgeSet(ring, edge_points(ring, X_TRUE, 150, 0.3, rng)),
+        EdgeSet(thruster, edge_points(thruster, X_TRUE, 50, 0.3, rng), free_radius=True),
+    ]
+    start = Pose.from_rotvec(X_TRUE.rotvec + [0.01, -0.01, 0.02], X_TRUE.p + [0.01, 0.0, 0.02])
+    full = fit_target_pose(sets, start, K, iterations=10)
+    quarter = fit_target_pose(sets, start, K, iterations=10, edge_weight=0.25)
+    assert np.allclose(full.pose.p, quarter.pose.p, atol=1e-5)
+    assert np.allclose(quarter.covariance, 4.0 * full.covariance, rtol=1e-3)

@@ -1,10 +1,9 @@
 """CI: the ellipse estimator on a reduced reference test matrix, bounds asserted.
 
-The bounds are what this estimator guarantees (docs/ellipses.md has the full matrix). At 1.2 m
-they are the issue's targets; at 2 m and 3 m the normal's bounds are looser than the issue's
-(1.5° / 2.0° at low noise): with the ring's edges and the thruster as the only features, the
-tilt about the ring→thruster line is weakly observable near head-on views (see the
-docs' "information limit" section); the centre, roll and robustness targets hold everywhere.
+The bounds are the issue's targets (docs/ellipses.md has the full matrix): centre ≤ 1.0 cm;
+normal ≤ 2.0° at 3 m, ≤ 1.5° at 2 m, ≤ 1.0° at 1.2 m at low noise, 1.5× that at high noise;
+roll ≤ 3°. Reaching them at 2–3 m needs the ring's holes in the fit (near head-on the edges
+barely fix one tilt axis, see the docs' "information limit" section).
 """
 
 import math
@@ -15,10 +14,10 @@ from hil.matrix import MatrixSpec, run_matrix, summarize
 
 #: (distance, noise) → (centre mean m, normal mean deg)
 BOUNDS = {
-    (3.0, "low"): (0.010, 4.5),
-    (3.0, "high"): (0.015, 6.5),
-    (2.0, "low"): (0.010, 2.5),
-    (2.0, "high"): (0.015, 3.5),
+    (3.0, "low"): (0.010, 2.0),
+    (3.0, "high"): (0.015, 3.0),
+    (2.0, "low"): (0.010, 1.5),
+    (2.0, "high"): (0.015, 2.25),
     (1.2, "low"): (0.010, 1.0),
     (1.2, "high"): (0.015, 1.5),
 }
@@ -31,9 +30,11 @@ def summaries():
         distances_m=(3.0, 2.0, 1.2),
         maneuvers=("none", "turn_y_10deg"),
         noises=("low", "high"),
-        frames=8,
+        # 16 frames per maneuver period: twice the reference matrix's motion per frame (at 8,
+        # 3.75×, tracking at 3 m / high noise once took wrong edges: docs/ellipses.md).
+        frames=16,
         seed=3,
-        blank_frames=(4, 5),
+        blank_frames=(8, 9),
     )
     return summarize(run_matrix(spec))
 
