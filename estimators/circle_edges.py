@@ -14,7 +14,8 @@ import numpy as np
 from drivers.base import CameraInfo
 from estimators.conics import circle_points
 from estimators.edge_search import EdgeHits, GradientField, search_edges
-from estimators.geometry import field_radius, undistort_pixels
+from estimators.geometry import field_radius
+from estimators.planar_pose import ideal_pixels
 
 _MAX_SAMPLES = 2400
 
@@ -120,17 +121,6 @@ class CircleEdges:
         return float(self.hits.found.mean()) if len(self.hits.found) else 0.0
 
 
-def to_ideal_pixels(uv: np.ndarray, camera: CameraInfo) -> np.ndarray:
-    """Distorted pixel coordinates → ideal-pinhole pixel coordinates with the same K."""
-    if not camera.has_distortion or len(uv) == 0:
-        return np.asarray(uv, dtype=float).reshape(-1, 2)
-    xy = undistort_pixels(uv, camera.K, camera.dist)
-    K = camera.K
-    return np.column_stack(
-        [K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]]
-    )
-
-
 def find_circle_edges(
     field: GradientField,
     samples: CurveSamples,
@@ -170,4 +160,6 @@ def find_circle_edges(
         min_snr=min_snr,
         prior_sigma_px=prior_sigma_px,
     )
-    return CircleEdges(samples, hits, to_ideal_pixels(hits.uv[hits.found], camera), polarity)
+    return CircleEdges(
+        samples, hits, ideal_pixels(hits.uv[hits.found], camera.K, camera.dist), polarity
+    )

@@ -304,11 +304,15 @@ class _WithPoints:
         _, r_w, _ = self.points.linearize(self._pose(delta), self.K)
         return [*self.model.residuals(delta), r_w]
 
-    def jacobian(self) -> np.ndarray:
+    def point_jacobian(self) -> np.ndarray:
+        """The points' rows of the Jacobian (2N, P) at the current state."""
         _, _, J_w = self.points.linearize(self._pose(np.zeros(6)), self.K)
         padded = np.zeros((len(J_w), self.n_params))
         padded[:, :6] = J_w
-        return np.vstack([self.model.jacobian(), padded])
+        return padded
+
+    def jacobian(self) -> np.ndarray:
+        return np.vstack([self.model.jacobian(), self.point_jacobian()])
 
 
 def _group_settings(n_sets: int, points, edge_weight: float):
@@ -396,6 +400,6 @@ def covariance_at(
     if points is not None and points.count:
         if keep != 6:
             raise ValueError("points need the 6-DOF pose")
-        J_points = _WithPoints(model, state, points, K).jacobian()[len(J) :]
+        J_points = _WithPoints(model, state, points, K).point_jacobian()
         information = information + J_points.T @ J_points / fit.point_sigma**2
     return marginal_covariance(information, keep)

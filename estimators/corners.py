@@ -44,8 +44,6 @@ from estimators.planar_pose import (
     PointObservations,
     choose_pose,
     fit_from_starts,
-    ideal_pixel_jacobians,
-    ideal_pixels,
     ippe_poses,
     refine_pose_robust,
 )
@@ -487,11 +485,9 @@ class CornerEstimator:
         return index[good], fits.uv[good], fits.covariance[good]
 
     def _observations(self, index, uv, cov) -> PointObservations:
-        ideal = ideal_pixels(uv, self.camera.K, self.camera.dist)
-        if self.camera.has_distortion:
-            J = ideal_pixel_jacobians(uv, self.camera.K, self.camera.dist)
-            cov = J @ cov @ J.transpose(0, 2, 1)
-        return PointObservations(self.layout.points_T[index], ideal, cov)
+        return PointObservations.from_image(
+            self.layout.points_T[index], uv, cov, self.camera.K, self.camera.dist
+        )
 
     def _fit_pose(self, index, uv, cov, X_start: Pose, prior: Pose | None, *, final: bool):
         """Robust pose from labeled features; returns (choice, inlier mask) or None.

@@ -44,7 +44,6 @@ from estimators.circle_edges import (
     camera_field_radius,
     find_circle_edges,
     sample_projected_circle,
-    to_ideal_pixels,
     visible_pixels,
 )
 from estimators.circle_fit import (
@@ -82,7 +81,7 @@ from estimators.ellipse_extraction import ExtractedEllipse, ExtractorSettings, e
 from estimators.geometry import Pose, normal_angle, skew
 from estimators.measurement import Measurement
 from estimators.model_view import local_affine
-from estimators.planar_pose import PointObservations, ideal_pixel_jacobians, ideal_pixels
+from estimators.planar_pose import PointObservations, ideal_pixels
 from estimators.point_fit import fit_discs
 from estimators.target import Circle3D, TargetModel
 
@@ -375,7 +374,7 @@ class EllipseEstimator:
         """The two closed-form poses of the ring's reference circle from one labeled ellipse
         (its conic refitted on the undistorted support points)."""
         try:
-            Q = fit_ellipse_direct(to_ideal_pixels(labeled.points, self.camera))
+            Q = fit_ellipse_direct(ideal_pixels(labeled.points, self.camera.K, self.camera.dist))
             poses = circle_poses_from_conic(Q, circle.radius, self.camera.K)
         except ValueError:
             return []
@@ -894,28 +893,27 @@ class EllipseEstimator:
         toward_camera = -centres_C / np.linalg.norm(centres_C, axis=1, keepdims=True)
         facing = toward_camera @ (X_CT.R @ self.outer.normal_T) > 0.3  # within ~70° of it
         A = local_affine(X_CT, holes.points_T, self.camera)
-        scale = np.sqrt(np.abs(np.linalg.det(A)))
+        radius_px = holes.radius_m * np.sqrt(np.abs(np.linalg.det(A)))
         reach_px = holes.window_m * np.linalg.norm(A, ord=2, axis=(1, 2)) + 2.0
         uv = self.camera.project(centres_C)
         h, w = image.gray.shape
         inside = np.all((uv >= reach_px[:, None]) & (uv <= [w - 1, h - 1] - reach_px[:, None]), 1)
-        keep = np.flatnonzero(facing & inside & (holes.radius_m * scale >= s.min_hole_radius_px))
+        keep = np.flatnonzero(facing & inside & (radius_px >= s.min_hole_radius_px))
         if len(keep) < s.min_holes:
             return None
         fits = fit_discs(image.gray, uv[keep], A[keep], holes.radius_m[keep], holes.window_m[keep])
         moved = np.linalg.norm(fits.uv - uv[keep], axis=1)
         sign = np.where(holes.brighter[keep], 1.0, -1.0)
-        good = fits.ok & (moved <= np.maximum(2.0, 0.5 * holes.radius_m[keep] * scale[keep]))
+        good = fits.ok & (moved <= np.maximum(2.0, 0.5 * radius_px[keep]))
         good &= sign * fits.contrast_snr >= s.min_hole_snr
         if good.sum() < s.min_holes:
             return None
-        K, dist = self.camera.K, self.camera.dist
-        covariance = fits.covariance[good]
-        if self.camera.has_distortion:
-            J = ideal_pixel_jacobians(fits.uv[good], K, dist)
-            covariance = J @ covariance @ J.transpose(0, 2, 1)
-        return PointObservations(
-            holes.points_T[keep[good]], ideal_pixels(fits.uv[good], K, dist), covariance
+        return PointObservations.from_image(
+            holes.points_T[keep[good]],
+            fits.uv[good],
+            fits.covariance[good],
+            self.camera.K,
+            self.camera.dist,
         )
 
     def _honest_covariance(self, fit: _Fit, inflation: float) -> np.ndarray:

@@ -44,7 +44,7 @@ POSE_METHODS: tuple[str, ...] = ("gauss_newton", "lhm")
 def ideal_pixels(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
     """Pixels (N,2) of a distorted camera mapped to the pinhole image with the same K."""
     uv = as_points(uv, 2, "uv")
-    if dist is None or not np.any(np.asarray(dist) != 0):
+    if dist is None or not np.any(np.asarray(dist) != 0) or len(uv) == 0:
         return uv.copy()
     xy = _undistort(uv, K, dist)
     return np.column_stack(
@@ -146,6 +146,22 @@ class PointObservations:
         object.__setattr__(self, "uv", uv)
         object.__setattr__(self, "covariance", cov)
         object.__setattr__(self, "_whitening", _whitener(cov) if len(cov) else np.zeros((0, 2, 2)))
+
+    @classmethod
+    def from_image(
+        cls,
+        points_T: np.ndarray,
+        uv: np.ndarray,
+        covariance: np.ndarray,
+        K: np.ndarray,
+        dist: np.ndarray | None,
+    ) -> PointObservations:
+        """Observations measured in a distorted camera's pixels (N,2) with covariances
+        (N,2,2): mapped to ideal pixels, the covariances through the mapping's Jacobian."""
+        if dist is not None and np.any(np.asarray(dist) != 0):
+            J = ideal_pixel_jacobians(uv, K, dist)
+            covariance = J @ covariance @ J.transpose(0, 2, 1)
+        return cls(points_T, ideal_pixels(uv, K, dist), covariance)
 
     @property
     def size(self) -> int:
