@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from drivers.base import CameraInfo
+from estimators.frame import CameraInfo
 from estimators.geometry import Pose
 from estimators.imaging import GrayImage, smooth
 from estimators.model_support import GradientImage, ModelSupport, Support

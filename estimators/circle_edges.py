@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.base import CameraInfo
 from estimators.conics import circle_points
 from estimators.edge_search import EdgeHits, GradientField, search_edges
+from estimators.frame import CameraInfo
 from estimators.geometry import field_radius
 from estimators.planar_pose import ideal_pixels
 

@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from drivers.base import CameraInfo, Frame
 from estimators.acquisition import TurnChecker, coarse_gradients, pose_hypotheses
+from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
 from estimators.measurement import Measurement

@@ -18,7 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.base import CameraInfo
 from estimators.circle_edges import camera_field_radius, visible_pixels
 from estimators.circle_pose import CirclePose
 from estimators.conics import (
@@ -29,6 +28,7 @@ from estimators.conics import (
 )
 from estimators.edge_search import GradientField, search_edges
 from estimators.ellipse_extraction import ExtractedEllipse
+from estimators.frame import CameraInfo
 from estimators.geometry import Pose
 from estimators.target import Circle3D
 

@@ -38,7 +38,6 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from drivers.base import CameraInfo, Frame, frame_problem
 from estimators.circle_edges import (
     CircleEdges,
     camera_field_radius,
@@ -78,6 +77,7 @@ from estimators.ellipse_detection import (
     search_roll,
 )
 from estimators.ellipse_extraction import ExtractedEllipse, ExtractorSettings, extract_ellipses
+from estimators.frame import CameraInfo, Frame, frame_problem
 from estimators.geometry import Pose, normal_angle, skew
 from estimators.measurement import Measurement
 from estimators.model_view import local_affine

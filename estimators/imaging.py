@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from drivers.base import Frame, frame_problem
+from estimators.frame import Frame, frame_problem
 
 #: Smallest image side an estimator will look at (px).
 MIN_IMAGE_SIDE_PX = 24

@@ -19,7 +19,7 @@ from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
 
-from drivers.base import Frame
+from estimators.frame import Frame
 from estimators.geometry import Pose
 
 Status = Literal["acquired", "tracking", "lost"]

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from drivers.base import CameraInfo
+from estimators.frame import CameraInfo
 from estimators.geometry import Pose, field_radius
 from estimators.target import TargetModel
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.base import CameraInfo
+from estimators.frame import CameraInfo
 from estimators.geometry import Pose, as_points, undistort_pixels
 
 

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.base import CameraInfo
 from estimators.edge_fit import coarse_edge_offsets
+from estimators.frame import CameraInfo
 from estimators.geometry import Pose
 from estimators.panel_edges import (
     EdgeStrips,

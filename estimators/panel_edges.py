@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.base import CameraInfo
 from estimators.edge_fit import EdgePoints, Line2D, fit_edge_points, fit_line_robust, intersect
+from estimators.frame import CameraInfo
 from estimators.geometry import Pose
 from estimators.planar_pose import EdgeObservations, ideal_pixel_jacobians, ideal_pixels
 from estimators.target import TargetModel

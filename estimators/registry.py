@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from drivers.base import CameraInfo
+from estimators.frame import CameraInfo
 from estimators.measurement import SYSTEMS, Estimator
 from estimators.target import TargetModel
 

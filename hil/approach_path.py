@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.base import Frame, GroundTruth
 from estimators.conics import circle_points
+from estimators.frame import Frame, GroundTruth
 from estimators.geometry import Pose
 from estimators.measurement import Tracker
 from estimators.registry import build_estimator

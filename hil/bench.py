@@ -88,7 +88,7 @@ def estimator_timings(
     follow the reference's turn-about-y maneuver with the given noise."""
     import cv2
 
-    from drivers.base import Frame
+    from estimators.frame import Frame
     from estimators.registry import build_estimator
     from hil.scenarios import MANEUVERS
 

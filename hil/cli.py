@@ -193,7 +193,7 @@ def estimate(
     Keys: image, system, status (acquired | tracking | lost), reason, X_CT (4×4 or null),
     covariance, residual_px, time_ms; 5-DOF circle poses add circle, center_C, normal_C.
     """
-    from drivers.base import Frame
+    from estimators.frame import Frame
     from estimators.measurement import Measurement, Tracker
     from estimators.registry import build_estimator
     from hil.config import load_camera, load_mockup

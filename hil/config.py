@@ -19,7 +19,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_serializer, model_validator
 
-from drivers.base import CameraInfo
+from estimators.frame import CameraInfo
 from estimators.fusion import FusionParams
 from estimators.geometry import Pose, check_distortion, intrinsics_from_fov
 from estimators.target import Circle3D, PointFeature, TargetModel

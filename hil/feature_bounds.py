@@ -27,7 +27,7 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from drivers.base import CameraInfo
+from estimators.frame import CameraInfo
 from estimators.geometry import Pose
 from estimators.planar_pose import EdgeObservations, PointObservations, project_ideal
 from hil.config import Lighting, MockupConfig, NoiseConfig, gray, load_camera, load_mockup

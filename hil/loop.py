@@ -27,14 +27,13 @@ from drivers.base import (
     ArmState,
     Camera,
     DeviceError,
-    Frame,
     Gripper,
     GripperState,
     ServoCommand,
     Track,
     TrackState,
-    frame_problem,
 )
+from estimators.frame import Frame, frame_problem
 from estimators.geometry import Pose
 from estimators.measurement import Estimator, Measurement
 from hil.clock import Clock

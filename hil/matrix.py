@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.base import Frame, GroundTruth
+from estimators.frame import Frame, GroundTruth
 from estimators.measurement import Tracker
 from estimators.registry import build_estimator
 from hil.config import NoiseConfig, RenderConfig, load_camera, load_mockup

@@ -5,8 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from drivers.base import CameraInfo
 from estimators.conics import circle_points
+from estimators.frame import CameraInfo
 from estimators.measurement import Measurement
 from estimators.target import TargetModel
 

@@ -9,7 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.base import CameraInfo, DeviceError, Frame, GroundTruth
+from drivers.base import DeviceError
+from estimators.frame import CameraInfo, Frame, GroundTruth
 from estimators.geometry import Pose
 from hil.config import NoiseConfig
 from sim_backends.renderer import PybulletRenderer

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from drivers.base import CameraInfo
+from estimators.frame import CameraInfo
 from estimators.geometry import Pose, undistort_pixels
 from hil.config import Lighting, RenderConfig
 from sim_backends.bullet import pybullet

@@ -1,56 +1,14 @@
 import numpy as np
 import pytest
 
-from drivers.base import Arm, ArmState, Camera, CameraInfo, Frame, ServoCommand, frame_problem
-from estimators.geometry import Pose, intrinsics_from_fov
+from drivers.base import Arm, ArmState, Camera, ServoCommand
+from estimators.frame import frame_problem
+from estimators.geometry import Pose
 from hil.config import NoiseConfig, load_camera, load_mockup
 from hil.scenarios import camera_pose_for, target_offset
 from sim_backends.camera import SimCamera, Viewpoint
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene
-
-INFO = CameraInfo(640, 480, intrinsics_from_fov(640, 480, 70.0), np.zeros(0), "reference")
-
-
-def test_camera_info_validates():
-    with pytest.raises(ValueError, match="K must have shape"):
-        CameraInfo(640, 480, np.eye(2), np.zeros(0), "x")
-    with pytest.raises(ValueError, match="not an upper-triangular"):
-        CameraInfo(640, 480, -np.eye(3), np.zeros(0), "x")
-    with pytest.raises(ValueError, match="coefficients"):
-        CameraInfo(640, 480, np.eye(3), np.zeros(3), "x")
-    with pytest.raises(ValueError, match="channels"):
-        CameraInfo(640, 480, np.eye(3), np.zeros(0), "x", channels=2)
-
-
-def test_camera_info_in_view_rejects_fold_back_of_distortion():
-    oak = load_camera("oak_d_rgb").camera_info()
-    far_outside = np.array(
-        [[-2.069, 1.363, 1.2585]]
-    )  # projects *into* the image through the polynomial
-    uv = oak.project(far_outside)[0]
-    assert 0 <= uv[0] < oak.width and 0 <= uv[1] < oak.height
-    assert not oak.in_view(far_outside)[0]
-    assert oak.in_view(np.array([[0.1, 0.05, 1.2]]))[0]
-    assert not oak.in_view(np.array([[0.0, 0.0, -1.0]]))[0]
-
-
-@pytest.mark.parametrize(
-    ("image", "problem"),
-    [
-        (np.zeros((0, 0), np.uint8), "empty"),
-        (np.zeros((480, 641), np.uint8), "does not match"),
-        (np.full((480, 640), np.nan, np.float32), "NaN"),
-        (np.zeros((480, 640), np.int32), "neither uint8 nor float"),
-        ([[0]], "not an array"),
-    ],
-)
-def test_frame_problem_names_what_is_wrong(image, problem):
-    assert problem in frame_problem(Frame(image, 0.0, INFO, 0))
-
-
-def test_frame_problem_accepts_a_good_frame():
-    assert frame_problem(Frame(np.zeros((480, 640), np.uint8), 1.0, INFO, 0)) is None
 
 
 def test_servo_command_rejects_nan_and_arm_state_reports_faults():

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.base import CameraInfo, Frame, GroundTruth
+from estimators.frame import CameraInfo, Frame, GroundTruth
 from estimators.geometry import Pose
 from hil.config import MockupConfig, NoiseConfig, RenderConfig, load_camera, load_mockup
 from hil.scenarios import camera_pose_for, target_offset

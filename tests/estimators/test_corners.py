@@ -3,9 +3,9 @@ import math
 import numpy as np
 import pytest
 
-from drivers.base import Frame
 from estimators.acquisition import quarter_turns
 from estimators.corners import CornerOptions, build
+from estimators.frame import Frame
 from estimators.geometry import rotation_error_rpy_norm, translation_error
 from estimators.measurement import Tracker
 from estimators.planar_pose import retract

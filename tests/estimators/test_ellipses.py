@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from drivers.base import Frame, GroundTruth
 from estimators.conics import circle_plane_basis
 from estimators.ellipses import EllipseEstimator, build
+from estimators.frame import Frame, GroundTruth
 from estimators.geometry import Pose
 from estimators.measurement import Tracker
 from hil.config import MockupConfig, NoiseConfig, RenderConfig, load_camera, load_mockup

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from drivers.base import Frame
+from estimators.frame import Frame
 from estimators.imaging import GrayImage, estimate_noise_sigma, gray_image
 from hil.config import load_camera
 

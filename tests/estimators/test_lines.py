@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from drivers.base import Frame
 from estimators.acquisition import quarter_turns
+from estimators.frame import Frame
 from estimators.geometry import rotation_error_rpy_norm, translation_error
 from estimators.lines import LineOptions, build
 from estimators.measurement import Tracker

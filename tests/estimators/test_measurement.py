@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from drivers.base import CameraInfo, Frame
+from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, intrinsics_from_fov
 from estimators.measurement import Measurement, Tracker
 

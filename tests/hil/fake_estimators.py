@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.base import CameraInfo, Frame
+from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose
 from estimators.measurement import Measurement
 from estimators.target import TargetModel

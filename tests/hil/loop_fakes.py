@@ -10,15 +10,13 @@ import numpy as np
 
 from drivers.base import (
     ArmState,
-    CameraInfo,
     DeviceFault,
     DeviceTimeout,
-    Frame,
     GripperState,
-    GroundTruth,
     ServoCommand,
     TrackState,
 )
+from estimators.frame import CameraInfo, Frame, GroundTruth
 from estimators.geometry import Pose, intrinsics_from_fov, look_at
 from estimators.measurement import Measurement
 from hil.clock import SimClock

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from drivers.base import Frame
+from estimators.frame import Frame
 from estimators.geometry import rotation_error_geodesic, translation_error
 from estimators.measurement import Measurement
 from hil.campaign import summarize_log

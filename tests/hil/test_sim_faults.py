@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.base import DeviceTimeout, Frame
+from drivers.base import DeviceTimeout
+from estimators.frame import Frame
 from hil.config import SimulationConfig
 from hil.trial import SimTrial
 from hil.triallog import TrialLog
