@@ -11,6 +11,8 @@ from typing import Literal
 
 import numpy as np
 
+from estimators.geometry import Pose
+
 
 def _frozen_vector(values: np.ndarray, size: int, name: str) -> np.ndarray:
     array = np.array(values, dtype=float).reshape(-1)
@@ -107,3 +109,17 @@ class TargetModel:
     def points_T(self, kind: str | None = None) -> np.ndarray:
         """Positions (N,3) of the point features, optionally only of one kind."""
         return np.array([f.p_T for f in self.point_features if kind is None or f.kind == kind])
+
+
+# --- the camera facing the target ---------------------------------------------------------
+
+#: The camera's optical frame when it faces the target: image x along T's x, image up along
+#: T's y, looking down T's −z (R_TC = diag(1, −1, −1)).
+R_TC_FACING = np.diag([1.0, -1.0, -1.0])
+
+
+def facing_camera(distance_m: float) -> Pose:
+    """``X_TC`` of a camera on T's z axis, ``distance_m`` in front of the ring face, facing it."""
+    if distance_m <= 0:
+        raise ValueError(f"distance_m must be positive; got {distance_m}")
+    return Pose(R_TC_FACING, np.array([0.0, 0.0, distance_m]))

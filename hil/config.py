@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_serializer, model_valid
 from estimators.frame import CameraInfo
 from estimators.fusion import FusionParams
 from estimators.geometry import Pose, check_distortion, intrinsics_from_fov
-from estimators.target import Circle3D, PointFeature, TargetModel
+from estimators.target import R_TC_FACING, Circle3D, PointFeature, TargetModel
 from hil.configfile import load_config, resolve_config_path
 
 PositiveM = Annotated[float, Field(gt=0.0)]
@@ -392,8 +392,6 @@ class StandoffConfig(Strict):
     success_angle_deg: Annotated[float, Field(gt=0.0, le=10.0)] = 0.5
 
     def X_TC_goal(self) -> Pose:
-        from hil.scenarios import R_TC_FACING
-
         return Pose(R_TC_FACING, np.array([self.offset_xy[0], self.offset_xy[1], self.distance_m]))
 
 

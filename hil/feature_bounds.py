@@ -30,8 +30,9 @@ from scipy.spatial.transform import Rotation
 from estimators.frame import CameraInfo
 from estimators.geometry import Pose
 from estimators.planar_pose import EdgeObservations, PointObservations, project_ideal
+from estimators.target import facing_camera
 from hil.config import Lighting, MockupConfig, NoiseConfig, gray, load_camera, load_mockup
-from hil.scenarios import REFERENCE_DISTANCES_M, facing_camera
+from hil.scenarios import REFERENCE_DISTANCES_M
 
 
 def _lit(color, lighting: Lighting) -> float:

@@ -33,10 +33,10 @@ from drivers.base import (
     Track,
     TrackState,
 )
+from drivers.clock import Clock
 from estimators.frame import Frame, frame_problem
 from estimators.geometry import Pose
 from estimators.measurement import Estimator, Measurement
-from hil.clock import Clock
 from hil.config import ApproachConfig
 from hil.pose_history import PoseHistory
 from hil.sequencer import TERMINAL, ApproachSequencer, Phase, SequencerInputs

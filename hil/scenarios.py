@@ -9,17 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimators.geometry import Pose
-
-#: The camera's optical frame when it faces the target: image x along T's x, image up along
-#: T's y, looking down T's −z (R_TC = diag(1, −1, −1)).
-R_TC_FACING = np.diag([1.0, -1.0, -1.0])
-
-
-def facing_camera(distance_m: float) -> Pose:
-    """``X_TC`` of a camera on T's z axis, ``distance_m`` in front of the ring face, facing it."""
-    if distance_m <= 0:
-        raise ValueError(f"distance_m must be positive; got {distance_m}")
-    return Pose(R_TC_FACING, np.array([0.0, 0.0, distance_m]))
+from estimators.target import facing_camera
 
 
 def target_offset(

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from estimators.fusion import PoseFusion
 from estimators.geometry import Pose
 from estimators.registry import build_estimator
+from estimators.target import facing_camera
 from hil.config import (
     MockupConfig,
     PoseConfig,
@@ -25,7 +26,6 @@ from hil.config import (
     load_rig,
 )
 from hil.loop import ApproachLoop, RigGeometry, TrialOutcome
-from hil.scenarios import facing_camera
 from hil.triallog import TrialLogWriter
 from sim_backends.ur_kinematics import solve_ik, ur_model
 from sim_backends.world import SimWorld

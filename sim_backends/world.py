@@ -16,12 +16,11 @@ from typing import Literal
 
 import numpy as np
 
+from drivers.clock import SimClock
 from drivers.gripper_robotiq import RobotiqGripper
 from drivers.track_modbus import ModbusTrack
-from estimators.geometry import Pose
-from hil.clock import SimClock
+from estimators.geometry import Pose, rotation_error_geodesic, translation_error
 from hil.config import CameraConfig, MockupConfig, NoiseConfig, RenderConfig, RigConfig
-from hil.servo import pose_error
 from sim_backends.arm import SimArm
 from sim_backends.camera import SimCamera, Viewpoint
 from sim_backends.gripper import GripperModel
@@ -151,8 +150,10 @@ class SimWorld:
         if self.scene is not None:
             self.scene.set_pose(X_WT)
         X_TC = X_WT.inverse() @ self.arm.camera_pose_W()
-        error = pose_error(X_TC, self._grasp_X_TC)
-        captured = error.distance_m <= self._capture_m and error.angle_rad <= self._capture_rad
+        captured = (
+            translation_error(X_TC, self._grasp_X_TC) <= self._capture_m
+            and rotation_error_geodesic(X_TC, self._grasp_X_TC) <= self._capture_rad
+        )
         self.gripper_model.set_object(self._object_width if captured else None)
 
     def truth(self) -> Mapping[str, Pose]:

@@ -16,10 +16,10 @@ from drivers.base import (
     ServoCommand,
     TrackState,
 )
+from drivers.clock import SimClock
 from estimators.frame import CameraInfo, Frame, GroundTruth
 from estimators.geometry import Pose, intrinsics_from_fov, look_at
 from estimators.measurement import Measurement
-from hil.clock import SimClock
 from hil.loop import RigGeometry
 
 INFO = CameraInfo(64, 48, intrinsics_from_fov(64, 48, 70.0), np.zeros(0), "tiny")

@@ -3,9 +3,9 @@ import math
 import numpy as np
 
 from estimators.planar_pose import EdgeObservations, pose_difference, project_ideal, refine_pose
+from estimators.target import facing_camera
 from hil.config import Lighting, load_camera, load_mockup
 from hil.feature_bounds import expected_mean_errors, feature_bound, panel_edge_information
-from hil.scenarios import facing_camera
 
 
 def test_panel_edge_bound_matches_a_monte_carlo_of_edge_points():

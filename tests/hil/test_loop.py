@@ -5,7 +5,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from hil.clock import SimClock
+from drivers.clock import SimClock
 from hil.config import ApproachConfig
 from hil.loop import ApproachLoop
 from tests.hil.loop_fakes import (
