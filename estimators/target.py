@@ -1,6 +1,6 @@
 """The geometry of what the estimators track, in the target frame T (metres).
 
-Built from the mock-up configuration (``hil.config.MockupConfig.target_model``) so that the same
+Built from the mock-up configuration (``configuration.mockup.MockupConfig.target_model``) so that the same
 estimators track any square panel, point-feature layout or circular feature.
 """
 

@@ -14,12 +14,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from configuration.camera import load_camera
+from configuration.mockup import load_mockup
+from configuration.render import NoiseConfig, RenderConfig
 from estimators.conics import circle_points
 from estimators.frame import Frame, GroundTruth
 from estimators.geometry import Pose
 from estimators.measurement import Tracker
 from estimators.registry import build_estimator
-from hil.config import NoiseConfig, RenderConfig, load_camera, load_mockup
 from hil.evaluation import MeasurementError, measurement_error
 from hil.scenarios import camera_pose_for, target_offset
 from sim_backends.renderer import PybulletRenderer

@@ -8,7 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 from rich.console import Console
 
-from hil.config import NoiseConfig, RenderConfig, load_camera, load_mockup
+from configuration.camera import load_camera
+from configuration.mockup import load_mockup
+from configuration.render import NoiseConfig, RenderConfig
 from hil.scenarios import camera_pose_for, target_offset
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene
@@ -159,7 +161,7 @@ def loop_timings(sim_config: str, *, seed: int, duration_s: float, log_path) -> 
     """
     import cv2
 
-    from hil.config import load_simulation
+    from configuration.simulation import load_simulation
     from hil.trial import run_sim_trial, with_overrides
     from hil.triallog import TrialLog
 

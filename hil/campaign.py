@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.config import SimulationConfig
+from configuration.simulation import SimulationConfig
 from hil.trial import run_sim_trial, with_overrides
 from hil.trial_analysis import analyse
 from hil.triallog import TrialLog

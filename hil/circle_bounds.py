@@ -78,7 +78,7 @@ def tilt_bounds(
 
 
 def main() -> None:
-    from hil.config import load_mockup
+    from configuration.mockup import load_mockup
     from hil.scenarios import camera_pose_for, target_offset
 
     target = load_mockup("default").target_model()

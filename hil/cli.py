@@ -14,7 +14,7 @@ import numpy as np
 import typer
 from rich.console import Console
 
-from hil.configfile import ConfigError
+from configuration.files import ConfigError
 
 app = typer.Typer(
     help="satgrasp: vision-guided approach and grasp of a satellite mock-up with a UR arm.",
@@ -62,7 +62,7 @@ def _main(
 
 
 def _noise_config(noise: str):
-    from hil.config import NoiseConfig
+    from configuration.render import NoiseConfig
 
     if noise not in ("none", "low", "high", "sensor"):
         raise _fail(f"--noise must be none, low, high or sensor; got {noise!r}")
@@ -98,7 +98,9 @@ def render(
     The camera faces the ring from DISTANCE metres; the target is then moved by the offsets and
     rotated by roll/pitch/yaw about its own axes (the reference study's maneuvers).
     """
-    from hil.config import Lighting, RenderConfig, load_camera, load_mockup
+    from configuration.camera import load_camera
+    from configuration.mockup import load_mockup
+    from configuration.render import Lighting, RenderConfig
     from hil.scenarios import camera_pose_for, target_offset
     from sim_backends.camera import SimCamera, Viewpoint
     from sim_backends.renderer import PybulletRenderer
@@ -193,10 +195,11 @@ def estimate(
     Keys: image, system, status (acquired | tracking | lost), reason, X_CT (4×4 or null),
     covariance, residual_px, time_ms; 5-DOF circle poses add circle, center_C, normal_C.
     """
+    from configuration.camera import load_camera
+    from configuration.mockup import load_mockup
     from estimators.frame import Frame
     from estimators.measurement import Measurement, Tracker
     from estimators.registry import build_estimator
-    from hil.config import load_camera, load_mockup
     from hil.overlay import draw_measurement
 
     try:
@@ -439,7 +442,7 @@ def bench_loop(
 
 
 def _simulation(config: str, noise: str | None, systems: str | None, links: str | None):
-    from hil.config import load_simulation
+    from configuration.simulation import load_simulation
     from hil.trial import with_overrides
 
     if noise is not None:

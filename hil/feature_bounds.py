@@ -27,11 +27,13 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from configuration.camera import load_camera
+from configuration.mockup import MockupConfig, gray, load_mockup
+from configuration.render import Lighting, NoiseConfig
 from estimators.frame import CameraInfo
 from estimators.geometry import Pose
 from estimators.planar_pose import EdgeObservations, PointObservations, project_ideal
 from estimators.target import facing_camera
-from hil.config import Lighting, MockupConfig, NoiseConfig, gray, load_camera, load_mockup
 from hil.scenarios import REFERENCE_DISTANCES_M
 
 

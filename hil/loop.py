@@ -22,6 +22,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from configuration.approach import ApproachConfig
 from drivers.base import (
     Arm,
     ArmState,
@@ -37,7 +38,6 @@ from drivers.clock import Clock
 from estimators.frame import Frame, frame_problem
 from estimators.geometry import Pose
 from estimators.measurement import Estimator, Measurement
-from hil.config import ApproachConfig
 from hil.pose_history import PoseHistory
 from hil.sequencer import TERMINAL, ApproachSequencer, Phase, SequencerInputs
 from hil.servo import camera_twist_to_flange, pose_error

@@ -23,10 +23,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from configuration.camera import load_camera
+from configuration.mockup import load_mockup
+from configuration.render import NoiseConfig, RenderConfig
 from estimators.frame import Frame, GroundTruth
 from estimators.measurement import Tracker
 from estimators.registry import build_estimator
-from hil.config import NoiseConfig, RenderConfig, load_camera, load_mockup
 from hil.evaluation import MeasurementError, measurement_error
 from hil.reference import reference_text
 from hil.scenarios import MANEUVERS, REFERENCE_DISTANCES_M, Maneuver, camera_pose_for

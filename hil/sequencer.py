@@ -25,9 +25,9 @@ from enum import StrEnum
 
 import numpy as np
 
+from configuration.approach import ApproachConfig
 from drivers.base import GripperState
 from estimators.geometry import Pose
-from hil.config import ApproachConfig
 from hil.servo import (
     PoseError,
     limit_acceleration,

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from configuration.approach import ServoConfig, SupervisorConfig
 from drivers.base import ArmState
 from estimators.geometry import Pose
-from hil.config import ServoConfig, SupervisorConfig
 
 #: Phases in which something moves; outside them a missing estimate is not a fault.
 MOVING_PHASES = frozenset({"approach", "standoff", "grasp", "retreat"})

@@ -12,19 +12,14 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from configuration.camera import load_camera
+from configuration.mockup import MockupConfig, load_mockup
+from configuration.rig import PoseConfig, RigConfig, load_rig
+from configuration.simulation import SimulationConfig
 from estimators.fusion import PoseFusion
 from estimators.geometry import Pose
 from estimators.registry import build_estimator
 from estimators.target import facing_camera
-from hil.config import (
-    MockupConfig,
-    PoseConfig,
-    RigConfig,
-    SimulationConfig,
-    load_camera,
-    load_mockup,
-    load_rig,
-)
 from hil.loop import ApproachLoop, RigGeometry, TrialOutcome
 from hil.triallog import TrialLogWriter
 from sim_backends.ur_kinematics import solve_ik, ur_model

@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
+from configuration.mockup import MockupConfig
 from estimators.geometry import Pose, normal_angle, rotation_error_rpy_norm, translation_error
 from estimators.measurement import SYSTEMS, Measurement
 from estimators.target import TargetModel
-from hil.config import MockupConfig
 from hil.evaluation import measurement_error
 from hil.triallog import TrialLog
 

@@ -32,9 +32,9 @@ from collections.abc import Callable
 
 import numpy as np
 
+from configuration.rig import ArmConfig
 from drivers.base import ArmState, DeviceError, DeviceFault, DeviceTimeout, ServoCommand
 from estimators.geometry import Pose
-from hil.config import ArmConfig
 from sim_backends.ur_kinematics import (
     damped_least_squares,
     jacobian_from_frames,

@@ -9,10 +9,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from configuration.render import NoiseConfig
 from drivers.base import DeviceError
 from estimators.frame import CameraInfo, Frame, GroundTruth
 from estimators.geometry import Pose
-from hil.config import NoiseConfig
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.sensor import expose, frame_rng
 

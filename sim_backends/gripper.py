@@ -20,8 +20,8 @@ import math
 import threading
 from collections.abc import Sequence
 
+from configuration.rig import GripperConfig
 from drivers.gripper_robotiq import RobotiqRegisters
-from hil.config import GripperConfig
 from sim_backends.modbus_server import READ_HOLDING, READ_INPUT, RegisterAccessError
 
 RQ = RobotiqRegisters

@@ -21,9 +21,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from configuration.render import Lighting, RenderConfig
 from estimators.frame import CameraInfo
 from estimators.geometry import Pose, undistort_pixels
-from hil.config import Lighting, RenderConfig
 from sim_backends.bullet import pybullet
 from sim_backends.scene import MockupScene
 

@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from configuration.rig import ArmConfig, RigConfig, TrackConfig, load_rig
 from estimators.geometry import Pose
-from hil.config import ArmConfig, RigConfig, TrackConfig, load_rig
 from sim_backends.ur_kinematics import (
     forward_kinematics,
     jacobian_from_frames,

@@ -14,8 +14,8 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from configuration.mockup import MockupConfig
 from estimators.geometry import Pose
-from hil.config import MockupConfig
 from sim_backends import meshes
 from sim_backends.bullet import connect_direct, pybullet, silenced_fds
 from sim_backends.meshes import Mesh

@@ -20,7 +20,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from hil.config import NoiseConfig
+from configuration.render import NoiseConfig
 
 _BLUR_SUBFRAMES = 9
 

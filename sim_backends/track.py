@@ -25,10 +25,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from configuration.rig import TrackConfig
 from drivers.modbus_link import int32_to_registers, registers_to_int32
 from drivers.track_modbus import MICRO, TrackRegisters
 from estimators.geometry import Pose
-from hil.config import TrackConfig
 from sim_backends.modbus_server import READ_HOLDING, READ_INPUT, RegisterAccessError
 
 R = TrackRegisters

@@ -16,11 +16,14 @@ from typing import Literal
 
 import numpy as np
 
+from configuration.camera import CameraConfig
+from configuration.mockup import MockupConfig
+from configuration.render import NoiseConfig, RenderConfig
+from configuration.rig import RigConfig
 from drivers.clock import SimClock
 from drivers.gripper_robotiq import RobotiqGripper
 from drivers.track_modbus import ModbusTrack
 from estimators.geometry import Pose, rotation_error_geodesic, translation_error
-from hil.config import CameraConfig, MockupConfig, NoiseConfig, RenderConfig, RigConfig
 from sim_backends.arm import SimArm
 from sim_backends.camera import SimCamera, Viewpoint
 from sim_backends.gripper import GripperModel

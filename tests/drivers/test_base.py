@@ -1,10 +1,12 @@
 import numpy as np
 import pytest
 
+from configuration.camera import load_camera
+from configuration.mockup import load_mockup
+from configuration.render import NoiseConfig
 from drivers.base import Arm, ArmState, Camera, ServoCommand
 from estimators.frame import frame_problem
 from estimators.geometry import Pose
-from hil.config import NoiseConfig, load_camera, load_mockup
 from hil.scenarios import camera_pose_for, target_offset
 from sim_backends.camera import SimCamera, Viewpoint
 from sim_backends.renderer import PybulletRenderer

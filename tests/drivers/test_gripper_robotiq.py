@@ -3,9 +3,9 @@
 
 import pytest
 
+from configuration.rig import GripperConfig
 from drivers.base import Gripper
 from drivers.gripper_robotiq import RobotiqGripper, RobotiqRegisters, command_registers
-from hil.config import GripperConfig
 from sim_backends.gripper import GripperModel
 from sim_backends.modbus_server import ModbusDeviceServer
 

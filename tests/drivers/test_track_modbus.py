@@ -8,9 +8,9 @@ import time
 import numpy as np
 import pytest
 
+from configuration.rig import load_rig
 from drivers.base import DeviceError, DeviceFault, DeviceTimeout, Track
 from drivers.track_modbus import ModbusTrack, TrackRegisters, describe_faults
-from hil.config import load_rig
 from sim_backends.modbus_server import ModbusDeviceServer
 from sim_backends.track import TrackModel
 

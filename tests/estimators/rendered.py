@@ -8,9 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
+from configuration.camera import load_camera
+from configuration.mockup import MockupConfig, load_mockup
+from configuration.render import NoiseConfig, RenderConfig
 from estimators.frame import CameraInfo, Frame, GroundTruth
 from estimators.geometry import Pose
-from hil.config import MockupConfig, NoiseConfig, RenderConfig, load_camera, load_mockup
 from hil.scenarios import camera_pose_for, target_offset
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene

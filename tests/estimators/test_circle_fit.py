@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from configuration.mockup import load_mockup
 from estimators.circle_fit import EdgeSet, covariance_at, fit_circle_pose, fit_target_pose
 from estimators.circle_pose import CirclePose
 from estimators.conics import circle_plane_basis, circle_points
 from estimators.geometry import Pose, intrinsics_from_fov, normal_angle, project
 from estimators.planar_pose import PointObservations
-from hil.config import load_mockup
 from hil.scenarios import camera_pose_for, target_offset
 
 K = intrinsics_from_fov(640, 480, 70.0)

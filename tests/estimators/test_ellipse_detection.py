@@ -5,6 +5,8 @@ import math
 
 import numpy as np
 
+from configuration.camera import load_camera
+from configuration.mockup import load_mockup
 from estimators.circle_pose import CirclePose
 from estimators.conics import Ellipse, conic_from_ellipse
 from estimators.edge_search import smoothed_gradient
@@ -20,7 +22,6 @@ from estimators.ellipse_detection import (
 )
 from estimators.ellipse_extraction import ExtractedEllipse
 from estimators.geometry import Pose
-from hil.config import load_camera, load_mockup
 from tests.estimators.test_ellipse_extraction import draw_ellipses
 
 CAMERA = load_camera("reference").camera_info()

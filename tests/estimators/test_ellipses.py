@@ -9,12 +9,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from configuration.camera import load_camera
+from configuration.mockup import MockupConfig, load_mockup
+from configuration.render import NoiseConfig, RenderConfig
 from estimators.conics import circle_plane_basis
 from estimators.ellipses import EllipseEstimator, build
 from estimators.frame import Frame, GroundTruth
 from estimators.geometry import Pose
 from estimators.measurement import Tracker
-from hil.config import MockupConfig, NoiseConfig, RenderConfig, load_camera, load_mockup
 from hil.evaluation import measurement_error
 from hil.matrix import MatrixSpec, case_seed
 from hil.scenarios import MANEUVERS, camera_pose_for, target_offset

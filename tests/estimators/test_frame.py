@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from configuration.camera import load_camera
 from estimators.frame import CameraInfo, Frame, frame_problem
 from estimators.geometry import intrinsics_from_fov
-from hil.config import load_camera
 
 INFO = CameraInfo(640, 480, intrinsics_from_fov(640, 480, 70.0), np.zeros(0), "reference")
 

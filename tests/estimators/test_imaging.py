@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
+from configuration.camera import load_camera
 from estimators.frame import Frame
 from estimators.imaging import GrayImage, estimate_noise_sigma, gray_image
-from hil.config import load_camera
 
 CAMERA = load_camera("reference").camera_info()
 

@@ -3,6 +3,8 @@ import math
 import numpy as np
 import pytest
 
+from configuration.camera import load_camera
+from configuration.mockup import load_mockup
 from estimators.geometry import Pose, rotation_error_geodesic, translation_error
 from estimators.planar_pose import (
     CorrelatedEdgeObservations,
@@ -19,7 +21,6 @@ from estimators.planar_pose import (
     refine_pose_robust,
     retract,
 )
-from hil.config import load_camera, load_mockup
 
 CAMERA = load_camera("reference").camera_info()
 K = CAMERA.K

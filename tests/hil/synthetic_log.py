@@ -24,9 +24,10 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from configuration.camera import load_camera
+from configuration.mockup import load_mockup
 from estimators.geometry import Pose
 from estimators.measurement import Measurement
-from hil.config import load_camera, load_mockup
 from hil.scenarios import camera_pose_for, target_offset
 from hil.triallog import TrialLogWriter
 

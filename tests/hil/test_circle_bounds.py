@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from configuration.mockup import load_mockup
 from estimators.geometry import intrinsics_from_fov
 from hil.circle_bounds import tilt_bounds
-from hil.config import load_mockup
 from hil.scenarios import camera_pose_for, target_offset
 
 TARGET = load_mockup("default").target_model()

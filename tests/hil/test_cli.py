@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from configuration.camera import load_camera
 from hil.cli import app
-from hil.config import load_camera
 from hil.scenarios import camera_pose_for, target_offset
 
 runner = CliRunner()

@@ -9,11 +9,11 @@ import math
 import numpy as np
 import pytest
 
+from configuration.simulation import load_simulation
 from estimators.frame import Frame
 from estimators.geometry import rotation_error_geodesic, translation_error
 from estimators.measurement import Measurement
 from hil.campaign import summarize_log
-from hil.config import load_simulation
 from hil.trial import SimTrial, run_sim_trial
 
 

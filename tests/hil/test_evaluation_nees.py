@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
+from configuration.mockup import load_mockup
 from estimators.conics import circle_plane_basis
 from estimators.geometry import Pose
 from estimators.measurement import Measurement
-from hil.config import load_mockup
 from hil.evaluation import measurement_error
 
 TARGET = load_mockup("default").target_model()

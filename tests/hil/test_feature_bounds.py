@@ -2,9 +2,11 @@ import math
 
 import numpy as np
 
+from configuration.camera import load_camera
+from configuration.mockup import load_mockup
+from configuration.render import Lighting
 from estimators.planar_pose import EdgeObservations, pose_difference, project_ideal, refine_pose
 from estimators.target import facing_camera
-from hil.config import Lighting, load_camera, load_mockup
 from hil.feature_bounds import expected_mean_errors, feature_bound, panel_edge_information
 
 

@@ -5,8 +5,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from configuration.approach import ApproachConfig
 from drivers.clock import SimClock
-from hil.config import ApproachConfig
 from hil.loop import ApproachLoop
 from tests.hil.loop_fakes import (
     FakeArm,
@@ -160,8 +160,8 @@ def test_loop_stops_the_arm_on_each_fault(name, inject, expect_kind, final_phase
 
 
 def test_loop_runs_with_the_real_fusion_filter():
+    from configuration.mockup import load_mockup
     from estimators.fusion import PoseFusion
-    from hil.config import load_mockup
 
     bench = make_loop(fusion=PoseFusion(load_mockup("default").target_model()))
     outcome = bench.loop.run(max_duration_s=120)

@@ -3,9 +3,9 @@ import math
 import numpy as np
 import pytest
 
+from configuration.mockup import load_mockup
 from estimators.geometry import Pose
 from estimators.measurement import Measurement
-from hil.config import load_mockup
 from hil.evaluation import measurement_error, roll_error
 from hil.matrix import MatrixSpec, markdown_table, run_matrix, summarize
 

@@ -3,9 +3,9 @@ import math
 import numpy as np
 import pytest
 
+from configuration.approach import ApproachConfig
 from drivers.base import GripperState
 from estimators.geometry import Pose, look_at
-from hil.config import ApproachConfig
 from hil.sequencer import ApproachSequencer, Phase, SequencerInputs
 from hil.servo import pose_error
 from hil.supervisor import Violation

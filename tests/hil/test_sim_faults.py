@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from configuration.simulation import SimulationConfig
 from drivers.base import DeviceTimeout
 from estimators.frame import Frame
-from hil.config import SimulationConfig
 from hil.trial import SimTrial
 from hil.triallog import TrialLog
 from tests.hil.loop_fakes import TruthEstimator
@@ -168,7 +168,7 @@ CHILD = textwrap.dedent(
     """
     import sys, time
     from pathlib import Path
-    from hil.config import SimulationConfig
+    from configuration.simulation import SimulationConfig
     from hil.trial import run_sim_trial
     sim = SimulationConfig.model_validate_json(Path(sys.argv[1]).read_text())
     def on_tick(record):

@@ -3,9 +3,9 @@ import math
 import numpy as np
 import pytest
 
+from configuration.approach import ApproachConfig
 from drivers.base import ArmState
 from estimators.geometry import Pose
-from hil.config import ApproachConfig
 from hil.supervisor import SafetySnapshot, check
 
 CONFIG = ApproachConfig()

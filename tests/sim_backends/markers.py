@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from configuration.mockup import MockupConfig
 from estimators.geometry import Pose, in_view, project
-from hil.config import MockupConfig
 
 
 def marker_mockup(spacing_m: float = 0.22, diameter_m: float = 0.05) -> MockupConfig:

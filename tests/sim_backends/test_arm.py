@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
+from configuration.rig import load_rig
 from drivers.base import Arm, DeviceError, DeviceFault, DeviceTimeout, ServoCommand
-from hil.config import load_rig
 from sim_backends.arm import SimArm
 from sim_backends.ur_kinematics import forward_kinematics, ur_model
 

@@ -1,8 +1,8 @@
 import pytest
 
+from configuration.rig import GripperConfig, load_rig
 from drivers.base import DeviceError, DeviceFault, DeviceTimeout
 from drivers.modbus_link import ModbusTcpLink, exception_error
-from hil.config import GripperConfig, load_rig
 from sim_backends.gripper import GripperModel
 from sim_backends.modbus_server import DirectLink, ModbusDeviceServer, RegisterDevice
 from sim_backends.track import TrackModel

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from hil.config import load_rig
+from configuration.rig import load_rig
 from sim_backends.arm import SimArm
 from sim_backends.rig_geometry import (
     camera_box,

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from configuration.render import NoiseConfig
 from estimators.geometry import Pose, intrinsics_from_fov, project
-from hil.config import NoiseConfig
 from sim_backends.sensor import add_noise, expose, frame_rng, image_flow, motion_blur, to_uint8
 
 K = intrinsics_from_fov(640, 480, 70.0)

@@ -3,10 +3,10 @@ import math
 import numpy as np
 import pytest
 
+from configuration.rig import TrackConfig, load_rig
 from drivers.base import DeviceError, DeviceFault
 from drivers.modbus_link import int32_to_registers, registers_to_int32
 from drivers.track_modbus import ModbusTrack, TrackRegisters
-from hil.config import TrackConfig, load_rig
 from sim_backends.modbus_server import READ_INPUT, DirectLink, RegisterAccessError
 from sim_backends.track import TrackModel
 

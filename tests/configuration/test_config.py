@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
-from hil.config import CameraConfig, MockupConfig, load_camera, load_mockup
-from hil.configfile import ConfigError, builtin_names, load_config, parse_yaml_text
+from configuration.camera import CameraConfig, load_camera
+from configuration.files import ConfigError, builtin_names, load_config, parse_yaml_text
+from configuration.mockup import MockupConfig, load_mockup
 
 
 def test_builtin_configs_load_from_any_directory(tmp_path, monkeypatch):

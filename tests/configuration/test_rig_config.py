@@ -3,15 +3,9 @@ import pickle
 import numpy as np
 import pytest
 
-from hil.config import (
-    ArmConfig,
-    GripperConfig,
-    RigConfig,
-    TrackConfig,
-    load_rig,
-    load_simulation,
-)
-from hil.configfile import ConfigError, parse_yaml_text
+from configuration.files import ConfigError, parse_yaml_text
+from configuration.rig import ArmConfig, GripperConfig, RigConfig, TrackConfig, load_rig
+from configuration.simulation import load_simulation
 
 
 def test_builtin_rig_loads_with_frames():

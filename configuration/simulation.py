@@ -1,0 +1,86 @@
+"""A simulated trial (``configs/sim.yaml``): which mock-up, camera, rig and estimators, the
+image noise, the randomised start and the fusion settings.
+
+Every model is frozen and rejects unknown keys.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, field_serializer, model_validator
+
+from configuration.approach import ApproachConfig
+from configuration.base import PositiveM, Strict
+from configuration.files import load_config
+from configuration.render import NoiseConfig, RenderConfig
+from estimators.fusion import FusionParams
+
+
+class StartConfig(Strict):
+    """Randomised start of a simulated approach, as in the reference study: the camera
+    ``distance_m`` in front of the ring face, up to ``max_offset_m`` off the ring axis
+    (sideways and up/down) and turned up to ``max_rotation_deg`` about each of its axes; the
+    mock-up sits on its carriage misaligned by up to ``mount_misalignment_deg``."""
+
+    distance_m: PositiveM = 2.5
+    max_offset_m: Annotated[float, Field(ge=0.0, le=1.0)] = 0.3
+    max_rotation_deg: Annotated[float, Field(ge=0.0, le=30.0)] = 10.0
+    mount_misalignment_deg: Annotated[float, Field(ge=0.0, le=10.0)] = 1.0
+
+
+class SimulationConfig(Strict):
+    """Everything a simulated trial needs (``configs/sim.yaml``). ``mockup``, ``camera`` and
+    ``rig`` name built-in configurations or YAML files."""
+
+    name: str
+    mockup: str = "default"
+    camera: str = "reference"
+    rig: str = "rig"
+    #: Estimators: corners, lines, ellipses (or a "module:factory" path for experiments).
+    systems: list[str] = Field(default_factory=lambda: ["corners", "lines", "ellipses"])
+    noise: NoiseConfig = NoiseConfig(preset="low")
+    render: RenderConfig = RenderConfig()
+    camera_fps: Annotated[float, Field(gt=0.0, le=120.0)] = 15.0
+    #: How the track and gripper drivers reach their simulated devices: in-process register
+    #: access ("direct") or a real pymodbus server on 127.0.0.1 ("tcp").
+    links: Literal["direct", "tcp"] = "direct"
+    fusion: FusionParams = Field(default_factory=FusionParams)
+    approach: ApproachConfig = ApproachConfig()
+    start: StartConfig = StartConfig()
+    #: Capture range of the (compliant) gripper around the grasp pose, and the object's width.
+    grasp_capture_m: PositiveM = 0.01
+    grasp_capture_deg: Annotated[float, Field(gt=0.0, le=20.0)] = 3.0
+    grasp_object_width_m: PositiveM = 0.05
+    max_duration_s: PositiveM = 150.0
+    #: Camera frames kept in the trial log (one every this many seconds; 0 keeps none).
+    log_frames_every_s: Annotated[float, Field(ge=0.0)] = 1.0
+
+    @field_serializer("fusion")
+    def _fusion_as_dict(self, fusion: FusionParams) -> dict:
+        values = {f.name: getattr(fusion, f.name) for f in dataclasses.fields(fusion)}
+        values["covariance_scale"] = dict(fusion.covariance_scale)  # read-only mappings
+        values["covariance_floor"] = {k: list(v) for k, v in fusion.covariance_floor.items()}
+        return values
+
+    @model_validator(mode="after")
+    def _systems(self) -> SimulationConfig:
+        if not self.systems:
+            raise ValueError("systems: name at least one estimator")
+        unknown = [
+            s for s in self.systems if s not in ("corners", "lines", "ellipses") and ":" not in s
+        ]
+        if unknown:
+            raise ValueError(
+                f"systems: unknown estimator {unknown[0]!r} (corners, lines or ellipses)"
+            )
+        if len(set(self.systems)) != len(self.systems):
+            raise ValueError("systems: each estimator at most once")
+        return self
+
+
+def load_simulation(name_or_path: str | Path = "sim") -> SimulationConfig:
+    """Load a simulated-trial configuration (``sim`` is ``configs/sim.yaml``)."""
+    return load_config(name_or_path, SimulationConfig)
