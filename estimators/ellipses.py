@@ -22,7 +22,7 @@ Pipeline (FEDALPE: extract → detect/label → pose), see DESIGN.md:
   corner system does), and join the edges in one last 6-DOF fit. Near a head-on view the
   edges fix one tilt axis only weakly (a circle's tilt shows in its outline to second order);
   a labeled point moves to first order with it, so a handful of holes cuts that axis's error
-  several-fold at 2–3 m (``hil.circle_bounds``).
+  several-fold at 2–3 m (``hil.evaluation.circle_bounds``).
 * **Ambiguity**: one circle has two poses. A prior picks the one nearer its normal; without a
   prior the thruster (found for only one of them) or the lower cost decides, and when nothing
   decides the measurement says ``ambiguous``.

@@ -389,7 +389,7 @@ class FusionParams:
     included, from any systems and frames) before a new track is declared. ``max_stamp_skew_s``:
     largest |measurement.stamp − update stamp|. ``camera_pointing_sigma_rad`` /
     ``camera_position_sigma_m``: 1σ jitter of X_CM (arm, track, hand-eye). ``covariance_scale``:
-    per-system factor on the stated covariances (from ``hil.calibration``; default 1).
+    per-system factor on the stated covariances (from ``hil.analysis.calibration``; default 1).
     """
 
     angular_accel_psd: float = 1e-3
@@ -410,7 +410,7 @@ class FusionParams:
     camera_position_sigma_m: float = 0.0
     covariance_scale: Mapping[str, float] = field(default_factory=dict)
     #: Per-system model-error floor (σ rotation rad, σ position m) added to the stated
-    #: covariance after scaling (``calibrated_covariance``; from ``hil.calibration``).
+    #: covariance after scaling (``calibrated_covariance``; from ``hil.analysis.calibration``).
     covariance_floor: Mapping[str, tuple[float, float]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:

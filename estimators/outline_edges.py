@@ -2,7 +2,7 @@
 (``TargetModel.outline_corners_T``) against what lies behind it, to sub-pixel accuracy.
 
 The outline is several times larger than the panel, so its edges fix the target's tilt far
-better than the panel's (hil.feature_bounds: 0.02–0.10° against 0.8–6° at 1.2–3 m). It is
+better than the panel's (hil.evaluation.feature_bounds: 0.02–0.10° against 0.8–6° at 1.2–3 m). It is
 also often only partly in view: at close range the face is larger than the image, so only the
 stretches of its edges inside the image are used, and at the stand-off (0.5 m) none may be.
 

@@ -101,7 +101,7 @@ def render(
     from configuration.camera import load_camera
     from configuration.mockup import load_mockup
     from configuration.render import Lighting, RenderConfig
-    from hil.scenarios import camera_pose_for, target_offset
+    from hil.evaluation.scenarios import camera_pose_for, target_offset
     from sim_backends.camera import SimCamera, Viewpoint
     from sim_backends.renderer import PybulletRenderer
     from sim_backends.scene import MockupScene
@@ -156,7 +156,7 @@ def bench_render(
 ) -> None:
     """Median and p95 render time per frame at 3, 2, 1.2 and 0.5 m, with and without 2×
     supersampling (one thread, noise included)."""
-    from hil.bench import render_timings
+    from hil.analysis.bench import render_timings
 
     try:
         rows = render_timings(camera, mockup, repeats=repeats, progress=console)
@@ -200,7 +200,7 @@ def estimate(
     from estimators.frame import Frame
     from estimators.measurement import Measurement, Tracker
     from estimators.registry import build_estimator
-    from hil.overlay import draw_measurement
+    from hil.evaluation.overlay import draw_measurement
 
     try:
         info = load_camera(camera).camera_info()
@@ -259,8 +259,8 @@ def matrix(
     per-case mean ± std of the errors beside the targets and the reference's numbers."""
     from dataclasses import asdict
 
-    from hil.matrix import MatrixSpec, markdown_table, run_matrix, summarize
-    from hil.scenarios import MANEUVERS
+    from hil.evaluation.matrix import MatrixSpec, markdown_table, run_matrix, summarize
+    from hil.evaluation.scenarios import MANEUVERS
 
     try:
         spec = MatrixSpec(
@@ -313,7 +313,7 @@ def approach_path(
     """Open loop: one estimator tracks the target along a scripted approach path (2.5 m →
     0.5 m, re-centring an off-centre, rotated start); print errors by distance and by the
     fraction of the ring in view. (The closed loop is `satgrasp approach`.)"""
-    from hil.approach_path import markdown_approach, markdown_visible, run_approach
+    from hil.evaluation.approach_path import markdown_approach, markdown_visible, run_approach
 
     _noise_config(noise)
     try:
@@ -353,7 +353,7 @@ def bench_estimate(
     separately, at 3, 2 and 1.2 m."""
     from rich.table import Table
 
-    from hil.bench import estimator_timings
+    from hil.analysis.bench import estimator_timings
 
     _noise_config(noise)
     try:
@@ -388,8 +388,8 @@ def report(
     """Plots and an HTML page for one trial log: range and phases, errors of each estimator
     and of the fused estimate against ground truth (simulation), measurements accepted /
     rejected / lost, commands, and a summary."""
-    from hil.report import make_report
-    from hil.triallog import TrialLogError
+    from hil.analysis.report import make_report
+    from hil.logs.triallog import TrialLogError
 
     target = out_dir if out_dir is not None else log.with_name(f"{log.stem}_report")
     try:
@@ -421,7 +421,7 @@ def bench_loop(
     one thread, camera wait excluded) during a simulated approach."""
     import time as _time
 
-    from hil.bench import loop_timings
+    from hil.analysis.bench import loop_timings
 
     log_dir.mkdir(parents=True, exist_ok=True)
     log_path = log_dir / f"bench_loop_{_time.strftime('%Y%m%d-%H%M%S')}.mcap"
@@ -443,7 +443,7 @@ def bench_loop(
 
 def _simulation(config: str, noise: str | None, systems: str | None, links: str | None):
     from configuration.simulation import load_simulation
-    from hil.trial import with_overrides
+    from hil.runtime.trial import with_overrides
 
     if noise is not None:
         _noise_config(noise)
@@ -484,7 +484,7 @@ def approach(
     from rich.live import Live
 
     from hil.progress import tick_line
-    from hil.trial import run_sim_trial
+    from hil.runtime.trial import run_sim_trial
 
     sim = _simulation(config, noise, systems, links)
     stamp = time.strftime("%Y%m%d-%H%M%S")
@@ -523,7 +523,7 @@ def approach(
         )
     out.print(f"trial log: {log_path}")
     if report_too:
-        from hil.report import make_report
+        from hil.analysis.report import make_report
 
         index = make_report(log_path, log_path.with_name(log_path.stem + "_report"))
         out.print(f"report: {index}")
@@ -553,7 +553,7 @@ def campaign(
 ) -> None:
     """Run many simulated approaches (random starts as in the reference: 2.5 m, ±0.3 m off
     centre, ±10° rotated) and summarise success and errors from their logs."""
-    from hil.campaign import campaign_markdown, run_campaign
+    from hil.analysis.campaign import campaign_markdown, run_campaign
 
     levels = noise.split(",")
     for level in levels:
@@ -593,9 +593,9 @@ def calibrate(
 
     from estimators.geometry import Pose
     from estimators.measurement import Measurement
-    from hil.calibration import fit_scale_and_floor
-    from hil.trial_analysis import target_from_header
-    from hil.triallog import TrialLog, TrialLogError
+    from hil.analysis.calibration import fit_scale_and_floor
+    from hil.analysis.trial_analysis import target_from_header
+    from hil.logs.triallog import TrialLog, TrialLogError
 
     samples, target = [], None
     for path in logs:

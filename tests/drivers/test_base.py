@@ -7,7 +7,7 @@ from configuration.render import NoiseConfig
 from drivers.base import Arm, ArmState, Camera, ServoCommand
 from estimators.frame import frame_problem
 from estimators.geometry import Pose
-from hil.scenarios import camera_pose_for, target_offset
+from hil.evaluation.scenarios import camera_pose_for, target_offset
 from sim_backends.camera import SimCamera, Viewpoint
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene

@@ -13,7 +13,7 @@ from configuration.mockup import MockupConfig, load_mockup
 from configuration.render import NoiseConfig, RenderConfig
 from estimators.frame import CameraInfo, Frame, GroundTruth
 from estimators.geometry import Pose
-from hil.scenarios import camera_pose_for, target_offset
+from hil.evaluation.scenarios import camera_pose_for, target_offset
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene
 from sim_backends.sensor import expose, frame_rng

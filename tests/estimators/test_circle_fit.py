@@ -11,7 +11,7 @@ from estimators.circle_pose import CirclePose
 from estimators.conics import circle_plane_basis, circle_points
 from estimators.geometry import Pose, intrinsics_from_fov, normal_angle, project
 from estimators.planar_pose import PointObservations
-from hil.scenarios import camera_pose_for, target_offset
+from hil.evaluation.scenarios import camera_pose_for, target_offset
 
 K = intrinsics_from_fov(640, 480, 70.0)
 TARGET = load_mockup("default").target_model()

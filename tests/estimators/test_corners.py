@@ -9,7 +9,7 @@ from estimators.frame import Frame
 from estimators.geometry import rotation_error_rpy_norm, translation_error
 from estimators.measurement import Tracker
 from estimators.planar_pose import retract
-from hil.evaluation import pose_nees
+from hil.evaluation.errors import pose_nees
 from tests.estimators import rendered
 
 TARGET = rendered.target()

@@ -17,10 +17,10 @@ from estimators.ellipses import EllipseEstimator, build
 from estimators.frame import Frame, GroundTruth
 from estimators.geometry import Pose
 from estimators.measurement import Tracker
-from hil.evaluation import measurement_error
-from hil.matrix import MatrixSpec, case_seed
-from hil.scenarios import MANEUVERS, camera_pose_for, target_offset
-from hil.targets import is_wrong_lock
+from hil.evaluation.errors import measurement_error
+from hil.evaluation.matrix import MatrixSpec, case_seed
+from hil.evaluation.scenarios import MANEUVERS, camera_pose_for, target_offset
+from hil.evaluation.targets import is_wrong_lock
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene
 from sim_backends.sensor import expose, frame_rng

@@ -10,7 +10,7 @@ import math
 
 import pytest
 
-from hil.matrix import MatrixSpec, run_matrix, summarize
+from hil.evaluation.matrix import MatrixSpec, run_matrix, summarize
 
 #: (distance, noise) → (centre mean m, normal mean deg)
 BOUNDS = {

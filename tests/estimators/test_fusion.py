@@ -539,7 +539,7 @@ def test_fusion_starts_from_a_circle_with_uncertain_roll_then_learns_roll():
 def test_fusion_long_circle_only_stretch_does_not_invent_roll():
     """Only the ring is seen for 8 s: nothing observes roll, so the filter must neither claim
     to know it better with time nor move it (an ordinary EKF update did both)."""
-    from hil.evaluation import roll_error
+    from hil.evaluation.errors import roll_error
 
     rng = np.random.default_rng(91)
     steps = 240

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from configuration.camera import load_camera
 from hil.cli import app
-from hil.scenarios import camera_pose_for, target_offset
+from hil.evaluation.scenarios import camera_pose_for, target_offset
 
 runner = CliRunner()
 

@@ -7,7 +7,7 @@ from configuration.camera import load_camera
 from configuration.mockup import load_mockup
 from configuration.render import RenderConfig
 from estimators.geometry import Pose
-from hil.scenarios import camera_pose_for, target_offset
+from hil.evaluation.scenarios import camera_pose_for, target_offset
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene, export_mockup_obj
 from tests.sim_backends.markers import (

@@ -1,0 +1,774 @@
+"""Trial logs: one self-describing MCAP file per trial, written tick by tick, readable after a
+crash.
+
+Layout (details in docs/trial_logs.md): the header — versions, host, start time, seed, the
+resolved configuration, notes — comes first, as the metadata record ``satgrasp.header`` and as
+the first message on ``/trial/header``; then one JSON message per control tick on
+``/trial/tick``, events on ``/trial/event`` and optional ``foxglove.CompressedImage`` frames on
+``/camera/image``. Messages are JSON with a JSON Schema per channel, in zstd chunks.
+
+Crash safety: the writer closes its chunk and flushes the file about once a second, so a
+process killed with SIGKILL loses only the open chunk. ``TrialLog.open`` reads such a file
+record by record up to the last complete chunk (``recovered`` is then True) and ``recover``
+rewrites it as a valid MCAP file.
+
+Writing never raises into the control loop for a bad value: NaN and ±inf become null, numpy
+arrays and poses become lists (4×4 for a ``Pose``), and a record that cannot be serialised is
+replaced by a ``log`` event that says why.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import dataclasses
+import datetime as dt
+import enum
+import json
+import logging
+import math
+import numbers
+import os
+import platform
+import socket
+import struct
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path, PurePath
+from typing import Any, BinaryIO
+
+import cv2
+import numpy as np
+from mcap.exceptions import EndOfFile, McapError
+from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from estimators.geometry import Pose
+from hil.logs.logschema import (
+    COMPRESSED_IMAGE_SCHEMA,
+    EVENT_SCHEMA,
+    HEADER_SCHEMA,
+    TICK_SCHEMA,
+    foxglove_schema,
+    validate,
+)
+
+FORMAT = "satgrasp.trial_log"
+FORMAT_VERSION = 1
+HEADER_TOPIC = "/trial/header"
+TICK_TOPIC = "/trial/tick"
+EVENT_TOPIC = "/trial/event"
+FRAME_TOPIC = "/camera/image"
+HEADER_METADATA = "satgrasp.header"
+FOOTER_METADATA = "satgrasp.footer"
+SCHEMAS_METADATA = "satgrasp.schemas"
+RECOVERY_METADATA = "satgrasp.recovery"
+MCAP_MAGIC = bytes([137, 77, 67, 65, 80, 48, 13, 10])
+
+#: Packages whose versions every header records (distribution names).
+KEY_PACKAGES = (
+    "numpy",
+    "scipy",
+    "opencv-python-headless",
+    "pybullet",
+    "mcap",
+    "zstandard",
+    "pydantic",
+    "filterpy",
+    "ur-rtde",
+    "depthai",
+    "pymodbus",
+    "matplotlib",
+)
+#: Header keys the writer fills in itself.
+ENVIRONMENT_KEYS = (
+    "format",
+    "format_version",
+    "satgrasp_version",
+    "python",
+    "versions",
+    "host",
+    "platform",
+    "start_time_utc",
+    "start_time_unix_ns",
+)
+#: Schema-mismatch events written per log before they are only counted (in the footer).
+MAX_SCHEMA_EVENTS = 20
+
+_SCHEMAS = {
+    HEADER_TOPIC: ("satgrasp.TrialHeader", HEADER_SCHEMA),
+    TICK_TOPIC: ("satgrasp.Tick", TICK_SCHEMA),
+    EVENT_TOPIC: ("satgrasp.Event", EVENT_SCHEMA),
+    FRAME_TOPIC: ("foxglove.CompressedImage", COMPRESSED_IMAGE_SCHEMA),
+}
+
+log = logging.getLogger(__name__)
+
+
+class TrialLogError(ValueError):
+    """A file that is not a readable satgrasp trial log (the message names the file)."""
+
+
+# --- values to JSON -------------------------------------------------------------------------
+
+
+def to_jsonable(value: Any, path: str = "$") -> Any:
+    """``value`` as plain JSON data: NaN/±inf → None, numpy arrays and scalars → lists and
+    Python numbers, ``Pose`` → 4×4 nested lists, objects with ``to_dict()`` and dataclasses →
+    dicts, tuples → lists, paths → strings, enums → their value.
+
+    Raises ``TypeError`` naming the path (``$.arm.q``) of a value it cannot represent.
+    """
+    kind = type(value)  # exact-type dispatch first: ticks are mostly dicts, lists and floats
+    if kind is float:
+        return value if math.isfinite(value) else None
+    if kind is dict:
+        return {_key(k, path): to_jsonable(v, f"{path}.{k}") for k, v in value.items()}
+    if kind is list or kind is tuple:
+        if all(type(item) is float for item in value):  # vectors, matrix rows
+            return [item if math.isfinite(item) else None for item in value]
+        return [to_jsonable(item, f"{path}[{i}]") for i, item in enumerate(value)]
+    if value is None or kind is str or kind is bool or kind is int:
+        return value
+    if isinstance(value, bool | str):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, numbers.Real):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    if isinstance(value, Pose):
+        return value.to_list()
+    if isinstance(value, np.ndarray):
+        return _array_to_json(value, path)
+    if isinstance(value, Mapping):
+        return {_key(k, path): to_jsonable(v, f"{path}.{k}") for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_jsonable(item, f"{path}[{i}]") for i, item in enumerate(value)]
+    if isinstance(value, enum.Enum):
+        return to_jsonable(value.value, path)
+    if isinstance(value, PurePath):
+        return str(value)
+    to_dict = getattr(value, "to_dict", None)
+    if callable(to_dict):
+        return to_jsonable(to_dict(), path)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {
+            f.name: to_jsonable(getattr(value, f.name), f"{path}.{f.name}")
+            for f in dataclasses.fields(value)
+        }
+    raise TypeError(f"{path}: cannot log a value of type {type(value).__name__}")
+
+
+def _key(key: Any, path: str) -> str:
+    if type(key) is str:
+        return key
+    if isinstance(key, str | int) and not isinstance(key, bool):
+        return str(key)
+    raise TypeError(f"{path}: keys must be strings; got {type(key).__name__} {key!r}")
+
+
+def _array_to_json(array: np.ndarray, path: str) -> Any:
+    kind = array.dtype.kind
+    if kind == "f":
+        if np.all(np.isfinite(array)):
+            return array.tolist()
+        return np.where(np.isfinite(array), array, None).tolist()
+    if kind in "biu":
+        return array.tolist()
+    if kind == "O":
+        return to_jsonable(array.tolist(), path)
+    raise TypeError(f"{path}: cannot log a numpy array of dtype {array.dtype}")
+
+
+def _dumps(value: Any) -> bytes:
+    return json.dumps(value, separators=(",", ":"), allow_nan=False).encode("utf-8")
+
+
+# --- header ---------------------------------------------------------------------------------
+
+
+def _package_version(name: str) -> str | None:
+    try:
+        return version(name)
+    except PackageNotFoundError:
+        return None
+
+
+def environment(start: dt.datetime) -> dict[str, Any]:
+    """The header fields the writer fills in: format, versions, host and start time."""
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "satgrasp_version": _package_version("satgrasp") or "unknown",
+        "python": sys.version.split()[0],
+        "versions": {name: _package_version(name) for name in KEY_PACKAGES},
+        "host": socket.gethostname(),
+        "platform": platform.platform(),
+        "start_time_utc": start.isoformat(),
+        "start_time_unix_ns": int(start.timestamp() * 1e9),
+    }
+
+
+def build_header(header: Mapping[str, Any], start: dt.datetime) -> dict[str, Any]:
+    """The complete, validated JSON header from the caller's part (``config``, ``seed``,
+    optional ``notes`` and any other keys). Raises ``ValueError`` naming a bad field."""
+    if not isinstance(header, Mapping):
+        raise ValueError(f"trial log header must be a mapping; got {type(header).__name__}")
+    for key in ("config", "seed"):
+        if key not in header:
+            raise ValueError(f"trial log header needs {key!r}")
+    taken = sorted(set(header) & set(ENVIRONMENT_KEYS))
+    if taken:
+        raise ValueError(f"trial log header: {', '.join(taken)} are filled in by the writer")
+    try:
+        user = to_jsonable(dict(header), "header")
+    except (TypeError, RecursionError) as exc:
+        raise ValueError(f"trial log header cannot be serialised: {exc}") from None
+    full = {**environment(start), "notes": "", **user}
+    problems = validate(full, HEADER_SCHEMA)
+    if problems:
+        raise ValueError("trial log header: " + "; ".join(p.replace("$.", "") for p in problems))
+    return full
+
+
+def _metadata_strings(record: Mapping[str, Any]) -> dict[str, str]:
+    """MCAP metadata is string → string: strings stay readable, the rest is JSON."""
+    return {k: v if isinstance(v, str) else json.dumps(v) for k, v in record.items()}
+
+
+# --- writer ---------------------------------------------------------------------------------
+
+
+class TrialLogWriter:
+    """Writes one trial's log (see the module docstring). Use as a context manager.
+
+    ``header``: ``config`` (the full resolved configuration, JSON-able), ``seed`` (int or
+    None), optional ``notes`` and any other keys; the writer adds versions, host and the UTC
+    start time. A bad header raises ``ValueError`` here, before the trial starts; afterwards
+    the ``write_*`` methods never raise: they return False when a record was not written as
+    given, and ``error`` holds the first I/O failure (after which nothing more is written).
+
+    ``flush_interval_s``: the open chunk is closed and the file flushed at the last write
+    before this long (by ``clock``) would have passed since the previous flush, judged from
+    the typical interval between writes; so with writes at a steady rate a killed writer loses
+    at most the records of the last ``flush_interval_s``. Thread-safe.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        header: Mapping[str, Any],
+        *,
+        flush_interval_s: float = 1.0,
+        clock: Callable[[], float] = time.monotonic,
+    ):
+        if not flush_interval_s > 0:
+            raise ValueError(f"flush_interval_s must be positive; got {flush_interval_s}")
+        self.path = Path(path)
+        self._clock = clock
+        self._flush_interval_s = float(flush_interval_s)
+        start = dt.datetime.now(dt.UTC)
+        self.header = build_header(header, start)
+        self._start_ns: int = self.header["start_time_unix_ns"]
+        self._lock = threading.RLock()
+        self._closed = False
+        self.error: str | None = None
+        self.counts = {"ticks": 0, "events": 0, "frames": 0, "invalid_ticks": 0, "replaced": 0}
+        #: How many times the open chunk was closed and the file flushed (for tests/monitors).
+        self.flush_count = 0
+        self._last_t = 0.0
+        self._sequence: dict[int, int] = {}
+        self._channels: dict[str, int] = {}
+        self._last_flush = clock()
+        self._last_write: float | None = None
+        self._write_period = 0.0  # running mean of the interval between writes (clock s)
+        self._writes = 0
+        try:  # never over an earlier trial's log
+            self._file: BinaryIO = open(self.path, "xb")  # noqa: SIM115 — closed in close()
+        except FileExistsError:
+            raise TrialLogError(
+                f"trial log {self.path} already exists; logs are never overwritten"
+            ) from None
+        except OSError as exc:
+            raise TrialLogError(f"cannot create trial log {self.path}: {exc}") from None
+        try:
+            self._start_file()
+        except Exception as exc:
+            self._fail(exc)
+        if self.error is not None:
+            self._closed = True
+            with contextlib.suppress(OSError):  # the buffered bytes cannot be written either
+                self._file.close()
+            raise TrialLogError(f"cannot write trial log {self.path}: {self.error}")
+
+    def _start_file(self) -> None:
+        """Header first: metadata records, channels, the header message; then flush."""
+        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library=f"satgrasp {self.header['satgrasp_version']}")
+        self._writer.add_metadata(HEADER_METADATA, _metadata_strings(self.header))
+        self._writer.add_metadata(
+            SCHEMAS_METADATA,
+            {topic: json.dumps(schema) for topic, (_, schema) in _SCHEMAS.items()},
+        )
+        for topic in (HEADER_TOPIC, TICK_TOPIC, EVENT_TOPIC):
+            self._register(topic)
+        self._add(HEADER_TOPIC, 0.0, _dumps(self.header))
+        self.flush()  # the header is on disk before the first tick
+
+    # --- public API -----------------------------------------------------------------------
+    def write_tick(self, record: Mapping[str, Any]) -> bool:
+        """Log one tick record (see ``hil.logs.logschema.TICK_SCHEMA``). A record that does not
+        match the schema is still written, with a ``log`` event naming the problems; one that
+        cannot be serialised is replaced by such an event. True when written as given."""
+        with self._lock:
+            return self._write_tick(record)
+
+    def _write_tick(self, record: Mapping[str, Any]) -> bool:
+        t = self._time_of(record)
+        number = record.get("tick") if isinstance(record, Mapping) else None
+        try:
+            clean = to_jsonable(record, "tick")
+            if not isinstance(clean, dict):
+                raise TypeError(f"a tick record must be a mapping; got {type(record).__name__}")
+            data = _dumps(clean)
+        except Exception as exc:  # a bad value must never stop the control loop
+            self.counts["replaced"] += 1
+            self._log_event(t, f"tick {number} not logged: {exc}", tick=number)
+            return False
+        problems = validate(clean, TICK_SCHEMA, limit=3)
+        if problems:
+            self.counts["invalid_ticks"] += 1
+            if self.counts["invalid_ticks"] <= MAX_SCHEMA_EVENTS:
+                self._log_event(
+                    t, f"tick {number} does not match the tick schema: {'; '.join(problems)}"
+                )
+        if not self._add(TICK_TOPIC, t, data):
+            return False
+        self.counts["ticks"] += 1
+        return not problems
+
+    def write_event(self, t: float, kind: str, message: str, /, **data: Any) -> bool:
+        """Log an event (``phase``, ``fault``, ``abort``, ``info``, …) at trial time ``t`` (s)
+        with free-form ``data``; data that cannot be serialised is replaced by its error."""
+        with self._lock:
+            return self._write_event(t, kind, message, data)
+
+    def _write_event(self, t: float, kind: str, message: str, data: dict[str, Any]) -> bool:
+        replaced = False
+        try:
+            clean_data = to_jsonable(data, "data")
+        except Exception as exc:
+            clean_data, replaced = {"unserialisable": str(exc)}, True
+            self.counts["replaced"] += 1
+        t = self._time_of({"t": t})
+        record = {"t": t, "kind": str(kind), "message": str(message), "data": clean_data}
+        if not self._add(EVENT_TOPIC, t, _dumps(record)):
+            return False
+        self.counts["events"] += 1
+        return not replaced
+
+    def write_frame(
+        self,
+        t: float,
+        image: np.ndarray,
+        *,
+        encoding: str = "jpeg",
+        frame_id: str = "camera",
+        jpeg_quality: int = 90,
+    ) -> bool:
+        """Log a camera image (uint8 HxW or HxWx3 BGR) as a ``foxglove.CompressedImage``.
+        Decimation is the caller's choice. A bad image is replaced by a ``log`` event."""
+        with self._lock:
+            return self._write_frame(t, image, encoding, frame_id, jpeg_quality)
+
+    def _write_frame(
+        self, t: float, image: np.ndarray, encoding: str, frame_id: str, jpeg_quality: int
+    ) -> bool:
+        t = self._time_of({"t": t})
+        try:
+            encoded = _encode_image(image, encoding, jpeg_quality)
+        except Exception as exc:
+            self.counts["replaced"] += 1
+            self._log_event(t, f"frame not logged: {exc}")
+            return False
+        if FRAME_TOPIC not in self._channels and not self._closed and self.error is None:
+            try:
+                self._register(FRAME_TOPIC)
+            except Exception as exc:
+                self._fail(exc)
+        stamp = self._log_time(t)
+        record = {
+            "timestamp": {"sec": stamp // 1_000_000_000, "nsec": stamp % 1_000_000_000},
+            "frame_id": frame_id,
+            "data": base64.b64encode(encoded).decode("ascii"),
+            "format": encoding,
+        }
+        if not self._add(FRAME_TOPIC, t, _dumps(record)):
+            return False
+        self.counts["frames"] += 1
+        return True
+
+    def flush(self) -> None:
+        """Close the open chunk and push everything written so far to the OS."""
+        with self._lock:
+            if self._closed or self.error is not None:
+                return
+            self._flush_now()
+
+    def close(self) -> None:
+        """Write the footer (counts, end time) and the MCAP summary; idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            try:
+                if self.error is None:
+                    end = dt.datetime.now(dt.UTC)
+                    footer = {
+                        **self.counts,
+                        "end_time_utc": end.isoformat(),
+                        "last_t": self._last_t,
+                    }
+                    self._writer.flush()  # the last chunk goes before the footer record
+                    self._writer.add_metadata(FOOTER_METADATA, _metadata_strings(footer))
+                    self._writer.finish()
+                    self._file.flush()
+                    os.fsync(self._file.fileno())
+            except Exception as exc:
+                self._fail(exc)
+            finally:
+                with contextlib.suppress(OSError):
+                    self._file.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self) -> TrialLogWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, traceback) -> None:
+        if exc_type is not None:
+            self._log_event(self._last_t, f"trial ended by {exc_type.__name__}: {exc}")
+        self.close()
+
+    # --- internals ------------------------------------------------------------------------
+    def _register(self, topic: str) -> None:
+        name, schema = _SCHEMAS[topic]
+        schema_id = self._writer.register_schema(
+            name, "jsonschema", json.dumps(foxglove_schema(schema)).encode("utf-8")
+        )
+        self._channels[topic] = self._writer.register_channel(topic, "json", schema_id)
+
+    def _time_of(self, record: Any) -> float:
+        """The record's ``t`` (s), or the last one when it has none usable."""
+        t = record.get("t") if isinstance(record, Mapping) else None
+        if isinstance(t, numbers.Real) and not isinstance(t, bool) and math.isfinite(t):
+            self._last_t = max(self._last_t, float(t))
+            return float(t)
+        return self._last_t
+
+    def _log_time(self, t: float) -> int:
+        return self._start_ns + round(max(t, 0.0) * 1e9)
+
+    def _log_event(self, t: float, message: str, **data: Any) -> None:
+        log.warning("%s: %s", self.path, message)
+        self.write_event(t, "log", message, **data)
+
+    def _add(self, topic: str, t: float, data: bytes) -> bool:
+        with self._lock:
+            if self._closed or self.error is not None:
+                if self._closed and self.error is None:
+                    log.warning("%s: write after close dropped", self.path)
+                return False
+            try:
+                channel = self._channels[topic]
+                sequence = self._sequence.get(channel, 0)
+                self._sequence[channel] = sequence + 1
+                stamp = self._log_time(t)
+                self._writer.add_message(channel, stamp, data, stamp, sequence)
+            except Exception as exc:  # disk full, file gone: stop logging, keep the loop alive
+                self._fail(exc)
+                return False
+            now = self._clock()
+            if self._last_write is not None:
+                gap = max(0.0, now - self._last_write)
+                weight = 1.0 if self._writes == 1 else 0.2  # the first gap sets the mean
+                self._write_period += weight * (gap - self._write_period)
+            self._last_write = now
+            self._writes += 1
+            # flush now if waiting for the next write would overrun the interval
+            if now - self._last_flush + self._write_period >= self._flush_interval_s:
+                self._flush_now()
+            return self.error is None
+
+    def _flush_now(self) -> None:
+        try:
+            self._writer.flush()
+        except Exception as exc:
+            self._fail(exc)
+            return
+        self._last_flush = self._clock()
+        self.flush_count += 1
+
+    def _fail(self, exc: BaseException) -> None:
+        if self.error is None:
+            self.error = f"{type(exc).__name__}: {exc}"
+            log.error("%s: trial log writing failed, nothing more is written: %s", self.path, exc)
+
+
+def _encode_image(image: np.ndarray, encoding: str, jpeg_quality: int) -> bytes:
+    if encoding not in ("jpeg", "png"):
+        raise ValueError(f"encoding must be 'jpeg' or 'png'; got {encoding!r}")
+    if not isinstance(image, np.ndarray):
+        raise TypeError(f"image must be a numpy array; got {type(image).__name__}")
+    if image.dtype != np.uint8 or image.ndim not in (2, 3) or image.size == 0:
+        raise ValueError(
+            f"image must be non-empty uint8 HxW or HxWx3; got {image.dtype} {image.shape}"
+        )
+    if image.ndim == 3 and image.shape[2] not in (1, 3):
+        raise ValueError(f"image must have 1 or 3 channels; got shape {image.shape}")
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if encoding == "jpeg" else []
+    ok, buffer = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", image, params)
+    if not ok:
+        raise ValueError(f"OpenCV could not encode the image as {encoding}")
+    return buffer.tobytes()
+
+
+# --- reader ---------------------------------------------------------------------------------
+
+
+class _WholeReads:
+    """A file wrapper whose short reads raise ``EndOfFile``: a record cut off by a crash ends
+    the scan instead of being parsed from partial bytes."""
+
+    def __init__(self, file: BinaryIO):
+        self._file = file
+
+    def read(self, size: int) -> bytes:
+        data = self._file.read(size)
+        if len(data) < size:
+            raise EndOfFile()
+        return data
+
+
+@dataclass
+class _Scan:
+    """Everything found reading a (possibly truncated) MCAP file from the start."""
+
+    header: Header | None = None
+    schemas: dict[int, Schema] = dataclasses.field(default_factory=dict)
+    channels: dict[int, Channel] = dataclasses.field(default_factory=dict)
+    messages: list[Message] = dataclasses.field(default_factory=list)
+    counts: dict[int, int] = dataclasses.field(default_factory=dict)  # messages per channel
+    metadata: dict[str, dict[str, str]] = dataclasses.field(default_factory=dict)
+    complete: bool = False
+    stopped: str = ""
+
+
+def _check_file(path: Path) -> None:
+    if not path.exists():
+        raise FileNotFoundError(f"trial log {path} does not exist")
+    if not path.is_file():
+        raise TrialLogError(f"trial log {path} is not a file")
+    size = path.stat().st_size
+    if size == 0:
+        raise TrialLogError(f"trial log {path} is empty (0 bytes): the writer never started")
+    with path.open("rb") as f:
+        magic = f.read(len(MCAP_MAGIC))
+    if magic != MCAP_MAGIC:
+        raise TrialLogError(f"{path} is not an MCAP file (its first bytes are not MCAP's magic)")
+
+
+def _scan(path: Path, keep: Callable[[Channel], bool]) -> _Scan:
+    """Read records in file order until the footer, or until the file ends or turns bad (a
+    crash): then ``complete`` is False and ``stopped`` says why."""
+    scan = _Scan()
+    with path.open("rb") as f:
+        reader = StreamReader(_WholeReads(f), validate_crcs=True)  # type: ignore[arg-type]
+        try:
+            for record in reader.records:
+                if isinstance(record, Message):
+                    scan.counts[record.channel_id] = scan.counts.get(record.channel_id, 0) + 1
+                    channel = scan.channels.get(record.channel_id)
+                    if channel is not None and keep(channel):
+                        scan.messages.append(record)
+                elif isinstance(record, Channel):
+                    scan.channels[record.id] = record
+                elif isinstance(record, Schema):
+                    scan.schemas[record.id] = record
+                elif isinstance(record, Metadata):
+                    scan.metadata[record.name] = dict(record.metadata)
+                elif isinstance(record, Header):
+                    scan.header = record
+                elif isinstance(record, Footer):
+                    scan.complete = True
+        except EndOfFile:
+            scan.stopped = "the file ends without a footer"
+        except (McapError, ValueError, struct.error, UnicodeDecodeError, MemoryError) as exc:
+            # zstd errors are ValueErrors, CRC mismatches too: a torn last chunk
+            scan.stopped = f"unreadable data after the last complete record ({exc})"
+    return scan
+
+
+@dataclass(frozen=True, slots=True)
+class LoggedFrame:
+    """A logged camera image: trial time ``t`` (s), ``format`` (jpeg/png), encoded ``data``."""
+
+    t: float
+    format: str
+    frame_id: str
+    data: bytes
+
+    def image(self) -> np.ndarray:
+        """The decoded image (uint8, as written; JPEG is lossy)."""
+        image = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise ValueError(f"frame at t={self.t:.3f} s: cannot decode its {self.format} data")
+        return image
+
+
+class TrialLog:
+    """A trial log opened for reading: ``header``, ``ticks()``, ``events()``, ``frames()``.
+
+    ``recovered`` is True when the file has no MCAP footer (its writer was killed) and the
+    records were read from the complete chunks; ``complete`` is True when the writer closed
+    the log normally (its ``satgrasp.footer`` is present). Open with ``TrialLog.open``.
+    """
+
+    def __init__(self, path: Path, scan: _Scan):
+        self.path = path
+        self.recovered = not scan.complete
+        self.stopped = scan.stopped
+        self.metadata = scan.metadata
+        self.footer: dict[str, str] | None = scan.metadata.get(FOOTER_METADATA)
+        self.complete = self.footer is not None
+        self.recovery: dict[str, str] | None = scan.metadata.get(RECOVERY_METADATA)
+        topics = {channel.id: channel.topic for channel in scan.channels.values()}
+        by_topic: dict[str, list[Message]] = {}
+        for message in scan.messages:
+            by_topic.setdefault(topics[message.channel_id], []).append(message)
+        for messages in by_topic.values():
+            messages.sort(key=lambda m: (m.log_time, m.sequence))
+        headers = by_topic.get(HEADER_TOPIC, [])
+        if not headers:
+            ours = scan.header is not None and scan.header.library.startswith("satgrasp")
+            if ours or HEADER_METADATA in scan.metadata or HEADER_TOPIC in topics.values():
+                raise TrialLogError(
+                    f"trial log {path} holds no header message: its writer stopped before "
+                    f"the header was flushed ({scan.stopped or 'no header written'})"
+                )
+            raise TrialLogError(
+                f"{path} is an MCAP file but not a satgrasp trial log (no {HEADER_TOPIC} channel)"
+            )
+        self.header: dict[str, Any] = self._decode(headers[0], "header")
+        if self.header.get("format") != FORMAT:
+            raise TrialLogError(
+                f"{path}: header format is {self.header.get('format')!r}, not {FORMAT!r}"
+            )
+        self._start_ns = int(self.header["start_time_unix_ns"])
+        self._ticks = by_topic.get(TICK_TOPIC, [])
+        self._events = by_topic.get(EVENT_TOPIC, [])
+        self.frame_count = sum(
+            n for channel_id, n in scan.counts.items() if topics.get(channel_id) == FRAME_TOPIC
+        )
+
+    @classmethod
+    def open(cls, path: str | os.PathLike[str]) -> TrialLog:
+        """Open a trial log, complete or cut off by a crash. Raises ``FileNotFoundError`` or
+        ``TrialLogError`` (naming the file) for a missing, empty, non-MCAP or foreign file."""
+        path = Path(path)
+        _check_file(path)
+        scan = _scan(path, keep=lambda c: c.topic in (HEADER_TOPIC, TICK_TOPIC, EVENT_TOPIC))
+        return cls(path, scan)
+
+    @property
+    def tick_count(self) -> int:
+        return len(self._ticks)
+
+    @property
+    def event_count(self) -> int:
+        return len(self._events)
+
+    def ticks(self) -> Iterator[dict[str, Any]]:
+        """Tick records in time order, as written (JSON: poses are 4×4 lists, NaN is None)."""
+        for message in self._ticks:
+            yield self._decode(message, "tick")
+
+    def events(self) -> Iterator[dict[str, Any]]:
+        """Events in time order: ``t``, ``kind``, ``message``, ``data``."""
+        for message in self._events:
+            yield self._decode(message, "event")
+
+    def frames(self) -> Iterator[LoggedFrame]:
+        """Logged camera images in time order (read from the file on each call)."""
+        scan = _scan(self.path, keep=lambda c: c.topic == FRAME_TOPIC)
+        for message in sorted(scan.messages, key=lambda m: (m.log_time, m.sequence)):
+            record = self._decode(message, "frame")
+            yield LoggedFrame(
+                t=(message.log_time - self._start_ns) / 1e9,
+                format=record.get("format", ""),
+                frame_id=record.get("frame_id", ""),
+                data=base64.b64decode(record.get("data", "")),
+            )
+
+    def _decode(self, message: Message, what: str) -> dict[str, Any]:
+        try:
+            return json.loads(message.data)
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise TrialLogError(
+                f"trial log {self.path}: {what} message {message.sequence} is not JSON ({exc})"
+            ) from None
+
+
+def recover(path: str | os.PathLike[str], out_path: str | os.PathLike[str]) -> Path:
+    """Rewrite the readable part of ``path`` (e.g. a log whose writer was killed) as a valid
+    MCAP file ``out_path`` with a summary and index; adds a ``satgrasp.recovery`` metadata
+    record saying what was recovered. Returns ``out_path``."""
+    source, target = Path(path), Path(out_path)
+    if source.resolve() == target.resolve():
+        raise ValueError(f"recover: write to a new file, not over {source}")
+    _check_file(source)
+    scan = _scan(source, keep=lambda c: True)
+    with target.open("wb") as f:
+        writer = Writer(f, compression=CompressionType.ZSTD)
+        profile = scan.header.profile if scan.header is not None else ""
+        writer.start(profile=profile, library=scan.header.library if scan.header else "")
+        for name, data in scan.metadata.items():
+            writer.add_metadata(name, data)
+        schema_ids = {
+            old: writer.register_schema(s.name, s.encoding, s.data)
+            for old, s in sorted(scan.schemas.items())
+        }
+        channel_ids = {
+            old: writer.register_channel(
+                c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0), dict(c.metadata)
+            )
+            for old, c in sorted(scan.channels.items())
+        }
+        for m in scan.messages:
+            writer.add_message(
+                channel_ids[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence
+            )
+        writer.add_metadata(
+            RECOVERY_METADATA,
+            {
+                "source": str(source),
+                "recovered_at_utc": dt.datetime.now(dt.UTC).isoformat(),
+                "messages": str(len(scan.messages)),
+                "source_complete": str(scan.complete).lower(),
+                "stopped": scan.stopped,
+            },
+        )
+        writer.finish()
+    return target

@@ -1,0 +1,297 @@
+"""The approach sequencer: phases and the motion each phase asks for.
+
+    idle → acquire → approach → standoff → grasp → retreat → done,   and abort from anywhere.
+
+* acquire: hold still until the fused estimate has been healthy for ``lock_s``.
+* approach: PBVS toward the stand-off pose; the along-track part of the closing motion goes to
+  the linear track, alignment to the arm; speed scheduled down with range.
+* standoff: track stopped, the arm refines; declared reached when the estimated error stays
+  within tolerance for ``dwell_s``.
+* grasp: guarded move of ``advance_m`` along the optical axis at ``grasp.speed``, close the
+  gripper, expect an object; optionally hold and release (a HIL rig lets go of its mock-up).
+* retreat: back to the stand-off pose, then done.
+
+The sequencer proposes; the supervisor (``hil.runtime.supervisor``) vetoes. ``on_violations`` moves a
+recoverable loss back to ``acquire`` and anything else to ``abort``. Time comes in with the
+inputs (an injected clock), so the same code runs faster than real time in simulation.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+
+from configuration.approach import ApproachConfig
+from drivers.base import GripperState
+from estimators.geometry import Pose
+from hil.runtime.servo import (
+    PoseError,
+    limit_acceleration,
+    pbvs_twist,
+    pose_error,
+    saturate,
+    scheduled_speed,
+    split_along_track,
+)
+from hil.runtime.supervisor import Violation
+
+
+class Phase(StrEnum):
+    IDLE = "idle"
+    ACQUIRE = "acquire"
+    APPROACH = "approach"
+    STANDOFF = "standoff"
+    GRASP = "grasp"
+    RETREAT = "retreat"
+    DONE = "done"
+    ABORT = "abort"
+
+
+TERMINAL = frozenset({Phase.DONE, Phase.ABORT})
+#: Close enough to the stand-off pose to hand over from the approach to the fine alignment.
+_HANDOVER_M = 0.03
+_HANDOVER_RAD = math.radians(2.0)
+
+
+@dataclass(frozen=True, slots=True)
+class SequencerInputs:
+    """What the sequencer needs at one tick. ``X_TC_est`` is the camera pose in T from the
+    fused estimate (None when there is no healthy one); ``R_WC`` the camera's orientation in
+    the world and ``track_axis_W`` the track's direction (for splitting the motion)."""
+
+    stamp: float
+    X_TC_est: Pose | None
+    estimate_ok: bool
+    R_WC: np.ndarray
+    track_axis_W: np.ndarray
+    max_track_speed: float
+    gripper: GripperState | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class SequencerOutput:
+    phase: Phase
+    camera_twist_C: np.ndarray  # the arm's share, camera twist in C
+    track_velocity: float
+    gripper_command: str | None = None  # "grip" | "open"
+    events: tuple[tuple[str, str], ...] = ()
+    goal_error: PoseError | None = None
+
+
+@dataclass
+class _GraspState:
+    step: str = "advance"  # advance → close → hold → release
+    since: float = 0.0
+
+
+@dataclass
+class ApproachSequencer:
+    """Stateful phase logic; feed it one ``SequencerInputs`` per control tick."""
+
+    config: ApproachConfig
+    phase: Phase = Phase.IDLE
+    abort_reason: str = ""
+    _phase_since: float = 0.0
+    _healthy_since: float | None = None
+    _within_since: float | None = None
+    _previous_twist: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    _previous_track: float = 0.0
+    _grasp: _GraspState = field(default_factory=_GraspState)
+    _events: list[tuple[str, str]] = field(default_factory=list)
+
+    @property
+    def X_TC_goal(self) -> Pose:
+        return self.config.standoff.X_TC_goal()
+
+    @property
+    def X_TC_grasp(self) -> Pose:
+        """The goal of the guarded move: the stand-off pose advanced along the optical axis."""
+        return self.X_TC_goal @ Pose(np.eye(3), np.array([0.0, 0.0, self.config.grasp.advance_m]))
+
+    # --- phase bookkeeping --------------------------------------------------------------
+    def _enter(self, phase: Phase, stamp: float, why: str) -> None:
+        if phase == self.phase:
+            return
+        self._events.append(("phase", f"{self.phase} → {phase}: {why}"))
+        self.phase = phase
+        self._phase_since = stamp
+        self._within_since = None
+        if phase == Phase.GRASP:
+            self._grasp = _GraspState(since=stamp)
+
+    def start(self, stamp: float) -> None:
+        self._enter(Phase.ACQUIRE, stamp, "started")
+
+    def abort(self, stamp: float, reason: str) -> None:
+        if self.phase not in TERMINAL:
+            self.abort_reason = reason
+            self._events.append(("abort", reason))
+            self._enter(Phase.ABORT, stamp, reason)
+
+    def on_violations(
+        self, violations: Sequence[Violation], stamp: float
+    ) -> tuple[tuple[str, str], ...]:
+        """React to the supervisor's findings (the loop has already stopped the arm)."""
+        if not violations or self.phase in TERMINAL:
+            return ()
+        self._previous_twist = np.zeros(6)
+        self._previous_track = 0.0
+        text = "; ".join(str(v) for v in violations)
+        recoverable = all(v.recoverable for v in violations)
+        can_reacquire = self.phase in (Phase.APPROACH, Phase.STANDOFF, Phase.ACQUIRE)
+        if recoverable and self.config.supervisor.reacquire and can_reacquire:
+            self._events.append(("fault", text))
+            self._healthy_since = None
+            self._enter(Phase.ACQUIRE, stamp, f"stopped: {text}")
+        else:
+            self.abort(stamp, text)
+        return self._drain()
+
+    def _drain(self) -> tuple[tuple[str, str], ...]:
+        events, self._events = tuple(self._events), []
+        return events
+
+    # --- the tick -----------------------------------------------------------------------
+    def step(self, inputs: SequencerInputs, dt: float) -> SequencerOutput:
+        t = inputs.stamp
+        zero = np.zeros(6)
+        gripper_command = None
+        twist, track = zero, 0.0
+        error: PoseError | None = None
+        if inputs.X_TC_est is not None:
+            error = pose_error(inputs.X_TC_est, self.X_TC_goal)
+
+        if self.phase == Phase.ACQUIRE:
+            self._healthy_since = (self._healthy_since or t) if inputs.estimate_ok else None
+            if (
+                self._healthy_since is not None
+                and t - self._healthy_since >= self.config.supervisor.lock_s
+            ):
+                self._enter(Phase.APPROACH, t, "estimate locked")
+            elif t - self._phase_since > self.config.supervisor.acquire_timeout_s:
+                self.abort(t, f"no lock within {self.config.supervisor.acquire_timeout_s:.0f} s")
+        elif (
+            self.phase in (Phase.APPROACH, Phase.STANDOFF, Phase.RETREAT)
+            and inputs.X_TC_est is not None
+        ):
+            twist, track = self._servo(
+                inputs, self.X_TC_goal, use_track=self.phase == Phase.APPROACH
+            )
+            assert error is not None
+            if (
+                self.phase == Phase.APPROACH
+                and error.distance_m < _HANDOVER_M
+                and error.angle_rad < _HANDOVER_RAD
+            ):
+                self._enter(
+                    Phase.STANDOFF, t, f"within {100 * error.distance_m:.1f} cm of the stand-off"
+                )
+            elif self.phase == Phase.STANDOFF and self._dwelled(error, t):
+                self._enter(Phase.GRASP, t, "stand-off reached")
+            elif (
+                self.phase == Phase.RETREAT
+                and error.distance_m < 2 * self.config.standoff.position_tolerance_m
+            ):
+                self._enter(Phase.DONE, t, "retreated to the stand-off")
+        elif self.phase == Phase.GRASP and inputs.X_TC_est is not None:
+            twist, gripper_command = self._grasp_step(inputs, t)
+        twist, track = self._limit(twist, track, dt)
+        events = self._drain()
+        return SequencerOutput(self.phase, twist, track, gripper_command, events, error)
+
+    def _dwelled(self, error: PoseError, t: float) -> bool:
+        standoff = self.config.standoff
+        within = (
+            error.distance_m <= standoff.position_tolerance_m
+            and error.angle_rad <= math.radians(standoff.angle_tolerance_deg)
+        )
+        if not within:
+            self._within_since = None
+            return False
+        self._within_since = self._within_since if self._within_since is not None else t
+        return t - self._within_since >= standoff.dwell_s
+
+    def _servo(
+        self, inputs: SequencerInputs, goal: Pose, *, use_track: bool, speed: float | None = None
+    ):
+        servo = self.config.servo
+        X_TC = inputs.X_TC_est
+        assert X_TC is not None
+        range_m = float(X_TC.p[2])
+        max_speed = (
+            speed
+            if speed is not None
+            else scheduled_speed(
+                range_m,
+                near_m=servo.near_range_m,
+                far_m=servo.far_range_m,
+                slow=servo.slow_speed,
+                fast=servo.max_speed,
+            )
+        )
+        twist = saturate(
+            pbvs_twist(X_TC, goal, servo.gain), max_speed, math.radians(servo.max_angular_speed_deg)
+        )
+        if not use_track:
+            return twist, 0.0
+        split = split_along_track(twist, inputs.R_WC, inputs.track_axis_W, inputs.max_track_speed)
+        return split.camera_twist_C, split.track_velocity
+
+    def _grasp_step(self, inputs: SequencerInputs, t: float) -> tuple[np.ndarray, str | None]:
+        grasp, g = self.config.grasp, self._grasp
+        gripper = inputs.gripper
+        zero = np.zeros(6)
+        if g.step == "advance":
+            twist, _ = self._servo(inputs, self.X_TC_grasp, use_track=False, speed=grasp.speed)
+            assert inputs.X_TC_est is not None
+            reached = pose_error(inputs.X_TC_est, self.X_TC_grasp)
+            if reached.distance_m <= 2 * self.config.standoff.position_tolerance_m:
+                g.step, g.since = "close", t
+                self._events.append(("info", "guarded move done; closing the gripper"))
+                return zero, "grip"
+            return twist, None
+        if g.step == "close":
+            if gripper is not None and gripper.object_detected:
+                g.step, g.since = "hold", t
+                self._events.append(("grasp", "object detected between the fingers"))
+            elif gripper is not None and gripper.fault:
+                self.abort(t, f"gripper fault: {gripper.fault}")
+            elif t - g.since > grasp.close_timeout_s or (
+                gripper is not None and not gripper.moving and gripper.position > 0.95
+            ):
+                self.abort(t, "grasp failed: the gripper closed without an object")
+            return zero, None
+        if g.step == "hold":
+            if t - g.since >= grasp.hold_s:
+                if grasp.release_after_grasp:
+                    g.step, g.since = "release", t
+                    return zero, "open"
+                self._enter(Phase.DONE, t, "grasped (holding)")
+            return zero, None
+        # release: wait for the fingers to open, then retreat
+        opened = gripper is None or (not gripper.moving and gripper.position < 0.1)
+        if opened or t - g.since > grasp.close_timeout_s:
+            self._enter(Phase.RETREAT, t, "released")
+        return zero, None
+
+    def _limit(self, twist: np.ndarray, track: float, dt: float) -> tuple[np.ndarray, float]:
+        """Acceleration limits on what is actually commanded (also when stopping)."""
+        servo = self.config.servo
+        if self.phase in TERMINAL:
+            self._previous_twist, self._previous_track = np.zeros(6), 0.0
+            return np.zeros(6), 0.0
+        limited = limit_acceleration(
+            twist,
+            self._previous_twist,
+            dt,
+            servo.max_acceleration,
+            math.radians(servo.max_angular_acceleration_deg),
+        )
+        step = servo.max_acceleration * dt
+        track = float(np.clip(track, self._previous_track - step, self._previous_track + step))
+        self._previous_twist, self._previous_track = limited, track
+        return limited, track

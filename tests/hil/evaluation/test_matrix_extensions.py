@@ -1,0 +1,60 @@
+"""Matrix runner options shared by all systems: acquisition-only runs, blank frames and the
+re-acquisition count, wrong-lock and ambiguity counts."""
+
+import pytest
+
+from hil.evaluation.matrix import MatrixSpec, markdown_table, run_matrix, summarize
+
+ORACLE = "tests.hil.fake_estimators:build_oracle"
+
+
+def test_matrix_blank_frames_force_a_loss_and_count_recovery():
+    spec = MatrixSpec(
+        systems=(ORACLE,),
+        distances_m=(3.0,),
+        maneuvers=("none",),
+        noises=("low",),
+        frames=8,
+        blank_frames=(3, 4),
+        estimator_options={"lose_every": 0},
+    )
+    rows = run_matrix(spec)
+    assert [r.blank for r in rows] == [False] * 3 + [True] * 2 + [False] * 3
+    s = summarize(rows)[0]
+    # The oracle reads ground truth, so it "sees" through blank frames: no loss, recovery 0.
+    assert (s.frames, s.blank, s.valid, s.recovery_max) == (6, 2, 6, 0)
+    table = markdown_table([s])
+    assert "re-acquired after blanks" in table and "1 frame(s)" in table
+
+
+def test_matrix_acquisition_mode_estimates_every_frame_without_a_prior():
+    spec = MatrixSpec(
+        systems=(ORACLE,),
+        distances_m=(2.0,),
+        maneuvers=("none",),
+        noises=("none",),
+        frames=4,
+        acquisition=True,
+    )
+    rows = run_matrix(spec)
+    acquisition = [r for r in rows if r.mode == "acquisition"]
+    assert len(acquisition) == 4
+    assert all(not r.had_prior and r.status == "acquired" for r in acquisition)
+    summaries = {s.mode: s for s in summarize(rows)}
+    assert (summaries["acquisition"].acquired_ok, summaries["acquisition"].acquired_tries) == (4, 4)
+    assert summaries["tracking"].acquired_tries == 1  # only its first frame had no prior
+
+
+def test_matrix_counts_wrong_locks_beyond_the_gate():
+    spec = MatrixSpec(
+        systems=(ORACLE,),
+        distances_m=(2.0,),
+        maneuvers=("none",),
+        noises=("none",),
+        frames=3,
+        estimator_options={"offset_m": 0.08},  # 8 cm off: beyond the 5 cm gate
+    )
+    s = summarize(run_matrix(spec))[0]
+    # The oracle claims a 1 mm covariance: an 8 cm error it does not admit is a wrong lock.
+    assert s.wrong_locks == 3
+    assert s.position_mean_m == pytest.approx(0.08)

@@ -1,0 +1,293 @@
+"""Fast stand-ins for the devices, the world and fusion, to test the loop's logic and fault paths
+without rendering. The real simulated rig is tested in its own modules and end to end."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.base import (
+    ArmState,
+    DeviceFault,
+    DeviceTimeout,
+    GripperState,
+    ServoCommand,
+    TrackState,
+)
+from drivers.clock import SimClock
+from estimators.frame import CameraInfo, Frame, GroundTruth
+from estimators.geometry import Pose, intrinsics_from_fov, look_at
+from estimators.measurement import Measurement
+from hil.runtime.loop import RigGeometry
+
+INFO = CameraInfo(64, 48, intrinsics_from_fov(64, 48, 70.0), np.zeros(0), "tiny")
+AXIS_W = np.array([1.0, 0.0, 0.0])
+
+
+def rig_geometry() -> RigGeometry:
+    # Target T faces −x_W (its z axis along −x); carriage frame M = T at track position 0.
+    X_WM0 = Pose.from_rpy(0.0, -math.pi / 2, 0.0, np.array([3.0, 0.0, 1.0]))
+    X_EC = Pose.from_rpy(0.0, 0.0, math.pi / 2, np.array([0.0, 0.05, 0.08]))
+    return RigGeometry(
+        X_WB=Pose.identity(), X_EC=X_EC, track_axis_W=AXIS_W, X_WM0=X_WM0, max_track_speed=0.3
+    )
+
+
+@dataclass
+class FakeArm:
+    """Integrates the commanded flange twist exactly; faults on demand."""
+
+    clock: SimClock
+    X_BE: Pose
+    V_BE: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    protective_stop: bool = False
+    link_down: bool = False
+    stops: list = field(default_factory=list)
+
+    def connect(self):
+        pass
+
+    def close(self):
+        pass
+
+    def state(self) -> ArmState:
+        if self.link_down:
+            raise DeviceTimeout("arm link down")
+        return ArmState(
+            self.clock.now(),
+            np.zeros(6),
+            self.X_BE,
+            self.V_BE,
+            protective_stop=self.protective_stop,
+        )
+
+    def servo(self, command: ServoCommand) -> None:
+        if self.protective_stop:
+            raise DeviceFault("protective stop")
+        self.V_BE = command.V_BE.copy()
+
+    def stop(self, deceleration: float = 2.0) -> None:
+        self.V_BE = np.zeros(6)
+        self.stops.append(self.clock.now())
+
+    def advance(self, dt: float) -> None:
+        w, v = self.V_BE[3:], self.V_BE[:3]
+        self.X_BE = Pose(
+            Pose.from_rotvec(w * dt, np.zeros(3)).R @ self.X_BE.R, self.X_BE.p + v * dt
+        )
+
+
+@dataclass
+class FakeTrack:
+    clock: SimClock
+    position: float = 0.0
+    velocity: float = 0.0
+    fault: str | None = None
+
+    def connect(self):
+        pass
+
+    def close(self):
+        pass
+
+    def state(self) -> TrackState:
+        return TrackState(
+            self.clock.now(), self.position, self.velocity, self.velocity != 0, self.fault
+        )
+
+    def move_velocity(self, velocity: float) -> None:
+        self.velocity = velocity
+
+    def move_to(self, position: float, speed: float) -> None:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        self.velocity = 0.0
+
+    def advance(self, dt: float) -> None:
+        self.position += self.velocity * dt
+
+
+@dataclass
+class FakeGripper:
+    clock: SimClock
+    closing_since: float | None = None
+    opening_since: float | None = None
+    object_present: bool = True
+
+    def connect(self):
+        pass
+
+    def close(self):
+        pass
+
+    def activate(self):
+        pass
+
+    def grip(self):
+        self.closing_since, self.opening_since = self.clock.now(), None
+
+    def open(self):
+        self.opening_since, self.closing_since = self.clock.now(), None
+
+    def state(self) -> GripperState:
+        t = self.clock.now()
+        if self.closing_since is not None:
+            moving = t - self.closing_since < 0.3
+            return GripperState(
+                t,
+                True,
+                0.5 if self.object_present else 1.0,
+                moving,
+                self.object_present and not moving,
+            )
+        if self.opening_since is not None:
+            return GripperState(t, True, 0.0, t - self.opening_since < 0.3, False)
+        return GripperState(t, True, 0.0, False, False)
+
+
+class FakeWorld:
+    """Advances the fakes and the clock; knows the truth."""
+
+    def __init__(self, clock, arm, track, geometry, X_MT: Pose | None = None):
+        self.clock, self.arm, self.track, self.geometry = clock, arm, track, geometry
+        self.X_MT = X_MT or Pose.identity()
+
+    def advance(self, dt: float) -> None:
+        self.arm.advance(dt)
+        self.track.advance(dt)
+        self.clock.advance(dt)
+
+    def truth(self) -> dict[str, Pose]:
+        return {
+            "X_WT": self.geometry.X_WM(self.track.position) @ self.X_MT,
+            "X_WC": self.geometry.X_WC(self.arm.X_BE),
+        }
+
+
+@dataclass
+class FakeCamera:
+    world: FakeWorld
+    seq: int = 0
+    stopped: bool = False
+    corrupt_next: bool = False
+
+    @property
+    def info(self) -> CameraInfo:
+        return INFO
+
+    def connect(self):
+        pass
+
+    def close(self):
+        pass
+
+    def read(self, timeout_s: float = 1.0) -> Frame:
+        if self.stopped:
+            raise DeviceTimeout("no frame")
+        truth = self.world.truth()
+        X_CT = truth["X_WC"].inverse() @ truth["X_WT"]
+        image = np.zeros((48, 64), np.uint8)
+        if self.corrupt_next:
+            self.corrupt_next = False
+            image = np.zeros((10, 10), np.uint8)
+        frame = Frame(
+            image, self.world.clock.now(), INFO, self.seq, GroundTruth(X_CT, truth["X_WC"])
+        )
+        self.seq += 1
+        return frame
+
+
+class TruthEstimator:
+    """Returns the true pose with small seeded noise; can be blinded, made to raise or to
+    return NaN."""
+
+    def __init__(self, system: str, seed: int = 0):
+        self.system = system
+        self.rng = np.random.default_rng(seed)
+        self.blind = False
+        self.raise_error = False
+        self.nan = False
+
+    def estimate(self, frame: Frame, prior_X_CT=None) -> Measurement:
+        if self.raise_error:
+            raise RuntimeError("injected estimator failure")
+        if self.blind:
+            return Measurement.lost(self.system, frame, "blinded")
+        X = frame.truth.X_CT
+        noisy = Pose.from_rotvec(self.rng.normal(0, 1e-4, 3), np.zeros(3)) @ X
+        noisy = Pose(noisy.R, X.p + self.rng.normal(0, 2e-4, 3))
+        m = Measurement(
+            system=self.system,
+            status="tracking" if prior_X_CT is not None else "acquired",
+            stamp=frame.stamp,
+            seq=frame.seq,
+            X_CT=noisy,
+            covariance=np.eye(6) * 1e-7,
+        )
+        if self.nan:
+            object.__setattr__(
+                m.X_CT, "p", np.array([np.nan, 0.0, 1.0])
+            )  # bypass validation on purpose
+        return m
+
+
+@dataclass(frozen=True)
+class FakeEstimate:
+    stamp: float
+    X_MT: Pose | None
+    health: str
+    age_s: float | None
+    accepted: tuple = ()
+    rejected: tuple = ()
+    covariance: np.ndarray | None = None
+
+    def X_CT(self, X_CM: Pose) -> Pose:
+        return X_CM @ self.X_MT
+
+
+class FakeFusion:
+    """Averages nothing: keeps the newest valid 6-DOF measurement, mapped into M."""
+
+    def __init__(self, coast_s: float = 0.2, lost_s: float = 1.0):
+        self.X_MT = None
+        self.last = None
+        self.coast_s, self.lost_s = coast_s, lost_s
+        self.accepted = ()
+
+    def update(self, measurements, X_CM, stamp):
+        self.accepted = ()
+        for m in measurements:
+            if m.valid and m.X_CT is not None:
+                self.X_MT = X_CM.inverse() @ m.X_CT
+                self.last = stamp
+                self.accepted = (*self.accepted, m.system)
+        return self.estimate(stamp)
+
+    def estimate(self, stamp):
+        if self.last is None:
+            return FakeEstimate(stamp, None, "uninitialized", None)
+        age = stamp - self.last
+        health = "ok" if age <= self.coast_s else "coasting" if age <= self.lost_s else "lost"
+        return FakeEstimate(stamp, self.X_MT, health, age, self.accepted)
+
+    def prior_X_CT(self, X_CM, stamp):
+        e = self.estimate(stamp)
+        return None if e.health in ("uninitialized", "lost") else e.X_CT(X_CM)
+
+
+def start_X_BE(
+    geometry: RigGeometry, distance: float = 2.5, offset=(0.2, -0.15), tilt_deg=6.0
+) -> Pose:
+    """Flange pose putting the camera ``distance`` in front of the target, off-centre and tilted."""
+    X_WT = geometry.X_WM(0.0)
+    z_T = X_WT.R[:, 2]
+    look_point = X_WT.apply(np.array([offset[0] * 0.3, offset[1] * 0.3, 0.0]))
+    eye = X_WT.apply(np.array([offset[0], offset[1], distance]))
+    X_WC = look_at(eye, look_point, np.array([0.0, 0.0, 1.0])) @ Pose.from_rpy(
+        0, 0, math.radians(tilt_deg), np.zeros(3)
+    )
+    assert z_T @ (eye - X_WT.p) > 0
+    return geometry.X_WB.inverse() @ X_WC @ geometry.X_EC.inverse()

@@ -1,0 +1,146 @@
+import math
+
+import numpy as np
+import pytest
+
+from configuration.approach import ApproachConfig
+from drivers.base import GripperState
+from estimators.geometry import Pose, look_at
+from hil.runtime.sequencer import ApproachSequencer, Phase, SequencerInputs
+from hil.runtime.servo import pose_error
+from hil.runtime.supervisor import Violation
+
+AXIS_W = np.array([1.0, 0.0, 0.0])  # the track moves the target along world x
+
+
+class ToyRig:
+    """Perfect kinematics: the camera does exactly the commanded twist, the track exactly its
+    velocity; the target faces the camera along −x; the gripper closes in 0.4 s."""
+
+    def __init__(self, offset=(0.25, -0.2), tilt_deg=8.0):
+        self.X_WT = Pose.from_rpy(
+            0.0, -math.pi / 2, 0.0, np.array([3.0, 0.0, 1.0])
+        )  # face looks to −x
+        target_in_view = self.X_WT.p + np.array([0.0, offset[0], offset[1]])
+        eye = np.array([0.5, offset[0], 1.0 + offset[1]])
+        self.X_WC = look_at(eye, target_in_view, np.array([0.0, 0.0, 1.0]))
+        self.X_WC = self.X_WC @ Pose.from_rpy(0.0, 0.0, math.radians(tilt_deg), np.zeros(3))
+        self.grip_started = None
+        self.released = None
+
+    @property
+    def X_TC(self) -> Pose:
+        return self.X_WT.inverse() @ self.X_WC
+
+    def gripper(self, t: float, goal: Pose) -> GripperState:
+        if self.released is not None:
+            return GripperState(t, True, 0.0, t - self.released < 0.4, False)
+        if self.grip_started is None:
+            return GripperState(t, True, 0.0, False, False)
+        closing = t - self.grip_started < 0.4
+        on_target = pose_error(self.X_TC, goal).distance_m < 0.01
+        return GripperState(t, True, 0.5 if on_target else 1.0, closing, on_target and not closing)
+
+    def advance(self, twist_C, track_velocity, dt):
+        self.X_WC = self.X_WC @ Pose.from_rotvec(twist_C[3:] * dt, twist_C[:3] * dt)
+        self.X_WT = Pose(self.X_WT.R, self.X_WT.p + AXIS_W * track_velocity * dt)
+
+
+def run(
+    rig: ToyRig, config: ApproachConfig, seconds: float = 60.0, estimate=lambda rig, t: rig.X_TC
+):
+    seq = ApproachSequencer(config)
+    dt = 1.0 / config.servo.control_rate_hz
+    seq.start(0.0)
+    t, phases, events, track_speeds = 0.0, [], [], []
+    while t < seconds and seq.phase not in (Phase.DONE, Phase.ABORT):
+        X_TC = estimate(rig, t)
+        out = seq.step(
+            SequencerInputs(
+                t, X_TC, X_TC is not None, rig.X_WC.R, AXIS_W, 0.3, rig.gripper(t, seq.X_TC_grasp)
+            ),
+            dt,
+        )
+        if out.gripper_command == "grip":
+            rig.grip_started = t
+        elif out.gripper_command == "open":
+            rig.released = t
+        rig.advance(out.camera_twist_C, out.track_velocity, dt)
+        phases.append(out.phase)
+        events.extend(out.events)
+        track_speeds.append(out.track_velocity)
+        t += dt
+    return seq, phases, events, np.array(track_speeds)
+
+
+def test_sequencer_runs_a_full_approach_grasp_and_retreat():
+    rig = ToyRig()
+    config = ApproachConfig()
+    seq, phases, events, track = run(rig, config)
+    assert seq.phase == Phase.DONE, events
+    order = list(dict.fromkeys(phases))
+    assert order == [
+        Phase.ACQUIRE,
+        Phase.APPROACH,
+        Phase.STANDOFF,
+        Phase.GRASP,
+        Phase.RETREAT,
+        Phase.DONE,
+    ]
+    assert ("grasp", "object detected between the fingers") in events
+    # The track did the closing: it moved the target ~2 m toward the camera.
+    assert rig.X_WT.p[0] < 1.3
+    assert (
+        np.abs(np.diff(track)).max()
+        <= config.servo.max_acceleration / config.servo.control_rate_hz + 1e-9
+    )
+    # Retreat ends back at the stand-off.
+    assert pose_error(rig.X_TC, seq.X_TC_goal).distance_m < 2 * config.standoff.position_tolerance_m
+
+
+def test_sequencer_waits_for_a_lock_and_aborts_after_the_acquire_timeout():
+    rig = ToyRig()
+    config = ApproachConfig()
+    seq, phases, _, _ = run(rig, config, seconds=30, estimate=lambda rig, t: None)
+    assert seq.phase == Phase.ABORT
+    assert "no lock within" in seq.abort_reason
+    assert set(phases) == {Phase.ACQUIRE, Phase.ABORT}
+
+
+def test_sequencer_reacquires_after_a_recoverable_violation_and_aborts_otherwise():
+    seq = ApproachSequencer(ApproachConfig())
+    seq.start(0.0)
+    seq.phase = Phase.APPROACH
+    events = seq.on_violations([Violation("estimate", "estimate is coasting", True)], 1.0)
+    assert seq.phase == Phase.ACQUIRE and any(kind == "fault" for kind, _ in events)
+    seq.phase = Phase.GRASP
+    seq.on_violations([Violation("estimate", "estimate is lost", True)], 2.0)
+    assert seq.phase == Phase.ABORT and "estimate is lost" in seq.abort_reason
+    seq2 = ApproachSequencer(ApproachConfig())
+    seq2.start(0.0)
+    seq2.phase = Phase.APPROACH
+    seq2.on_violations([Violation("arm_fault", "protective stop", False)], 1.0)
+    assert seq2.phase == Phase.ABORT
+
+
+def test_sequencer_aborts_when_the_gripper_closes_on_nothing():
+    rig = ToyRig()
+    config = ApproachConfig()
+
+    class NoObject(ToyRig):
+        def gripper(self, t, goal):
+            if self.grip_started is None:
+                return GripperState(t, True, 0.0, False, False)
+            return GripperState(t, True, 1.0, t - self.grip_started < 0.4, False)
+
+    rig = NoObject()
+    seq, _, _, _ = run(rig, config)
+    assert seq.phase == Phase.ABORT
+    assert "without an object" in seq.abort_reason
+
+
+@pytest.mark.parametrize("offset", [(0.3, 0.3), (-0.3, 0.1), (0.0, -0.3)])
+def test_sequencer_recentres_from_off_centre_starts(offset):
+    rig = ToyRig(offset=offset, tilt_deg=-10.0)
+    seq, _, events, _ = run(rig, ApproachConfig())
+    assert seq.phase == Phase.DONE, events
