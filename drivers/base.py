@@ -2,10 +2,18 @@
 
 One ``typing.Protocol`` per device — ``Camera``, ``Arm``, ``Gripper``, ``Track`` — implemented by
 real drivers, simulated backends and emulated ones alike; configuration picks one and nothing
-downstream branches on which. Lifecycle (ros2_control style): constructed = not connected;
-``connect()`` establishes communication or raises ``DeviceError``; ``close()`` releases it and
-is safe to call twice. Time stamps are host ``time.monotonic()`` seconds (or the injected clock
-of a simulation).
+downstream branches on which.
+
+Lifecycle (ros2_control's unconfigured → inactive → active):
+
+* constructed: no communication;
+* ``connect()``: communication established and state readable ("inactive"), or ``DeviceError``;
+* ``activate()``: the device may move or stream (UR: the control script runs; track: drive
+  enabled; gripper: activated; camera: streaming); commands before it raise ``DeviceError``;
+* ``deactivate()``: stop and give up the right to move; state stays readable;
+* ``close()``: release everything (deactivating first if needed); safe to call twice.
+
+Time stamps are host ``time.monotonic()`` seconds (or the injected clock of a simulation).
 """
 
 from __future__ import annotations
@@ -44,6 +52,10 @@ class Camera(Protocol):
 
     def connect(self) -> None: ...
 
+    def activate(self) -> None: ...
+
+    def deactivate(self) -> None: ...
+
     def close(self) -> None: ...
 
     def read(self, timeout_s: float = 1.0) -> Frame: ...
@@ -64,10 +76,15 @@ class ArmState:
     protective_stop: bool = False
     emergency_stop: bool = False
     fault: str | None = None
+    #: Wrench at the TCP [f (N), τ (N·m)] in B, where the arm measures it (UR: getActualTCPForce).
+    wrench_B: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "q", readonly_array(self.q, (6,), "ArmState.q"))
         object.__setattr__(self, "V_BE", readonly_array(self.V_BE, (6,), "ArmState.V_BE"))
+        if self.wrench_B is not None:
+            wrench = readonly_array(self.wrench_B, (6,), "ArmState.wrench_B")
+            object.__setattr__(self, "wrench_B", wrench)
 
     @property
     def fault_reason(self) -> str | None:
@@ -82,18 +99,30 @@ class ArmState:
 @dataclass(frozen=True, slots=True, eq=False)
 class ServoCommand:
     """A streamed Cartesian velocity set-point (UR speedL) for the flange, in B, limits already
-    applied; or a stop. ``reason`` says why a stop was commanded."""
+    applied; or a stop. ``reason`` says why a stop was commanded.
+
+    ``acceleration`` (m/s²; the angular part ramps at the same number in rad/s²) is speedL's
+    ``acc``: how fast the arm may reach the twist; None leaves it to the arm's configuration.
+    ``duration_s`` is speedL's ``time``: 0 keeps the twist until the next command."""
 
     stamp: float
     V_BE: np.ndarray
     stop: bool = False
     reason: str = ""
+    acceleration: float | None = None
+    duration_s: float = 0.0
 
     def __post_init__(self) -> None:
         V = readonly_array(self.V_BE, (6,), "ServoCommand.V_BE")
         if not np.all(np.isfinite(V)):
             raise ValueError("ServoCommand.V_BE contains NaN or infinite values")
         object.__setattr__(self, "V_BE", V)
+        if self.acceleration is not None and not (
+            np.isfinite(self.acceleration) and self.acceleration > 0
+        ):
+            raise ValueError(f"ServoCommand.acceleration must be > 0; got {self.acceleration}")
+        if not (np.isfinite(self.duration_s) and self.duration_s >= 0):
+            raise ValueError(f"ServoCommand.duration_s must be ≥ 0; got {self.duration_s}")
 
     @staticmethod
     def halt(stamp: float, reason: str) -> ServoCommand:
@@ -106,6 +135,10 @@ class Arm(Protocol):
     last twist until told otherwise or until its watchdog stops it)."""
 
     def connect(self) -> None: ...
+
+    def activate(self) -> None: ...
+
+    def deactivate(self) -> None: ...
 
     def close(self) -> None: ...
 
@@ -133,11 +166,16 @@ class GripperState:
 
 @runtime_checkable
 class Gripper(Protocol):
+    """A parallel gripper. ``activate`` runs the device's own activation (Robotiq: rACT, the
+    fingers calibrate); ``deactivate`` keeps the fingers where they are (never drops a part)."""
+
     def connect(self) -> None: ...
 
-    def close(self) -> None: ...
-
     def activate(self) -> None: ...
+
+    def deactivate(self) -> None: ...
+
+    def close(self) -> None: ...
 
     def open(self) -> None: ...
 
@@ -162,7 +200,13 @@ class TrackState:
 
 @runtime_checkable
 class Track(Protocol):
+    """A linear axis. ``activate`` enables the drive; ``deactivate`` stops and removes power."""
+
     def connect(self) -> None: ...
+
+    def activate(self) -> None: ...
+
+    def deactivate(self) -> None: ...
 
     def close(self) -> None: ...
 

@@ -136,6 +136,9 @@ class RobotiqGripper:
         self._link.write(RobotiqRegisters.OUTPUT, command_registers(0))
         self._link.write(RobotiqRegisters.OUTPUT, command_registers(RobotiqRegisters.rACT))
 
+    def deactivate(self) -> None:
+        """Nothing to do: clearing rACT would open the fingers and could drop the part."""
+
     def open(self) -> None:
         self.move(0)
 

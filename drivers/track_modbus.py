@@ -16,6 +16,7 @@ takes effect at once, so one FC16 write of registers 0–8 is one complete comma
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable, Mapping
@@ -109,6 +110,7 @@ class ModbusTrack:
         self._link = link
         self._clock = clock
         self._heartbeat = 0
+        self._active = False
         self.travel_min = -math.inf
         self.travel_max = math.inf
         self.max_speed = math.inf
@@ -144,7 +146,21 @@ class ModbusTrack:
                 f"(travel {self.travel_min}…{self.travel_max} m, max speed {self.max_speed} m/s)"
             )
 
+    def activate(self) -> None:
+        """Enable the drive, holding still: motion commands are accepted from now on."""
+        self._command(TrackRegisters.MODE_STOP)
+        self._active = True
+
+    def deactivate(self) -> None:
+        """Stop and remove drive power; the state stays readable."""
+        self._active = False
+        self.disable()
+
     def close(self) -> None:
+        if self._active:
+            with contextlib.suppress(DeviceError):
+                self.deactivate()
+        self._active = False
         self._link.close()
 
     # --- state --------------------------------------------------------------------------
@@ -166,6 +182,7 @@ class ModbusTrack:
     # --- commands -----------------------------------------------------------------------
     def move_velocity(self, velocity: float) -> None:
         """Run at ``velocity`` (m/s, signed along the axis) until told otherwise."""
+        self._require_active("move_velocity")
         if not math.isfinite(velocity) or abs(velocity) > self.max_speed:
             raise ValueError(
                 f"track velocity {velocity} m/s is outside ±{self.max_speed} m/s (max_speed)"
@@ -174,6 +191,7 @@ class ModbusTrack:
 
     def move_to(self, position: float, speed: float) -> None:
         """Move to ``position`` (m) at up to ``speed`` (m/s) with a trapezoidal profile."""
+        self._require_active("move_to")
         if not math.isfinite(position) or not self.travel_min <= position <= self.travel_max:
             raise ValueError(
                 f"track position {position} m is outside the travel "
@@ -194,6 +212,13 @@ class ModbusTrack:
     def disable(self) -> None:
         """Stop and remove drive power."""
         self._command(TrackRegisters.MODE_STOP, enable=False)
+
+    def _require_active(self, call: str) -> None:
+        if not self._active:
+            raise DeviceError(
+                f"{self._link.description}: {call} refused: the track is not active "
+                "(call activate())"
+            )
 
     def _command(
         self,

@@ -125,6 +125,7 @@ def render(
             PybulletRenderer(scene, info, config), lambda: Viewpoint(X_WC), noise_config, seed=seed
         )
         sim_camera.connect()
+        sim_camera.activate()
         frame = sim_camera.read()
         sim_camera.close()
     out_path.parent.mkdir(parents=True, exist_ok=True)

@@ -19,7 +19,8 @@ control period:
 
 Safety behaviour, modelled on a UR controller driven over RTDE: streaming servo commands arm a
 watchdog — no ``servo`` within ``watchdog_s`` decelerates to rest and latches fault "watchdog";
-a protective stop (``inject_protective_stop``), an emergency stop or an injected fault halts
+streaming needs ``activate()`` after ``connect()`` (the control interface; ``stop`` works in
+either state); a protective stop (``inject_protective_stop``), an emergency stop or an injected fault halts
 the joints at the next control period and refuses motion (``DeviceFault``) until unlocked or
 reset; a dropped link (``drop_link``) makes every call raise ``DeviceTimeout`` while the arm
 keeps executing its last command (until its watchdog stops it).
@@ -74,6 +75,7 @@ class SimArm:
         self._time = 0.0
         self._pending = 0.0
         self._connected = False
+        self._active = False
         self._link_dropped = False
         self._protective_stop = False
         self._emergency_stop = False
@@ -81,6 +83,7 @@ class SimArm:
         self._fault_holds = False  # an injected fault holds the joints; the watchdog's does not
         self._mode = "idle"  # "speed": tracking a twist; "stopping": ramping to rest
         self._V_cmd = np.zeros(6)
+        self._acceleration: float | None = None  # the command's own ramp (speedL acc), if any
         self._V_ref = np.zeros(6)
         self._stop_from = np.zeros(6)
         self._stop_duration = 0.0
@@ -96,9 +99,20 @@ class SimArm:
             raise DeviceTimeout("SimArm.connect: the controller does not answer (link dropped)")
         self._connected = True
 
-    def close(self) -> None:
+    def activate(self) -> None:
+        """Take control (ur-rtde's control interface): ``servo`` is accepted from now on."""
+        self._check_link("activate")
+        self._refuse_if_halted("activate")
+        self._active = True
+
+    def deactivate(self) -> None:
+        """Stop and give up control; the state stays readable."""
         if self._connected and not self._halted and self._mode != "idle":
-            self._begin_stop(self.config.stop_deceleration)  # a closed session stops the arm
+            self._begin_stop(self.config.stop_deceleration)
+        self._active = False
+
+    def close(self) -> None:
+        self.deactivate()  # a closed session stops the arm
         self._connected = False
 
     def state(self) -> ArmState:
@@ -118,14 +132,9 @@ class SimArm:
         self._check_link("servo")
         if not isinstance(command, ServoCommand):
             raise TypeError(f"SimArm.servo expects a ServoCommand; got {type(command).__name__}")
-        if self._emergency_stop:
-            raise DeviceFault("SimArm.servo refused: emergency stop")
-        if self._protective_stop:
-            raise DeviceFault(
-                "SimArm.servo refused: protective stop (unlock_protective_stop() first)"
-            )
-        if self._fault is not None:
-            raise DeviceFault(f"SimArm.servo refused: arm fault {self._fault!r} (reset_fault())")
+        self._refuse_if_halted("servo")
+        if not self._active:
+            raise DeviceError("SimArm.servo refused: the arm is not active (call activate())")
         if command.stop:
             self._begin_stop(self.config.stop_deceleration)
             return
@@ -134,6 +143,7 @@ class SimArm:
         if speed > self.config.tcp_speed_limit:
             V *= self.config.tcp_speed_limit / speed  # direction kept
         self._V_cmd = V
+        self._acceleration = command.acceleration
         self._mode = "speed"
         self._last_servo = self.time
 
@@ -250,6 +260,16 @@ class SimArm:
         self._link_dropped = False
 
     # --- internals ------------------------------------------------------------------------
+    def _refuse_if_halted(self, call: str) -> None:
+        if self._emergency_stop:
+            raise DeviceFault(f"SimArm.{call} refused: emergency stop")
+        if self._protective_stop:
+            raise DeviceFault(
+                f"SimArm.{call} refused: protective stop (unlock_protective_stop() first)"
+            )
+        if self._fault is not None:
+            raise DeviceFault(f"SimArm.{call} refused: arm fault {self._fault!r} (reset_fault())")
+
     def _check_link(self, call: str) -> None:
         if self._link_dropped:
             raise DeviceTimeout(f"SimArm.{call}: no answer from the controller (link dropped)")
@@ -295,10 +315,14 @@ class SimArm:
         cfg = self.config
         if self._mode == "speed":
             delta = self._V_cmd - self._V_ref
+            if self._acceleration is not None:  # speedL's acc: m/s² and the same number in rad/s²
+                linear_acc = angular_acc = self._acceleration
+            else:
+                linear_acc = cfg.tcp_acceleration
+                angular_acc = math.radians(cfg.tcp_angular_acceleration_deg_s2)
             ratio = max(
-                float(np.linalg.norm(delta[:3])) / (cfg.tcp_acceleration * h),
-                float(np.linalg.norm(delta[3:]))
-                / (math.radians(cfg.tcp_angular_acceleration_deg_s2) * h),
+                float(np.linalg.norm(delta[:3])) / (linear_acc * h),
+                float(np.linalg.norm(delta[3:])) / (angular_acc * h),
                 1.0,
             )
             return self._V_ref + delta / ratio

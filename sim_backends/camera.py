@@ -45,6 +45,7 @@ class SimCamera:
         self._clock = clock
         self._seq = 0
         self._connected = False
+        self._streaming = False
 
     @property
     def info(self) -> CameraInfo:
@@ -53,12 +54,21 @@ class SimCamera:
     def connect(self) -> None:
         self._connected = True
 
+    def activate(self) -> None:
+        if not self._connected:
+            raise DeviceError("SimCamera.activate: the camera is not connected (call connect())")
+        self._streaming = True
+
+    def deactivate(self) -> None:
+        self._streaming = False
+
     def close(self) -> None:
+        self._streaming = False
         self._connected = False
 
     def read(self, timeout_s: float = 1.0) -> Frame:
-        if not self._connected:
-            raise DeviceError("SimCamera.read: the camera is not connected (call connect())")
+        if not self._streaming:
+            raise DeviceError("SimCamera.read: the camera is not streaming (call activate())")
         view = self._viewpoint()
         rendering = self._renderer.render(view.X_WC)
         image = expose(

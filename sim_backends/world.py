@@ -131,12 +131,12 @@ class SimWorld:
 
     # --- the loop's World protocol ----------------------------------------------------------
     def start(self, settle_s: float = 1.0, dt: float = 0.01) -> None:
-        """Connect every device and activate the gripper (advancing simulated time)."""
-        self.arm.connect()
-        self.track.connect()
-        self.gripper.connect()
-        self.camera.connect()
-        self.gripper.activate()
+        """Connect and activate every device, the gripper's activation completed (advancing
+        simulated time)."""
+        for device in (self.arm, self.track, self.gripper, self.camera):
+            device.connect()
+        for device in (self.track, self.camera, self.gripper, self.arm):
+            device.activate()
         waited = 0.0
         while not self.gripper.state().activated:
             if waited > settle_s + self.rig.gripper.activation_s:

@@ -37,9 +37,12 @@ def test_sim_camera_is_a_camera_and_frames_carry_truth():
         )
         assert isinstance(camera, Camera)
         assert not isinstance(camera, Arm)
-        with pytest.raises(Exception, match="not connected"):
+        with pytest.raises(Exception, match="not streaming"):
             camera.read()
+        with pytest.raises(Exception, match="not connected"):
+            camera.activate()
         camera.connect()
+        camera.activate()
         first, second = camera.read(), camera.read()
     assert (first.seq, second.seq) == (0, 1) and (first.stamp, second.stamp) == (0, 1)
     assert frame_problem(first) is None

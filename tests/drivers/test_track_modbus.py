@@ -23,6 +23,7 @@ def served_track():
     with ModbusDeviceServer({7: model}) as server:
         track = ModbusTrack.over_tcp("127.0.0.1", server.port, device_id=7, timeout_s=1.0)
         track.connect()
+        track.activate()
         yield model, track, server
         track.close()
 
@@ -151,6 +152,7 @@ def test_modbus_track_served_while_the_world_steps_in_another_thread():
     with ModbusDeviceServer({1: model}) as server:
         track = ModbusTrack.over_tcp("127.0.0.1", server.port, timeout_s=1.0)
         track.connect()
+        track.activate()
         track.move_velocity(0.2)
         stepper = threading.Thread(target=world, daemon=True)
         stepper.start()
@@ -166,3 +168,20 @@ def test_modbus_track_served_while_the_world_steps_in_another_thread():
         assert s.fault is None
         expected = min(0.2, (2 * CONFIG.max_acceleration * s.position) ** 0.5)
         assert s.velocity == pytest.approx(expected, abs=0.003)
+
+
+def test_modbus_track_moves_only_while_active_and_deactivate_removes_power(served_track):
+    model, track, _ = served_track
+    track.deactivate()
+    with pytest.raises(DeviceError, match="not active"):
+        track.move_velocity(0.1)
+    with pytest.raises(DeviceError, match="not active"):
+        track.move_to(0.5, 0.1)
+    track.stop()  # a stop is always accepted
+    track.activate()
+    track.move_velocity(0.1)
+    run(model, track, 0.5)
+    assert track.state().velocity == pytest.approx(0.1, abs=1e-3)
+    track.deactivate()
+    final = run(model, track, 1.0)
+    assert final.velocity == 0.0 and not final.moving

@@ -16,6 +16,7 @@ def make_arm(**changes) -> SimArm:
     config = RIG.arm.model_copy(update=changes) if changes else RIG.arm
     arm = SimArm(config)
     arm.connect()
+    arm.activate()
     return arm
 
 
@@ -229,10 +230,38 @@ def test_sim_arm_requires_connect():
         arm.state()
 
 
+def test_sim_arm_streams_only_while_active_and_stops_on_deactivate():
+    arm = SimArm(RIG.arm)
+    arm.connect()
+    twist = ServoCommand(0.0, np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    with pytest.raises(DeviceError, match="not active"):
+        arm.servo(twist)
+    arm.activate()
+    arm.servo(twist)
+    arm.step(0.08)  # within the 0.1 s watchdog
+    assert np.linalg.norm(arm.state().V_BE[:3]) > 0.05
+    arm.deactivate()
+    arm.step(0.5)
+    assert np.linalg.norm(arm.state().V_BE) < 1e-9  # stopped, and the state is still readable
+    with pytest.raises(DeviceError, match="not active"):
+        arm.servo(twist)
+    arm.inject_protective_stop()
+    with pytest.raises(DeviceFault, match="protective stop"):
+        arm.activate()
+
+
+def test_sim_arm_ramps_at_the_commands_own_acceleration():
+    arm = make_arm()
+    arm.servo(ServoCommand(0.0, np.array([0.2, 0.0, 0.0, 0.0, 0.0, 0.0]), acceleration=0.1))
+    arm.step(0.08)  # within the 0.1 s watchdog; the configured ramp would reach 0.08 m/s
+    assert np.linalg.norm(arm.state().V_BE[:3]) == pytest.approx(0.008, abs=0.001)
+
+
 def test_sim_arm_moves_only_when_stepped_and_stamps_with_injected_clock():
     now = [100.0]
     arm = SimArm(RIG.arm, clock=lambda: now[0])
     arm.connect()
+    arm.activate()
     arm.servo(ServoCommand(0.0, np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.0])))
     q = arm.state().q
     assert np.array_equal(arm.state().q, q)  # no wall-clock motion

@@ -18,6 +18,7 @@ def direct_track(config: TrackConfig = CONFIG) -> tuple[TrackModel, ModbusTrack]
     model = TrackModel(config)
     track = ModbusTrack(DirectLink(model, "track"), clock=lambda: model.time)
     track.connect()
+    track.activate()
     return model, track
 
 

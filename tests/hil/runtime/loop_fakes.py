@@ -49,6 +49,12 @@ class FakeArm:
     def connect(self):
         pass
 
+    def activate(self):
+        pass
+
+    def deactivate(self):
+        pass
+
     def close(self):
         pass
 
@@ -89,6 +95,12 @@ class FakeTrack:
     def connect(self):
         pass
 
+    def activate(self):
+        pass
+
+    def deactivate(self):
+        pass
+
     def close(self):
         pass
 
@@ -120,10 +132,13 @@ class FakeGripper:
     def connect(self):
         pass
 
-    def close(self):
+    def activate(self):
         pass
 
-    def activate(self):
+    def deactivate(self):
+        pass
+
+    def close(self):
         pass
 
     def grip(self):
@@ -179,6 +194,12 @@ class FakeCamera:
         return INFO
 
     def connect(self):
+        pass
+
+    def activate(self):
+        pass
+
+    def deactivate(self):
         pass
 
     def close(self):
