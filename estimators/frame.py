@@ -89,9 +89,13 @@ class GroundTruth:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Frame:
-    """One camera image with its time stamp and intrinsics.
+    """One camera image with its time stamps and intrinsics.
 
-    ``image`` is uint8 HxW (mono) or HxWx3 in BGR order (OpenCV's and depthai's).
+    ``image`` is uint8 HxW (mono) or HxWx3 in BGR order (OpenCV's and depthai's). ``stamp`` is
+    the capture time — the middle of the exposure — on the host's monotonic clock (or the
+    simulation's); ``exposure_s`` the exposure time; ``arrival_stamp`` when the host received
+    the frame (None when the source does not say). The world in the image is the world at
+    ``stamp``: a real camera delivers it 100–130 ms later.
 
     The constructor does not judge the pixels — a driver hands on what the device gave;
     ``frame_problem`` says whether a frame is usable, and consumers must ask it.
@@ -102,6 +106,13 @@ class Frame:
     info: CameraInfo
     seq: int
     truth: GroundTruth | None = field(default=None)
+    exposure_s: float = 0.0
+    arrival_stamp: float | None = None
+
+    @property
+    def latency_s(self) -> float | None:
+        """Capture to arrival (s), when the arrival is known."""
+        return None if self.arrival_stamp is None else self.arrival_stamp - self.stamp
 
 
 def frame_problem(frame: Frame) -> str | None:
