@@ -67,10 +67,11 @@ class Pose:
 
     # --- construction -------------------------------------------------------------------
     @classmethod
-    def _product(cls, R: np.ndarray, p: np.ndarray) -> Pose:
-        """A pose computed from valid poses (product, inverse): already a rigid transform up to
-        rounding, so the checks of ``__post_init__`` are skipped — they dominate the cost of
-        composing poses in the control loop."""
+    def unchecked(cls, R: np.ndarray, p: np.ndarray) -> Pose:
+        """A pose known to be a rigid transform up to rounding — computed from valid poses
+        (product, inverse) or read back from a log that wrote one — so the checks of
+        ``__post_init__`` are skipped: they dominate the cost of composing poses in the control
+        loop and of reading logs."""
         pose = object.__new__(cls)
         R, p = np.array(R, dtype=float), np.array(p, dtype=float)
         R.flags.writeable = False
@@ -129,12 +130,12 @@ class Pose:
     # --- algebra --------------------------------------------------------------------------
     def inverse(self) -> Pose:
         """``X_BA`` from ``X_AB``."""
-        return Pose._product(self.R.T, -self.R.T @ self.p)
+        return Pose.unchecked(self.R.T, -self.R.T @ self.p)
 
     def __matmul__(self, other: Pose) -> Pose:
         if not isinstance(other, Pose):
             return NotImplemented
-        return Pose._product(self.R @ other.R, self.R @ other.p + self.p)
+        return Pose.unchecked(self.R @ other.R, self.R @ other.p + self.p)
 
     def apply(self, points_B: np.ndarray) -> np.ndarray:
         """Map points (N,3) or (3,) expressed in B to A."""

@@ -1,0 +1,54 @@
+"""The vision pipeline beside the control loop: how frames become fused measurements.
+
+Every model is frozen and rejects unknown keys.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import Field
+
+from configuration.base import Strict
+
+#: Tracking time per frame of each system (ms, median on the reference camera), measured with
+#: `satgrasp bench estimate` on the 2-core development machine; what ``--clock sim`` charges.
+BENCH_PROCESSING_MS = {"corners": 27.0, "lines": 42.0, "ellipses": 37.0}
+
+
+class CameraTiming(Strict):
+    """When frames are taken and when they reach the host: ``fps`` frames a second, each
+    delivered ``latency_s`` ± ``jitter_s`` (uniform) after its mid-exposure — a real OAK
+    delivers 100–130 ms late. The simulated camera follows this; a real one is measured."""
+
+    fps: Annotated[float, Field(gt=0.0, le=120.0)] = 15.0
+    latency_s: Annotated[float, Field(ge=0.0, le=2.0)] = 0.12
+    jitter_s: Annotated[float, Field(ge=0.0, le=0.5)] = 0.01
+
+
+class VisionConfig(Strict):
+    """The pipeline: each system takes the newest frame whenever it is free.
+
+    ``fuse_at``: ``capture`` applies a measurement at its frame's capture stamp with the
+    camera-to-carriage pose of that instant (the right way); ``arrival`` applies it when it
+    reaches fusion, with the pose of then — kept to show what the delayed update buys.
+    ``max_frame_age_s``: a result whose frame is older than this when it comes is discarded
+    (no stale frame is acted on). ``processing_ms``: per system, the processing time charged under
+    ``--clock sim`` (a system not listed is charged its ``bench`` figure, or 40 ms); under
+    ``--clock wall`` the real time counts. ``workers``: ``process`` runs each system in a process
+    of its own (pybullet and the estimators hold the GIL); ``inline`` runs them in the vision
+    process one after the other (for comparison in ``satgrasp bench loop``).
+    ``log_frames_every_s``: frames kept in the trial log (0 keeps none).
+    """
+
+    fuse_at: Literal["capture", "arrival"] = "capture"
+    max_frame_age_s: Annotated[float, Field(gt=0.0, le=5.0)] = 0.25
+    processing_ms: dict[str, Annotated[float, Field(ge=0.0, le=10000.0)]] = Field(
+        default_factory=lambda: dict(BENCH_PROCESSING_MS)
+    )
+    workers: Literal["process", "inline"] = "process"
+    log_frames_every_s: Annotated[float, Field(ge=0.0)] = 1.0
+
+    def processing_s(self, system: str) -> float:
+        """Modelled processing time of ``system`` (s)."""
+        return self.processing_ms.get(system, BENCH_PROCESSING_MS.get(system, 40.0)) / 1000.0
