@@ -325,8 +325,8 @@ def test_truncated_logs_open_as_recovered_prefixes_and_recover_to_valid_files(tm
 
 CHILD = """
 import sys, time
-from hil.triallog import TrialLogWriter
-from tests.hil.synthetic_log import make_trial
+from hil.logs.triallog import TrialLogWriter
+from tests.hil.logs.synthetic_log import make_trial
 
 trial = make_trial(seed=5)
 writer = TrialLogWriter(sys.argv[1], trial.header, flush_interval_s=1.0)
