@@ -68,9 +68,12 @@ class GraspConfig(Strict):
 class SupervisorConfig(Strict):
     """Checks run every tick; any failure stops the arm (and the track)."""
 
-    max_estimate_age_s: PositiveM = 0.25
-    max_frame_age_s: PositiveM = 0.3
-    max_tick_s: PositiveM = 0.05
+    #: Ages count from the frame's capture, latency included (see configs/sim.yaml).
+    max_estimate_age_s: PositiveM = 0.4
+    max_frame_age_s: PositiveM = 0.4
+    #: A tick that starts this late, or whose work took this long, stops the arm (3 periods
+    #: at 125 Hz: the arm would have run on its last twist for that long).
+    max_tick_s: PositiveM = 0.024
     workspace_min_B: XYZ = (-1.4, -1.4, -0.2)
     workspace_max_B: XYZ = (1.4, 1.4, 1.6)
     approach_cone_deg: Annotated[float, Field(gt=0.0, lt=90.0)] = 30.0

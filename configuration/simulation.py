@@ -16,6 +16,7 @@ from configuration.approach import ApproachConfig
 from configuration.base import PositiveM, Strict
 from configuration.files import load_config
 from configuration.render import NoiseConfig, RenderConfig
+from configuration.vision import CameraTiming, VisionConfig
 from estimators.fusion import FusionParams
 
 
@@ -43,7 +44,13 @@ class SimulationConfig(Strict):
     systems: list[str] = Field(default_factory=lambda: ["corners", "lines", "ellipses"])
     noise: NoiseConfig = NoiseConfig(preset="low")
     render: RenderConfig = RenderConfig()
-    camera_fps: Annotated[float, Field(gt=0.0, le=120.0)] = 15.0
+    #: How the loop's time passes: ``sim`` steps the world as fast as the machine allows and
+    #: charges vision its modelled time (deterministic: CI, campaigns, the demo); ``wall`` runs
+    #: the simulated world in real time in processes of its own, reached only through the device
+    #: protocols, exactly as a rig would be.
+    clock: Literal["sim", "wall"] = "sim"
+    camera_timing: CameraTiming = CameraTiming()
+    vision: VisionConfig = VisionConfig()
     #: How the track and gripper drivers reach their simulated devices: in-process register
     #: access ("direct") or a real pymodbus server on 127.0.0.1 ("tcp").
     links: Literal["direct", "tcp"] = "direct"
@@ -55,8 +62,6 @@ class SimulationConfig(Strict):
     grasp_capture_deg: Annotated[float, Field(gt=0.0, le=20.0)] = 3.0
     grasp_object_width_m: PositiveM = 0.05
     max_duration_s: PositiveM = 150.0
-    #: Camera frames kept in the trial log (one every this many seconds; 0 keeps none).
-    log_frames_every_s: Annotated[float, Field(ge=0.0)] = 1.0
 
     @field_serializer("fusion")
     def _fusion_as_dict(self, fusion: FusionParams) -> dict:
@@ -84,3 +89,11 @@ class SimulationConfig(Strict):
 def load_simulation(name_or_path: str | Path = "sim") -> SimulationConfig:
     """Load a simulated-trial configuration (``sim`` is ``configs/sim.yaml``)."""
     return load_config(name_or_path, SimulationConfig)
+
+
+def with_overrides(config: SimulationConfig, **changes: object) -> SimulationConfig:
+    """``config`` with top-level fields replaced (None leaves a field as it is), validated
+    again — e.g. ``systems`` or ``noise`` from command-line options."""
+    data = config.model_dump(mode="json")
+    data.update({k: v for k, v in changes.items() if v is not None})
+    return SimulationConfig.model_validate(data)

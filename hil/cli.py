@@ -442,12 +442,19 @@ def bench_loop(
     out.print(f"log: {log_path}")
 
 
-def _simulation(config: str, noise: str | None, systems: str | None, links: str | None):
-    from configuration.simulation import load_simulation
-    from hil.runtime.trial import with_overrides
+def _simulation(
+    config: str,
+    noise: str | None,
+    systems: str | None,
+    links: str | None,
+    clock: str | None = None,
+):
+    from configuration.simulation import load_simulation, with_overrides
 
     if noise is not None:
         _noise_config(noise)
+    if clock is not None and clock not in ("sim", "wall"):
+        raise _fail(f"--clock must be sim or wall; got {clock!r}")
     try:
         sim = load_simulation(config)
         return with_overrides(
@@ -455,6 +462,7 @@ def _simulation(config: str, noise: str | None, systems: str | None, links: str 
             noise={"preset": noise} if noise else None,
             systems=systems.split(",") if systems else None,
             links=links,
+            clock=clock,
         )
     except ValueError as exc:  # ConfigError or a validation error of an override
         raise _fail(str(exc)) from None
@@ -473,6 +481,14 @@ def approach(
     links: Annotated[
         str | None, typer.Option(help="direct | tcp (track and gripper over pymodbus).")
     ] = None,
+    clock: Annotated[
+        str | None,
+        typer.Option(
+            help="sim: stepped as fast as possible with vision time charged (deterministic); "
+            "wall: the simulated world runs in real time in its own processes, like a rig. "
+            "[default: the config's, sim]"
+        ),
+    ] = None,
     log_dir: Annotated[Path, typer.Option(help="Directory for the trial log.")] = Path("runs"),
     report_too: Annotated[
         bool, typer.Option("--report/--no-report", help="Write the report after the trial.")
@@ -485,40 +501,43 @@ def approach(
     from rich.live import Live
 
     from hil.progress import tick_line
-    from hil.runtime.trial import run_sim_trial
+    from hil.runtime.compose import run_trial
 
-    sim = _simulation(config, noise, systems, links)
+    sim = _simulation(config, noise, systems, links, clock)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     log_path = log_dir / f"approach_{sim.noise.preset}_seed{seed}_{stamp}.mcap"
     out.print(
-        f"simulated approach: systems {', '.join(sim.systems)}, noise {sim.noise.preset}, seed {seed}"
+        f"simulated approach: systems {', '.join(sim.systems)}, noise {sim.noise.preset}, "
+        f"seed {seed}, clock {sim.clock}"
     )
     last_shown = [-1.0]
     with Live("", console=console, refresh_per_second=8, transient=False) as live:
 
-        def on_tick(record: dict) -> None:
-            if record["t"] - last_shown[0] >= 0.25 or record["phase"] in ("done", "abort"):
-                last_shown[0] = record["t"]
+        def on_tick(record) -> None:
+            if record.t - last_shown[0] >= 0.25 or record.phase in ("done", "abort"):
+                last_shown[0] = record.t
                 live.update(tick_line(record))
 
         try:
-            result = run_sim_trial(sim, seed=seed, log_path=log_path, on_tick=on_tick)
+            result = run_trial(sim, seed=seed, log_path=log_path, on_tick=on_tick)
         except (ValueError, NotImplementedError) as exc:
             raise _fail(str(exc)) from None
     console.print()  # end the live line
     o = result.outcome
-    verdict = "[bold green]SUCCESS[/]" if o.success else "[bold red]FAILURE[/]"
+    verdict = "[bold green]SUCCESS[/]" if result.success else "[bold red]FAILURE[/]"
+    kind = "simulated" if result.clock == "sim" else "on the wall clock"
     out.print(
-        f"{verdict}: ended in {o.phase} after {o.duration_s:.1f} s simulated ({o.ticks} ticks)"
+        f"{verdict}: ended in {o.phase} after {o.duration_s:.1f} s {kind} ({o.ticks} ticks, "
+        f"{o.deadline_misses} deadline misses)"
     )
     if o.abort_reason:
         out.print(f"abort reason: {o.abort_reason}")
-    if o.standoff_error_m is not None:
+    if result.standoff_error_m is not None:
         import math
 
         out.print(
-            f"true camera error at the stand-off: {1000 * o.standoff_error_m:.2f} mm, "
-            f"{math.degrees(o.standoff_error_rad):.3f}° (success needs ≤ "
+            f"true camera error at the stand-off: {1000 * result.standoff_error_m:.2f} mm, "
+            f"{math.degrees(result.standoff_error_rad):.3f}° (success needs ≤ "
             f"{1000 * sim.approach.standoff.success_position_m:.0f} mm and "
             f"{sim.approach.standoff.success_angle_deg}°)"
         )
@@ -528,7 +547,7 @@ def approach(
 
         index = make_report(log_path, log_path.with_name(log_path.stem + "_report"))
         out.print(f"report: {index}")
-    raise typer.Exit(code=0 if o.success else 1)
+    raise typer.Exit(code=0 if result.success else 1)
 
 
 @app.command()
@@ -654,6 +673,7 @@ def demo(
         seed=1,
         systems=None,
         links=None,
+        clock=None,
         log_dir=out_dir,
         report_too=True,
     )

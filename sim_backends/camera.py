@@ -1,8 +1,15 @@
-"""A simulated camera implementing ``drivers.base.Camera``: renders the scene from a viewpoint
-source, applies the sensor model and stamps frames with an injected clock."""
+"""Simulated cameras implementing ``drivers.base.Camera``.
+
+``SimCamera`` renders the scene from a viewpoint source whenever it is read (a still camera for
+one-off renders and open-loop evaluations). ``StreamingSimCamera`` behaves like a real one: the
+simulated world triggers a capture at the frame rate, and each frame reaches the host ``latency``
+± ``jitter`` after its mid-exposure; ``read`` returns the newest frame that has arrived, and a
+frame superseded before anyone read it is dropped (counted), as with a newest-only device queue.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -10,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from configuration.render import NoiseConfig
-from drivers.base import DeviceError
+from drivers.base import DeviceError, DeviceTimeout
 from estimators.frame import CameraInfo, Frame, GroundTruth
 from estimators.geometry import Pose
 from sim_backends.renderer import PybulletRenderer
@@ -51,6 +58,10 @@ class SimCamera:
     def info(self) -> CameraInfo:
         return self._renderer.info
 
+    @property
+    def streaming(self) -> bool:
+        return self._streaming
+
     def connect(self) -> None:
         self._connected = True
 
@@ -69,6 +80,12 @@ class SimCamera:
     def read(self, timeout_s: float = 1.0) -> Frame:
         if not self._streaming:
             raise DeviceError("SimCamera.read: the camera is not streaming (call activate())")
+        return self.render_frame()
+
+    def render_frame(self, *, stamp: float | None = None, seq: int | None = None) -> Frame:
+        """A frame of the scene as it is now, stamped with the clock (the capture instant) —
+        or with ``stamp`` and ``seq`` given by whoever triggered the capture."""
+        seq = self._seq if seq is None else seq
         view = self._viewpoint()
         rendering = self._renderer.render(view.X_WC)
         image = expose(
@@ -76,15 +93,87 @@ class SimCamera:
             rendering.depth_m,
             self.info.K,
             self._noise,
-            frame_rng(self._seed, self._seq),
+            frame_rng(self._seed, seq),
             view.twist_C,
         )
         frame = Frame(
             image=image,
-            stamp=self._clock(),
+            stamp=self._clock() if stamp is None else stamp,
             info=self.info,
-            seq=self._seq,
+            seq=seq,
             truth=GroundTruth(X_CT=rendering.X_CT, X_WC=rendering.X_WC),
+            exposure_s=self._noise.exposure_s,
         )
-        self._seq += 1
+        self._seq = seq + 1
         return frame
+
+
+class StreamingSimCamera:
+    """A camera that streams: ``capture`` (called by the simulated world at the frame rate)
+    renders the scene as it is at that instant; the frame arrives ``latency_s`` ± ``jitter_s``
+    (uniform, seeded) later on ``clock``. ``read`` returns the newest arrived frame not read
+    before, or raises ``DeviceTimeout`` — it cannot block: simulated time only moves between
+    reads."""
+
+    def __init__(
+        self,
+        camera: SimCamera,
+        *,
+        latency_s: float,
+        jitter_s: float,
+        seed: int,
+        clock: Callable[[], float],
+    ):
+        if latency_s < 0 or jitter_s < 0 or jitter_s > latency_s:
+            raise ValueError(
+                f"camera latency {latency_s} s ± {jitter_s} s: both ≥ 0 and jitter ≤ latency"
+            )
+        self._camera = camera
+        self._latency_s, self._jitter_s = latency_s, jitter_s
+        self._rng = np.random.default_rng([seed, 0x1A7E])  # its own stream, apart from noise
+        self._clock = clock
+        self._in_flight: list[Frame] = []
+        self._last_read_seq = -1
+        self.frames_dropped = 0
+
+    @property
+    def info(self) -> CameraInfo:
+        return self._camera.info
+
+    def connect(self) -> None:
+        self._camera.connect()
+
+    def activate(self) -> None:
+        self._camera.activate()
+
+    def deactivate(self) -> None:
+        self._camera.deactivate()
+        self._in_flight.clear()
+
+    def close(self) -> None:
+        self._camera.close()
+        self._in_flight.clear()
+
+    def capture(self) -> None:
+        """Expose a frame now; it reaches the host after the latency."""
+        if not self._camera.streaming:
+            return
+        frame = self._camera.render_frame()
+        jitter = self._rng.uniform(-self._jitter_s, self._jitter_s) if self._jitter_s else 0.0
+        arrival = frame.stamp + self._latency_s + jitter
+        self._in_flight.append(dataclasses.replace(frame, arrival_stamp=arrival))
+
+    def read(self, timeout_s: float = 1.0) -> Frame:
+        if not self._camera.streaming:
+            raise DeviceError(
+                "StreamingSimCamera.read: the camera is not streaming (call activate())"
+            )
+        now = self._clock()
+        arrived = [f for f in self._in_flight if f.arrival_stamp <= now]
+        if not arrived:
+            raise DeviceTimeout("no new frame has arrived")
+        newest = max(arrived, key=lambda f: f.seq)
+        self._in_flight = [f for f in self._in_flight if f.arrival_stamp > now]
+        self.frames_dropped += sum(f.seq > self._last_read_seq for f in arrived) - 1
+        self._last_read_seq = newest.seq
+        return newest

@@ -1,5 +1,9 @@
 """The simulated rig as one world: arm, track carrying the mock-up, gripper, scene and camera,
-all on one simulated clock and advanced together by the control loop between ticks.
+all on one simulated clock and advanced together (``advance``) between control ticks.
+
+The camera streams like a real one: the world triggers a capture at the frame rate (the image
+shows the scene at that instant) and the frame reaches the host ``timing.latency_s`` ±
+``jitter_s`` later (``sim_backends.camera.StreamingSimCamera``).
 
 The loop reaches these devices only through their protocols and real drivers: the track and
 the gripper are driven by ``ModbusTrack`` and ``RobotiqGripper`` over their register maps —
@@ -20,12 +24,13 @@ from configuration.camera import CameraConfig
 from configuration.mockup import MockupConfig
 from configuration.render import NoiseConfig, RenderConfig
 from configuration.rig import RigConfig
+from configuration.vision import CameraTiming
 from drivers.clock import SimClock
 from drivers.gripper_robotiq import RobotiqGripper
 from drivers.track_modbus import ModbusTrack
 from estimators.geometry import Pose, rotation_error_geodesic, translation_error
 from sim_backends.arm import SimArm
-from sim_backends.camera import SimCamera, Viewpoint
+from sim_backends.camera import SimCamera, StreamingSimCamera, Viewpoint
 from sim_backends.gripper import GripperModel
 from sim_backends.modbus_server import DirectLink, ModbusDeviceServer
 from sim_backends.renderer import PybulletRenderer
@@ -33,38 +38,39 @@ from sim_backends.scene import MockupScene
 from sim_backends.track import TrackModel
 
 
-class SimWorld:
-    """Everything physical in a simulated trial.
+class SimRig:
+    """The simulated devices of the rig — arm, track carrying the mock-up, gripper — on one
+    clock, advanced together, with the camera's capture instants at the frame rate.
 
     ``grasp_X_TC``: where the camera is when the fingers straddle the ring lip; within
     ``capture_position_m`` / ``capture_angle_deg`` of it (a compliant gripper's capture range)
-    the world puts an object of ``object_width`` between the fingers.
+    the world puts an object of ``object_width`` between the fingers. ``on_capture(stamp)`` is
+    called at every frame instant once ``start`` has run (``SimWorld`` renders there; the
+    wall-clock world process asks its camera process to).
     """
 
     def __init__(
         self,
         rig: RigConfig,
-        mockup: MockupConfig,
-        camera: CameraConfig,
         *,
-        noise: NoiseConfig,
-        render: RenderConfig,
-        seed: int,
         grasp_X_TC: Pose,
         start_q: np.ndarray | None = None,
         links: Literal["direct", "tcp"] = "direct",
         capture_position_m: float = 0.01,
         capture_angle_deg: float = 3.0,
         object_width: float = 0.05,
+        timing: CameraTiming | None = None,
+        start_time: float = 0.0,
     ):
-        self.clock = SimClock()
+        self.clock = SimClock(start_time)
+        self.timing = timing or CameraTiming()
+        self._next_capture = math.inf
         self.rig = rig
         self._grasp_X_TC = grasp_X_TC
         self._capture_m = capture_position_m
         self._capture_rad = math.radians(capture_angle_deg)
         self._object_width = object_width
         self._servers: list[ModbusDeviceServer] = []
-        self.scene: MockupScene | None = None
         try:
             self.arm = SimArm(rig.arm, clock=self.clock.now)
             if start_q is not None:
@@ -72,14 +78,12 @@ class SimWorld:
             self.track_model = TrackModel(rig.track)
             self.gripper_model = GripperModel(rig.gripper)
             self.track, self.gripper = self._drivers(links)
-            self.scene = MockupScene(mockup, X_WT=self.track_model.X_WT())
-            self.renderer = PybulletRenderer(self.scene, camera.camera_info(), render)
-            self.camera = SimCamera(
-                self.renderer, self._viewpoint, noise, seed=seed, clock=self.clock.now
-            )
         except Exception:
             self.close()
             raise
+
+    def on_capture(self, stamp: float) -> None:
+        """A frame instant (nothing to do without a camera)."""
 
     def _drivers(self, links: str) -> tuple[ModbusTrack, RobotiqGripper]:
         track_cfg, gripper_cfg = self.rig.track.modbus, self.rig.gripper.modbus
@@ -121,7 +125,8 @@ class SimWorld:
         return track, gripper
 
     # --- what the camera sees -------------------------------------------------------------
-    def _viewpoint(self) -> Viewpoint:
+    def viewpoint(self) -> Viewpoint:
+        """The camera's pose and its twist relative to the target (for motion blur), now."""
         X_WC = self.arm.camera_pose_W()
         # Relative twist for motion blur: the camera's own, minus the carriage's motion seen in C.
         twist = np.array(self.arm.camera_twist_C(), dtype=float)
@@ -129,13 +134,16 @@ class SimWorld:
         twist[:3] -= X_WC.R.T @ carriage_v_W
         return Viewpoint(X_WC, twist)
 
-    # --- the loop's World protocol ----------------------------------------------------------
+    def devices(self) -> tuple:
+        return (self.arm, self.track, self.gripper)
+
+    # --- stepping -------------------------------------------------------------------------
     def start(self, settle_s: float = 1.0, dt: float = 0.01) -> None:
         """Connect and activate every device, the gripper's activation completed (advancing
-        simulated time)."""
-        for device in (self.arm, self.track, self.gripper, self.camera):
+        simulated time); frames are captured from then on."""
+        for device in self.devices():
             device.connect()
-        for device in (self.track, self.camera, self.gripper, self.arm):
+        for device in reversed(self.devices()):
             device.activate()
         waited = 0.0
         while not self.gripper.state().activated:
@@ -143,16 +151,25 @@ class SimWorld:
                 raise RuntimeError("the simulated gripper did not activate")
             self.advance(dt)
             waited += dt
+        self._next_capture = self.clock.now()
 
     def advance(self, dt: float) -> None:
+        """Advance every device by ``dt`` seconds, capturing frames at their instants."""
+        end = self.clock.now() + dt
+        while (now := self.clock.now()) < end - 1e-12:
+            step_to = min(end, self._next_capture)
+            if step_to > now:
+                self._step(step_to - now)
+            if self.clock.now() >= self._next_capture - 1e-12:
+                self.on_capture(self.clock.now())
+                self._next_capture += 1.0 / self.timing.fps
+
+    def _step(self, dt: float) -> None:
         self.arm.step(dt)
         self.track_model.step(dt)
         self.gripper_model.step(dt)
         self.clock.advance(dt)
-        X_WT = self.track_model.X_WT()
-        if self.scene is not None:
-            self.scene.set_pose(X_WT)
-        X_TC = X_WT.inverse() @ self.arm.camera_pose_W()
+        X_TC = self.track_model.X_WT().inverse() @ self.arm.camera_pose_W()
         captured = (
             translation_error(X_TC, self._grasp_X_TC) <= self._capture_m
             and rotation_error_geodesic(X_TC, self._grasp_X_TC) <= self._capture_rad
@@ -170,12 +187,58 @@ class SimWorld:
         for server in self._servers:
             server.stop()
         self._servers.clear()
+
+    def __enter__(self) -> SimRig:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class SimWorld(SimRig):
+    """The simulated rig with its camera: a pybullet scene of the mock-up rendered at every
+    capture instant, each frame reaching the host after the configured latency."""
+
+    def __init__(
+        self,
+        rig: RigConfig,
+        mockup: MockupConfig,
+        camera: CameraConfig,
+        *,
+        noise: NoiseConfig,
+        render: RenderConfig,
+        seed: int,
+        **rig_options,
+    ):
+        self.scene: MockupScene | None = None
+        super().__init__(rig, **rig_options)
+        try:
+            self.scene = MockupScene(mockup, X_WT=self.track_model.X_WT())
+            self.renderer = PybulletRenderer(self.scene, camera.camera_info(), render)
+            self.camera = StreamingSimCamera(
+                SimCamera(self.renderer, self.viewpoint, noise, seed=seed, clock=self.clock.now),
+                latency_s=self.timing.latency_s,
+                jitter_s=self.timing.jitter_s,
+                seed=seed,
+                clock=self.clock.now,
+            )
+        except Exception:
+            self.close()
+            raise
+
+    def devices(self) -> tuple:
+        return (self.arm, self.track, self.gripper, self.camera)
+
+    def on_capture(self, stamp: float) -> None:
+        assert self.scene is not None
+        self.scene.set_pose(self.track_model.X_WT())
+        self.camera.capture()
+
+    def close(self) -> None:
+        super().close()
         if self.scene is not None:
             self.scene.close()
             self.scene = None
 
     def __enter__(self) -> SimWorld:
         return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from configuration.simulation import SimulationConfig
+from configuration.simulation import SimulationConfig, with_overrides
 from hil.analysis.trial_analysis import analyse
 from hil.logs.triallog import TrialLog
-from hil.runtime.trial import run_sim_trial, with_overrides
+from hil.runtime.compose import run_trial
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,7 +86,7 @@ def _run_one(sim: SimulationConfig, seed: int, noise: str, out_dir: Path) -> Tri
     path = trial_log_path(out_dir, noise, seed)
     if path.exists():
         path.unlink()  # a campaign re-run replaces its own logs
-    run_sim_trial(with_overrides(sim, noise={"preset": noise}), seed=seed, log_path=path)
+    run_trial(with_overrides(sim, noise={"preset": noise}), seed=seed, log_path=path)
     return summarize_log(path, seed, noise)
 
 

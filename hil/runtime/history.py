@@ -1,51 +1,119 @@
-"""A short history of stamped poses, interpolated at a past stamp.
+"""Where the camera was when a frame was taken: a short history of the arm's flange pose and
+the track's position, interpolated at a past stamp.
 
-A frame shows the world as it was when it was exposed, not when the loop gets it (a real OAK
-delivers frames ~100 ms late), so the camera pose that goes with a measurement is the arm's
-pose at the frame's stamp: linear in position, slerp in rotation between the two nearest
-samples.
+A frame shows the world as it was when it was exposed, not when the pipeline gets it (a real
+OAK delivers frames 100–130 ms late, and processing adds tens of milliseconds), so the
+camera-to-carriage pose that goes with a measurement is the one at the frame's capture stamp:
+flange position linear and rotation slerped between the two nearest samples, track position
+linear. Without this, the arm's and the track's own motion since the exposure would look like
+target motion to fusion.
 """
 
 from __future__ import annotations
 
-from collections import deque
+import bisect
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from estimators.geometry import Pose
+from hil.runtime.rig import RigGeometry
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class StateSample:
+    """The arm's flange pose and the track's position, each at its own device stamp: what the
+    control loop hands the vision pipeline every tick."""
+
+    arm_stamp: float
+    X_BE: Pose
+    track_stamp: float
+    track_position: float
 
 
 class PoseHistory:
+    """Stamped poses over the last ``horizon_s`` seconds, interpolated at any stamp inside."""
+
     def __init__(self, horizon_s: float = 2.0):
         self.horizon_s = horizon_s
-        self._samples: deque[tuple[float, Pose]] = deque()
+        self._stamps: list[float] = []
+        self._poses: list[Pose] = []
 
     def add(self, stamp: float, pose: Pose) -> None:
-        if self._samples and stamp <= self._samples[-1][0]:
-            if stamp == self._samples[-1][0]:
-                self._samples[-1] = (stamp, pose)
+        if self._stamps and stamp <= self._stamps[-1]:
+            if stamp == self._stamps[-1]:
+                self._poses[-1] = pose
+                return
+            raise ValueError(f"PoseHistory stamps must increase ({stamp} after {self._stamps[-1]})")
+        self._stamps.append(stamp)
+        self._poses.append(pose)
+        old = bisect.bisect_left(self._stamps, stamp - self.horizon_s)
+        if old > 0:
+            del self._stamps[:old], self._poses[:old]
+
+    def at(self, stamp: float, *, extrapolate_s: float = 0.05) -> Pose | None:
+        """The pose at ``stamp``: interpolated inside the history, the newest one up to
+        ``extrapolate_s`` after it; None when older than the history or further ahead."""
+        if not self._stamps or stamp < self._stamps[0]:
+            return None
+        if stamp >= self._stamps[-1]:
+            return self._poses[-1] if stamp - self._stamps[-1] <= extrapolate_s else None
+        i = bisect.bisect_right(self._stamps, stamp)
+        t0, t1 = self._stamps[i - 1], self._stamps[i]
+        X0, X1 = self._poses[i - 1], self._poses[i]
+        s = (stamp - t0) / (t1 - t0)
+        R = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([X0.R, X1.R])))([s]).as_matrix()[0]
+        return Pose(R, (1.0 - s) * X0.p + s * X1.p)
+
+
+class ScalarHistory:
+    """Stamped values over the last ``horizon_s`` seconds, linearly interpolated."""
+
+    def __init__(self, horizon_s: float = 2.0):
+        self.horizon_s = horizon_s
+        self._stamps: list[float] = []
+        self._values: list[float] = []
+
+    def add(self, stamp: float, value: float) -> None:
+        if self._stamps and stamp <= self._stamps[-1]:
+            if stamp == self._stamps[-1]:
+                self._values[-1] = value
                 return
             raise ValueError(
-                f"PoseHistory stamps must increase ({stamp} after {self._samples[-1][0]})"
+                f"ScalarHistory stamps must increase ({stamp} after {self._stamps[-1]})"
             )
-        self._samples.append((stamp, pose))
-        while self._samples and self._samples[0][0] < stamp - self.horizon_s:
-            self._samples.popleft()
+        self._stamps.append(stamp)
+        self._values.append(value)
+        old = bisect.bisect_left(self._stamps, stamp - self.horizon_s)
+        if old > 0:
+            del self._stamps[:old], self._values[:old]
 
-    def at(self, stamp: float) -> Pose | None:
-        """The pose at ``stamp`` (clamped to the newest sample if later; None if older than
-        the history or empty)."""
-        if not self._samples:
+    def at(self, stamp: float, *, extrapolate_s: float = 0.05) -> float | None:
+        if not self._stamps or stamp < self._stamps[0]:
             return None
-        if stamp >= self._samples[-1][0]:
-            return self._samples[-1][1]
-        if stamp < self._samples[0][0]:
+        if stamp >= self._stamps[-1]:
+            return self._values[-1] if stamp - self._stamps[-1] <= extrapolate_s else None
+        return float(np.interp(stamp, self._stamps, self._values))
+
+
+class StateHistory:
+    """The camera-to-carriage pose ``X_CM`` at any recent stamp, from the samples the control
+    loop publishes."""
+
+    def __init__(self, geometry: RigGeometry, horizon_s: float = 2.0):
+        self.geometry = geometry
+        self._X_BE = PoseHistory(horizon_s)
+        self._track = ScalarHistory(horizon_s)
+
+    def add(self, sample: StateSample) -> None:
+        self._X_BE.add(sample.arm_stamp, sample.X_BE)
+        self._track.add(sample.track_stamp, sample.track_position)
+
+    def X_CM_at(self, stamp: float) -> Pose | None:
+        """``X_CM`` at ``stamp``, or None when the history does not cover it."""
+        X_BE = self._X_BE.at(stamp)
+        position = self._track.at(stamp)
+        if X_BE is None or position is None:
             return None
-        for (t0, X0), (t1, X1) in zip(self._samples, list(self._samples)[1:], strict=False):
-            if t0 <= stamp <= t1:
-                s = (stamp - t0) / (t1 - t0)
-                rotations = Rotation.from_matrix(np.stack([X0.R, X1.R]))
-                R = Slerp([0.0, 1.0], rotations)([s]).as_matrix()[0]
-                return Pose(R, (1 - s) * X0.p + s * X1.p)
-        return self._samples[-1][1]
+        return self.geometry.X_CM(X_BE, position)

@@ -1,22 +1,29 @@
-"""The closed loop: one control tick reads the devices, runs vision when a frame is due, fuses,
-lets the sequencer propose and the supervisor dispose, commands, and logs.
+"""The control loop: at the controller's rate, on a monotonic schedule, and never waiting for
+vision.
 
-The loop sees devices only through their protocols (``drivers.base``); simulation differs only
-in the clock (``SimClock``) and a ``World`` that advances the simulated devices between ticks.
-Order within a tick (DESIGN.md's data flow):
+One tick (docs/architecture.md):
 
-1. arm, track and gripper state; 2. a frame if one is due → each estimator with the fused prior
-→ fusion update (with the camera-to-carriage pose at the frame's stamp); 3. fused estimate now;
-4. sequencer step → proposed camera twist, track velocity, gripper action; 5. supervisor check of
-exactly what is about to be sent — any violation stops arm and track in this same tick;
-6. command; 7. log the tick; 8. wait for the next tick (or advance the simulated world).
+1. read the arm, track and gripper states;
+2. hand the arm/track state to the vision pipeline (for ``X_CM`` at each frame's capture) and
+   take its newest fused state, predicted to this tick's time;
+3. the sequencer proposes a camera twist, a track velocity and a gripper action;
+4. the supervisor checks exactly what is about to be sent — any violation stops the arm and the
+   track in this same tick;
+5. command;
+6. log the tick (and the vision results that came in since the last one).
+
+``run`` sleeps until each next deadline (``t0 + k·period``, no drift) on the injected clock. With
+``--clock wall`` that is the monotonic clock and the world runs on its own; with ``--clock sim``
+sleeping steps the simulated world and the vision pipeline to the deadline
+(``hil.runtime.stepped.SteppedClock``). The loop asks neither which it is: devices, vision link,
+clock and the optional ground truth come from the composition root (``hil.runtime.compose``).
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -26,7 +33,6 @@ from configuration.approach import ApproachConfig
 from drivers.base import (
     Arm,
     ArmState,
-    Camera,
     DeviceError,
     Gripper,
     GripperState,
@@ -35,125 +41,113 @@ from drivers.base import (
     TrackState,
 )
 from drivers.clock import Clock
-from estimators.frame import Frame, frame_problem
+from estimators.fusion import TargetEstimate, estimate_from_state
 from estimators.geometry import Pose
-from estimators.measurement import Estimator, Measurement
-from hil.runtime.pose_history import PoseHistory
-from hil.runtime.sequencer import TERMINAL, ApproachSequencer, Phase, SequencerInputs
-from hil.runtime.servo import camera_twist_to_flange, pose_error
+from hil.logs.records import (
+    ArmRecord,
+    CommandRecord,
+    EstimateRecord,
+    GripperRecord,
+    TickRecord,
+    TimingRecord,
+    TrackRecord,
+    TruthRecord,
+    VisionCounters,
+    VisionRecord,
+)
+from hil.runtime.history import StateSample
+from hil.runtime.rig import RigGeometry
+from hil.runtime.sequencer import TERMINAL, ApproachSequencer, SequencerInputs
+from hil.runtime.servo import camera_twist_to_flange
 from hil.runtime.supervisor import SafetySnapshot, Violation, check
+from hil.runtime.vision import LoggedImage, VisionStatus
 
 
-@dataclass(frozen=True, slots=True)
-class RigGeometry:
-    """Fixed geometry of the rig: arm base ``X_WB``, hand-eye ``X_EC``, and the track (its unit
-    axis in W, the carriage pose ``X_WM0`` at position 0, its speed limit)."""
+class VisionLink(Protocol):
+    """The control loop's view of the vision pipeline (in-process or in another process)."""
 
-    X_WB: Pose
-    X_EC: Pose
-    track_axis_W: np.ndarray
-    X_WM0: Pose
-    max_track_speed: float
+    def begin(self, t0: float) -> None: ...
 
-    def X_WM(self, track_position: float) -> Pose:
-        return Pose(self.X_WM0.R, self.X_WM0.p + track_position * self.track_axis_W)
+    def publish_state(self, sample: StateSample) -> None: ...
 
-    def X_WC(self, X_BE: Pose) -> Pose:
-        return self.X_WB @ X_BE @ self.X_EC
+    def latest(self) -> VisionStatus: ...
 
-    def X_CM(self, X_BE: Pose, track_position: float) -> Pose:
-        """Pose of the carriage in the camera — what fusion needs to map X_MT to X_CT."""
-        return self.X_WC(X_BE).inverse() @ self.X_WM(track_position)
+    def drain(self) -> list[VisionRecord | LoggedImage]: ...
 
 
-class World(Protocol):
-    """A simulation the loop advances between ticks (absent on hardware)."""
+class TrialRecorder(Protocol):
+    """Where the loop's records go (``hil.logs.triallog.TrialLogWriter``)."""
 
-    def advance(self, dt: float) -> None: ...
+    def write_tick(self, record: TickRecord) -> bool: ...
 
-    def truth(self) -> Mapping[str, Pose]: ...
+    def write_vision(self, record: VisionRecord) -> bool: ...
 
+    def write_frame(self, t: float, image: np.ndarray, *, encoding: str = ...) -> bool: ...
 
-class TickLog(Protocol):
-    def write_tick(self, record: dict) -> None: ...
-
-    def write_event(self, t: float, kind: str, message: str, **data: Any) -> None: ...
+    def write_event(self, t: float, kind: str, message: str, /, **data: Any) -> bool: ...
 
 
-class NullLog:
-    def write_tick(self, record: dict) -> None:
-        pass
+class NullRecorder:
+    def write_tick(self, record: TickRecord) -> bool:
+        return True
 
-    def write_event(self, t: float, kind: str, message: str, **data: Any) -> None:
-        pass
+    def write_vision(self, record: VisionRecord) -> bool:
+        return True
+
+    def write_frame(self, t: float, image: np.ndarray, *, encoding: str = "jpeg") -> bool:
+        return True
+
+    def write_event(self, t: float, kind: str, message: str, /, **data: Any) -> bool:
+        return True
 
 
 @dataclass(frozen=True, slots=True)
 class TrialOutcome:
-    """How a trial ended. ``standoff_error_*`` is the true camera pose error when the
-    stand-off was declared reached (simulation only; None on hardware or if never reached)."""
+    """How the loop ended: final phase, why it aborted (if it did), duration, ticks, and the
+    tick timing on the wall clock (``period_ms`` percentiles are simulated under --clock sim)."""
 
     phase: str
-    success: bool
+    completed: bool
     abort_reason: str
     duration_s: float
     ticks: int
-    standoff_error_m: float | None
-    standoff_error_rad: float | None
+    deadline_misses: int
 
 
-def _measurement_problem(m: Measurement) -> str | None:
-    """Why a measurement must not be trusted (non-finite numbers), or None."""
-    for name in ("covariance", "center_C", "normal_C", "covariance_5dof"):
-        value = getattr(m, name)
-        if value is not None and not np.all(np.isfinite(value)):
-            return f"{m.system} returned non-finite {name}"
-    if m.X_CT is not None and not (np.all(np.isfinite(m.X_CT.R)) and np.all(np.isfinite(m.X_CT.p))):
-        return f"{m.system} returned a non-finite pose"
-    return None
+def uninitialized(stamp: float) -> TargetEstimate:
+    return TargetEstimate(stamp, None, None, None, "uninitialized")
 
 
 @dataclass
-class ApproachLoop:
+class ControlLoop:
     arm: Arm
     track: Track
     gripper: Gripper
-    camera: Camera
-    estimators: Mapping[str, Estimator]
-    fusion: Any  # estimators.fusion.PoseFusion
+    vision: VisionLink
     geometry: RigGeometry
     config: ApproachConfig
     clock: Clock
-    log: TickLog = field(default_factory=NullLog)
-    world: World | None = None
-    camera_fps: float = 30.0
-    frame_log_period_s: float = 1.0
-    frame_logger: Any = None  # callable(t, image) for decimated frames, optional
+    log: TrialRecorder = field(default_factory=NullRecorder)
+    #: Simulator ground truth at the current time (absent on a rig).
+    truth: Callable[[], TruthRecord | None] | None = None
+    observers: Sequence[Callable[[TickRecord], None]] = ()
 
     def __post_init__(self) -> None:
         self.sequencer = ApproachSequencer(self.config)
-        self._X_BE_history = PoseHistory()
-        self._track_history: list[tuple[float, float]] = []
-        self._next_frame_t = -math.inf
-        self._last_frame_t: float | None = None
-        self._last_logged_frame_t = -math.inf
+        self.period_s = 1.0 / self.config.servo.control_rate_hz
         self._tick = 0
-        self._start_t = 0.0
-        self._standoff_error: tuple[float, float] | None = None
-        self._read_ms = 0.0
-        self._gated = None  # the fusion update of this tick's frame, if any
+        self._t0 = 0.0
+        self._previous_start: float | None = None
+        self._last_work_s = 0.0
+        self._deadline_misses = 0
+        self._faults_seen = 0
 
     # --- helpers ------------------------------------------------------------------------
     def _event(self, t: float, kind: str, message: str, **data: Any) -> None:
-        self.log.write_event(t - self._start_t, kind, message, **data)
+        self.log.write_event(t - self._t0, kind, message, **data)
 
-    def _track_position_at(self, stamp: float, fallback: float) -> float:
-        for t, position in reversed(self._track_history):
-            if t <= stamp:
-                return position
-        return fallback
-
-    def _stop_devices(self, t: float) -> None:
+    def stop_devices(self, t: float) -> None:
+        """Stop the arm and the track (each attempted even if the other fails)."""
         decel = self.config.supervisor.stop_deceleration
         for name, action in (("arm", lambda: self.arm.stop(decel)), ("track", self.track.stop)):
             try:
@@ -161,105 +155,37 @@ class ApproachLoop:
             except DeviceError as exc:
                 self._event(t, "fault", f"{name} stop failed: {exc}")
 
-    # --- vision ---------------------------------------------------------------------------
-    def _vision(
-        self, t: float, arm: ArmState | None, track: TrackState | None, problems: list[Violation]
-    ) -> tuple[list[Measurement], dict[str, float], float]:
-        """Read a frame, run every estimator with the fused prior, update fusion. Returns the
-        measurements, per-estimator times and the fusion time (ms); the time spent waiting for
-        the camera is kept in ``self._read_ms`` (on hardware the camera runs on its own)."""
-        read_start = time.perf_counter()
-        try:
-            frame: Frame = self.camera.read(timeout_s=max(0.05, 2.0 / self.camera_fps))
-        except DeviceError as exc:
-            problems.append(Violation("frames", f"camera read failed: {exc}", True))
-            return [], {}, 0.0
-        finally:
-            self._read_ms = 1000.0 * (time.perf_counter() - read_start)
-        problem = frame_problem(frame)
-        if problem is not None:
-            problems.append(Violation("frames", f"corrupt frame: {problem}", True))
-            return [], {}, 0.0
-        self._last_frame_t = t
-        if (
-            self.frame_logger is not None
-            and t - self._last_logged_frame_t >= self.frame_log_period_s
-        ):
-            self.frame_logger(t - self._start_t, frame.image)
-            self._last_logged_frame_t = t
-        X_BE = self._X_BE_history.at(frame.stamp)
-        if X_BE is None or track is None:
-            problems.append(Violation("frames", "no arm/track state for the frame's stamp", True))
-            return [], {}, 0.0
-        X_CM = self.geometry.X_CM(X_BE, self._track_position_at(frame.stamp, track.position))
-        prior = self.fusion.prior_X_CT(X_CM, frame.stamp)
-        measurements, timings = [], {}
-        for system, estimator in self.estimators.items():
-            start = time.perf_counter()
-            try:
-                m = estimator.estimate(frame, prior)
-            except Exception as exc:  # a bug in vision must stop the arm, not the program
-                problems.append(
-                    Violation("estimator", f"{system} raised {type(exc).__name__}: {exc}", True)
-                )
-                m = Measurement.lost(system, frame, f"raised {type(exc).__name__}")
-            bad = _measurement_problem(m)
-            if bad is not None:
-                problems.append(Violation("estimator", bad, True))
-                m = Measurement.lost(system, frame, bad)
-            timings[system] = 1000.0 * (time.perf_counter() - start)
-            measurements.append(m)
-        start = time.perf_counter()
-        # What fusion made of this frame's measurements (accepted, rejected and why) is only in
-        # the update's answer; a later prediction no longer lists them.
-        self._gated = self.fusion.update(measurements, X_CM, frame.stamp)
-        return measurements, timings, 1000.0 * (time.perf_counter() - start)
-
-    # --- one tick -------------------------------------------------------------------------
-    def tick(self) -> None:
+    # --- one tick -----------------------------------------------------------------------
+    def tick(self, late_s: float = 0.0) -> TickRecord:
+        """One control tick; ``late_s``: how late it started after its deadline."""
         wall_start = time.perf_counter()
         t = self.clock.now()
-        dt = 1.0 / self.config.servo.control_rate_hz
         problems: list[Violation] = []
-        arm_error = None
-        arm: ArmState | None = None
-        try:
-            arm = self.arm.state()
-            self._X_BE_history.add(arm.stamp, arm.X_BE)
-        except DeviceError as exc:
-            arm_error = f"arm state unavailable: {exc}"
-        track: TrackState | None = None
-        track_fault = None
-        try:
-            track = self.track.state()
-            self._track_history.append((track.stamp, track.position))
-            del self._track_history[:-500]
-            track_fault = track.fault
-        except DeviceError as exc:
-            track_fault = f"track state unavailable: {exc}"
-        gripper: GripperState | None = None
-        try:
-            gripper = self.gripper.state()
-        except DeviceError as exc:
-            self._event(t, "fault", f"gripper state unavailable: {exc}")
+        arm, arm_error = self._read(self.arm.state, "arm")
+        track, track_error = self._read(self.track.state, "track")
+        gripper, gripper_error = self._read(self.gripper.state, "gripper")
+        if gripper_error is not None:
+            self._event(t, "fault", gripper_error)
+        if arm is not None and track is not None:
+            self.vision.publish_state(StateSample(arm.stamp, arm.X_BE, track.stamp, track.position))
 
-        measurements: list[Measurement] = []
-        timings: dict[str, float] = {}
-        fusion_ms = 0.0
-        self._read_ms = 0.0
-        self._gated = None
-        if t >= self._next_frame_t and self.sequencer.phase not in TERMINAL:
-            self._next_frame_t = t + 1.0 / self.camera_fps - 1e-9
-            measurements, timings, fusion_ms = self._vision(t, arm, track, problems)
+        status = self.vision.latest()
+        estimate = (
+            uninitialized(t) if status.fusion is None else estimate_from_state(status.fusion, t)
+        )
+        if status.frame_problem is not None:
+            problems.append(Violation("frames", status.frame_problem, True))
+        if status.estimator_faults > self._faults_seen:
+            self._faults_seen = status.estimator_faults
+            problems.append(Violation("estimator", status.estimator_fault or "malfunction", False))
 
-        estimate = self.fusion.estimate(t)
         X_CT_est = X_TC_est = None
         if arm is not None and track is not None and estimate.health == "ok":
             X_CT_est = estimate.X_CT(self.geometry.X_CM(arm.X_BE, track.position))
             X_TC_est = X_CT_est.inverse()
 
-        phase_before = self.sequencer.phase
         X_WC = self.geometry.X_WC(arm.X_BE) if arm is not None else None
+        phase_before = self.sequencer.phase
         output = self.sequencer.step(
             SequencerInputs(
                 stamp=t,
@@ -270,25 +196,23 @@ class ApproachLoop:
                 max_track_speed=self.geometry.max_track_speed,
                 gripper=gripper,
             ),
-            dt,
+            self.period_s,
         )
         V_BE = np.zeros(6)
         if arm is not None:
             V_BE = camera_twist_to_flange(output.camera_twist_C, arm.X_BE, self.geometry.X_EC)
-        frame_age = math.inf if self._last_frame_t is None else t - self._last_frame_t
+        newest_frame = status.newest_frame_stamp
         snapshot = SafetySnapshot(
             stamp=t,
             phase=str(self.sequencer.phase),
             arm=arm,
             arm_error=arm_error,
-            track_fault=track_fault,
+            track_fault=track_error if track_error is not None else track and track.fault,
             estimate_health=estimate.health,
             estimate_age_s=estimate.age_s if estimate.age_s is not None else math.inf,
             X_TC_est=X_TC_est,
-            frame_age_s=frame_age,
-            tick_s=0.0
-            if self.world is not None
-            else time.perf_counter() - wall_start - self._read_ms / 1000,
+            frame_age_s=math.inf if newest_frame is None else t - newest_frame,
+            tick_s=max(late_s, self._last_work_s),
             commanded_V_BE=V_BE,
             commanded_track_velocity=output.track_velocity,
         )
@@ -299,189 +223,194 @@ class ApproachLoop:
             max_track_speed=self.geometry.max_track_speed,
         )
         events = list(output.events)
-        if (
-            self.world is not None
-            and phase_before == Phase.STANDOFF
-            and self.sequencer.phase == Phase.GRASP
-        ):
-            truth = self.world.truth()
-            error = pose_error(truth["X_WT"].inverse() @ truth["X_WC"], self.sequencer.X_TC_goal)
-            self._standoff_error = (error.distance_m, error.angle_rad)
-            events.append(
-                (
-                    "info",
-                    f"stand-off reached; true error {1000 * error.distance_m:.1f} mm, "
-                    f"{math.degrees(error.angle_rad):.2f}°",
-                )
-            )
-
-        command: ServoCommand
-        if violations and self.sequencer.phase not in TERMINAL:
-            self._stop_devices(t)
-            events.extend(self.sequencer.on_violations(violations, t))
-            command = ServoCommand.halt(t, "; ".join(str(v) for v in violations))
-            track_velocity = 0.0
-        elif self.sequencer.phase in TERMINAL:
-            if phase_before not in TERMINAL:
-                self._stop_devices(t)
-            command = ServoCommand.halt(t, self.sequencer.abort_reason or str(self.sequencer.phase))
-            track_velocity = 0.0
-        else:
-            command = ServoCommand(t, V_BE)
-            track_velocity = output.track_velocity
-            try:
-                self.arm.servo(command)
-                self.track.move_velocity(track_velocity)
-                if output.gripper_command == "grip":
-                    self.gripper.grip()
-                elif output.gripper_command == "open":
-                    self.gripper.open()
-            except DeviceError as exc:
-                self._stop_devices(t)
-                events.extend(
-                    self.sequencer.on_violations([Violation("command", str(exc), False)], t)
-                )
-                command = ServoCommand.halt(t, f"command failed: {exc}")
-                track_velocity = 0.0
+        command, track_velocity, gripper_command, more = self._command(
+            t, violations, output, V_BE, phase_before
+        )
+        events.extend(more)
         for kind, message in events:
             self._event(t, kind, message)
-
-        self.log.write_tick(
-            self._record(
-                t,
-                measurements,
-                estimate,
-                X_CT_est,
-                X_TC_est,
-                command,
-                track_velocity,
-                arm,
-                track,
-                gripper,
-                timings,
-                fusion_ms,
-                1000.0 * (time.perf_counter() - wall_start) - self._read_ms,
-            )
-        )
+        self._log_vision()
+        work_s = time.perf_counter() - wall_start
+        record = self._record(
+            t, estimate, X_CT_est, X_TC_est, command, track_velocity, gripper_command,
+            arm, track, gripper, status, late_s, work_s,
+        )  # fmt: skip
+        self.log.write_tick(record)
+        for observer in self.observers:
+            observer(record)
+        self._last_work_s = work_s
         self._tick += 1
+        return record
+
+    def _read(self, read: Callable[[], Any], name: str) -> tuple[Any, str | None]:
+        try:
+            return read(), None
+        except DeviceError as exc:
+            return None, f"{name} state unavailable: {exc}"
+
+    def _command(
+        self,
+        t: float,
+        violations: list[Violation],
+        output: Any,
+        V_BE: np.ndarray,
+        phase_before: str,
+    ) -> tuple[ServoCommand, float, str | None, list[tuple[str, str]]]:
+        """Send what the sequencer proposed, or stop: (command, track velocity, gripper
+        command, events)."""
+        events: list[tuple[str, str]] = []
+        if violations and self.sequencer.phase not in TERMINAL:
+            self.stop_devices(t)
+            events.extend(self.sequencer.on_violations(violations, t))
+            return ServoCommand.halt(t, "; ".join(map(str, violations))), 0.0, None, events
+        if self.sequencer.phase in TERMINAL:
+            if phase_before not in TERMINAL or self._tick == 0:
+                self.stop_devices(t)
+            reason = self.sequencer.abort_reason or str(self.sequencer.phase)
+            return ServoCommand.halt(t, reason), 0.0, None, events
+        command = ServoCommand(t, V_BE)
+        try:
+            self.arm.servo(command)
+            self.track.move_velocity(output.track_velocity)
+            if output.gripper_command == "grip":
+                self.gripper.grip()
+            elif output.gripper_command == "open":
+                self.gripper.open()
+        except DeviceError as exc:
+            self.stop_devices(t)
+            events.extend(self.sequencer.on_violations([Violation("command", str(exc), False)], t))
+            return ServoCommand.halt(t, f"command failed: {exc}"), 0.0, None, events
+        return command, output.track_velocity, output.gripper_command, events
+
+    def _log_vision(self) -> None:
+        for item in self.vision.drain():
+            if isinstance(item, LoggedImage):
+                self.log.write_frame(item.stamp - self._t0, item.image, encoding="jpeg")
+            else:
+                self.log.write_vision(item)
 
     def _record(
         self,
-        t,
-        measurements,
-        estimate,
-        X_CT_est,
-        X_TC_est,
-        command,
-        track_velocity,
-        arm,
-        track,
-        gripper,
-        timings,
-        fusion_ms,
-        tick_ms,
-    ) -> dict:
-        truth = None
-        if self.world is not None:
-            poses = self.world.truth()
-            truth = {name: pose.to_list() for name, pose in poses.items()}
-            truth["X_CT"] = (poses["X_WC"].inverse() @ poses["X_WT"]).to_list()
-        return {
-            "t": t - self._start_t,
-            "tick": self._tick,
-            "phase": str(self.sequencer.phase),
-            "range_m": float(X_TC_est.p[2]) if X_TC_est is not None else None,
-            "measurements": [m.to_dict() for m in measurements],
-            "estimate": {
-                "health": estimate.health,
-                "X_CT": X_CT_est.to_list() if X_CT_est is not None else None,
-                "X_MT": estimate.X_MT.to_list()
-                if getattr(estimate, "X_MT", None) is not None
-                else None,
-                "covariance": np.asarray(estimate.covariance)[:6, :6].tolist()
-                if getattr(estimate, "covariance", None) is not None
-                else None,
-                "accepted": list(self._gated.accepted) if self._gated is not None else [],
-                "rejected": [{"system": s, "reason": r} for s, r in self._gated.rejected]
-                if self._gated is not None
-                else [],
-                "age_s": estimate.age_s,
-            },
-            "command": {
-                "V_BE": command.V_BE.tolist(),
-                "stop": command.stop,
-                "reason": command.reason,
-                "track_velocity": track_velocity,
-            },
-            "arm": None
+        t: float,
+        estimate: TargetEstimate,
+        X_CT_est: Pose | None,
+        X_TC_est: Pose | None,
+        command: ServoCommand,
+        track_velocity: float,
+        gripper_command: str | None,
+        arm: ArmState | None,
+        track: TrackState | None,
+        gripper: GripperState | None,
+        status: VisionStatus,
+        late_s: float,
+        work_s: float,
+    ) -> TickRecord:
+        period = None if self._previous_start is None else t - self._previous_start
+        self._previous_start = t
+        miss = late_s >= 0.5 * self.period_s or work_s > self.period_s
+        self._deadline_misses += miss
+        covariance = estimate.covariance
+        return TickRecord(
+            t=t - self._t0,
+            tick=self._tick,
+            phase=str(self.sequencer.phase),
+            range_m=float(X_TC_est.p[2]) if X_TC_est is not None else None,
+            estimate=EstimateRecord(
+                health=estimate.health,
+                X_CT=X_CT_est,
+                X_MT=estimate.X_MT,
+                V_MT=estimate.V_MT,
+                covariance=None if covariance is None else np.asarray(covariance)[:6, :6],
+                age_s=estimate.age_s if math.isfinite(estimate.age_s) else None,
+                updated_t=None
+                if status.fusion is None or not math.isfinite(status.fusion.stamp)
+                else status.fusion.stamp - self._t0,
+            ),
+            command=CommandRecord(
+                V_BE=command.V_BE,
+                stop=command.stop,
+                reason=command.reason,
+                track_velocity=track_velocity,
+                gripper=gripper_command,
+            ),
+            timing=TimingRecord(
+                period_ms=None if period is None else 1000.0 * period,
+                late_ms=1000.0 * late_s,
+                work_ms=1000.0 * work_s,
+                deadline_miss=bool(miss),
+            ),
+            vision=VisionCounters(
+                frames_received=status.frames_received,
+                frames_processed=status.frames_processed,
+                frames_dropped=status.frames_dropped,
+                results_stale=status.results_stale,
+                newest_frame_t=None
+                if status.newest_frame_stamp is None
+                else status.newest_frame_stamp - self._t0,
+            ),
+            arm=None
             if arm is None
-            else {
-                "q": arm.q.tolist(),
-                "X_BE": arm.X_BE.to_list(),
-                "V_BE": arm.V_BE.tolist(),
-                "protective_stop": arm.protective_stop,
-                "fault": arm.fault_reason,
-            },
-            "track": None
+            else ArmRecord(
+                q=arm.q,
+                X_BE=arm.X_BE,
+                V_BE=arm.V_BE,
+                protective_stop=arm.protective_stop,
+                emergency_stop=arm.emergency_stop,
+                fault=arm.fault,
+                wrench_B=arm.wrench_B,
+            ),
+            track=None
             if track is None
-            else {
-                "position": track.position,
-                "velocity": track.velocity,
-                "fault": track.fault,
-            },
-            "gripper": None
+            else TrackRecord(track.position, track.velocity, track.moving, track.fault),
+            gripper=None
             if gripper is None
-            else {
-                "position": gripper.position,
-                "object_detected": gripper.object_detected,
-            },
-            "truth": truth,
-            # "tick": everything this tick did except waiting for the camera ("camera_read");
-            # in simulation the read includes rendering the frame.
-            "timing_ms": {
-                "estimators": timings,
-                "fusion": fusion_ms,
-                "tick": tick_ms,
-                "camera_read": self._read_ms,
-            },
-        }
+            else GripperRecord(
+                gripper.position,
+                gripper.object_detected,
+                gripper.activated,
+                gripper.moving,
+                gripper.fault,
+            ),
+            truth=None if self.truth is None else self.truth(),
+        )
 
-    # --- the run --------------------------------------------------------------------------
+    # --- the run ------------------------------------------------------------------------
+    def start(self) -> None:
+        """The trial starts now: times are counted from here, the sequencer begins to acquire."""
+        self._t0 = self.clock.now()
+        self.vision.begin(self._t0)
+        self.sequencer.start(self._t0)
+        self._event(self._t0, "phase", "trial started")
+
     def run(self, max_duration_s: float = 180.0) -> TrialOutcome:
-        dt = 1.0 / self.config.servo.control_rate_hz
-        self._start_t = self.clock.now()
-        self.sequencer.start(self._start_t)
-        self._event(self._start_t, "phase", "trial started")
-        next_t = self._start_t
+        """Tick at the control rate until the sequencer ends (or the time limit), then one more
+        tick that records the final state and makes sure everything is stopped."""
+        period = self.period_s
+        self.start()
+        deadline = self._t0
         while self.sequencer.phase not in TERMINAL:
-            if self.clock.now() - self._start_t > max_duration_s:
-                self._stop_devices(self.clock.now())
-                self.sequencer.abort(self.clock.now(), f"trial exceeded {max_duration_s:.0f} s")
-                self._event(self.clock.now(), "abort", self.sequencer.abort_reason)
+            now = self.clock.now()
+            if now - self._t0 > max_duration_s:
+                self.stop_devices(now)
+                self.sequencer.abort(now, f"trial exceeded {max_duration_s:.0f} s")
+                self._event(now, "abort", self.sequencer.abort_reason)
                 break
-            self.tick()
-            next_t += dt
-            if self.world is not None:
-                self.world.advance(dt)
-            else:
-                self.clock.sleep_until(next_t)
-        # One more tick records the terminal state (and makes sure everything is stopped).
+            late = max(0.0, now - deadline)
+            if late >= period:  # a whole period lost: re-phase rather than burst to catch up
+                deadline = now
+            self.tick(late)
+            deadline += period
+            self.clock.sleep_until(deadline)
         self.tick()
-        duration = self.clock.now() - self._start_t
-        success = self.sequencer.phase == Phase.DONE
-        if self._standoff_error is not None:
-            standoff = self.config.standoff
-            success = (
-                success
-                and self._standoff_error[0] <= standoff.success_position_m
-                and self._standoff_error[1] <= math.radians(standoff.success_angle_deg)
-            )
         return TrialOutcome(
             phase=str(self.sequencer.phase),
-            success=success,
+            completed=str(self.sequencer.phase) == "done",
             abort_reason=self.sequencer.abort_reason,
-            duration_s=duration,
+            duration_s=self.clock.now() - self._t0,
             ticks=self._tick,
-            standoff_error_m=None if self._standoff_error is None else self._standoff_error[0],
-            standoff_error_rad=None if self._standoff_error is None else self._standoff_error[1],
+            deadline_misses=self._deadline_misses,
         )
+
+    @property
+    def t0(self) -> float:
+        return self._t0

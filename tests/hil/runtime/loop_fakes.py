@@ -1,5 +1,6 @@
-"""Fast stand-ins for the devices, the world and fusion, to test the loop's logic and fault paths
-without rendering. The real simulated rig is tested in its own modules and end to end."""
+"""Fast stand-ins for the devices, the world and the estimators, to test the loop's logic and
+fault paths without rendering. The real simulated rig is tested in its own modules and end to
+end."""
 
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ from drivers.clock import SimClock
 from estimators.frame import CameraInfo, Frame, GroundTruth
 from estimators.geometry import Pose, intrinsics_from_fov, look_at
 from estimators.measurement import Measurement
-from hil.runtime.loop import RigGeometry
+from hil.runtime.rig import RigGeometry
+from sim_backends.camera import StreamingSimCamera
 
 INFO = CameraInfo(64, 48, intrinsics_from_fov(64, 48, 70.0), np.zeros(0), "tiny")
 AXIS_W = np.array([1.0, 0.0, 0.0])
@@ -163,31 +165,14 @@ class FakeGripper:
         return GripperState(t, True, 0.0, False, False)
 
 
-class FakeWorld:
-    """Advances the fakes and the clock; knows the truth."""
+class FakeStillCamera:
+    """Draws a blank frame carrying the truth of the moment (what ``StreamingSimCamera`` wraps)."""
 
-    def __init__(self, clock, arm, track, geometry, X_MT: Pose | None = None):
-        self.clock, self.arm, self.track, self.geometry = clock, arm, track, geometry
-        self.X_MT = X_MT or Pose.identity()
-
-    def advance(self, dt: float) -> None:
-        self.arm.advance(dt)
-        self.track.advance(dt)
-        self.clock.advance(dt)
-
-    def truth(self) -> dict[str, Pose]:
-        return {
-            "X_WT": self.geometry.X_WM(self.track.position) @ self.X_MT,
-            "X_WC": self.geometry.X_WC(self.arm.X_BE),
-        }
-
-
-@dataclass
-class FakeCamera:
-    world: FakeWorld
-    seq: int = 0
-    stopped: bool = False
-    corrupt_next: bool = False
+    def __init__(self, world: FakeWorld):
+        self.world = world
+        self.seq = 0
+        self.streaming = False
+        self.corrupt_next = False
 
     @property
     def info(self) -> CameraInfo:
@@ -197,17 +182,15 @@ class FakeCamera:
         pass
 
     def activate(self):
-        pass
+        self.streaming = True
 
     def deactivate(self):
-        pass
+        self.streaming = False
 
     def close(self):
-        pass
+        self.streaming = False
 
-    def read(self, timeout_s: float = 1.0) -> Frame:
-        if self.stopped:
-            raise DeviceTimeout("no frame")
+    def render_frame(self) -> Frame:
         truth = self.world.truth()
         X_CT = truth["X_WC"].inverse() @ truth["X_WT"]
         image = np.zeros((48, 64), np.uint8)
@@ -219,6 +202,45 @@ class FakeCamera:
         )
         self.seq += 1
         return frame
+
+
+class FakeWorld:
+    """Advances the fakes and the clock, captures frames at ``fps`` that arrive ``latency_s``
+    later; knows the truth."""
+
+    def __init__(
+        self, clock, arm, track, geometry, X_MT: Pose | None = None, fps=15.0, latency_s=0.12
+    ):
+        self.clock, self.arm, self.track, self.geometry = clock, arm, track, geometry
+        self.X_MT = X_MT or Pose.identity()
+        self.still = FakeStillCamera(self)
+        self.camera = StreamingSimCamera(
+            self.still, latency_s=latency_s, jitter_s=0.0, seed=0, clock=clock.now
+        )
+        self.camera.connect()
+        self.camera.activate()
+        self.frames_stopped = False
+        self._period = 1.0 / fps
+        self._next_capture = clock.now()
+
+    def advance(self, dt: float) -> None:
+        end = self.clock.now() + dt
+        while (now := self.clock.now()) < end - 1e-12:
+            step = min(end, self._next_capture) - now
+            if step > 0:
+                self.arm.advance(step)
+                self.track.advance(step)
+                self.clock.advance(step)
+            if self.clock.now() >= self._next_capture - 1e-12:
+                if not self.frames_stopped:
+                    self.camera.capture()
+                self._next_capture += self._period
+
+    def truth(self) -> dict[str, Pose]:
+        return {
+            "X_WT": self.geometry.X_WM(self.track.position) @ self.X_MT,
+            "X_WC": self.geometry.X_WC(self.arm.X_BE),
+        }
 
 
 class TruthEstimator:
@@ -253,50 +275,6 @@ class TruthEstimator:
                 m.X_CT, "p", np.array([np.nan, 0.0, 1.0])
             )  # bypass validation on purpose
         return m
-
-
-@dataclass(frozen=True)
-class FakeEstimate:
-    stamp: float
-    X_MT: Pose | None
-    health: str
-    age_s: float | None
-    accepted: tuple = ()
-    rejected: tuple = ()
-    covariance: np.ndarray | None = None
-
-    def X_CT(self, X_CM: Pose) -> Pose:
-        return X_CM @ self.X_MT
-
-
-class FakeFusion:
-    """Averages nothing: keeps the newest valid 6-DOF measurement, mapped into M."""
-
-    def __init__(self, coast_s: float = 0.2, lost_s: float = 1.0):
-        self.X_MT = None
-        self.last = None
-        self.coast_s, self.lost_s = coast_s, lost_s
-        self.accepted = ()
-
-    def update(self, measurements, X_CM, stamp):
-        self.accepted = ()
-        for m in measurements:
-            if m.valid and m.X_CT is not None:
-                self.X_MT = X_CM.inverse() @ m.X_CT
-                self.last = stamp
-                self.accepted = (*self.accepted, m.system)
-        return self.estimate(stamp)
-
-    def estimate(self, stamp):
-        if self.last is None:
-            return FakeEstimate(stamp, None, "uninitialized", None)
-        age = stamp - self.last
-        health = "ok" if age <= self.coast_s else "coasting" if age <= self.lost_s else "lost"
-        return FakeEstimate(stamp, self.X_MT, health, age, self.accepted)
-
-    def prior_X_CT(self, X_CM, stamp):
-        e = self.estimate(stamp)
-        return None if e.health in ("uninitialized", "lost") else e.X_CT(X_CM)
 
 
 def start_X_BE(

@@ -1,0 +1,43 @@
+"""The fixed geometry of the rig, from its configuration: where the arm stands, where the camera
+sits on the flange, and how the track carries the mock-up."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from configuration.rig import RigConfig
+from estimators.geometry import Pose
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class RigGeometry:
+    """Arm base ``X_WB``, hand-eye ``X_EC``, and the track: its unit axis in W, the carriage pose
+    ``X_WM0`` at position 0, its speed limit (m/s)."""
+
+    X_WB: Pose
+    X_EC: Pose
+    track_axis_W: np.ndarray
+    X_WM0: Pose
+    max_track_speed: float
+
+    @staticmethod
+    def of(rig: RigConfig) -> RigGeometry:
+        return RigGeometry(
+            X_WB=rig.arm.X_WB.pose,
+            X_EC=rig.arm.X_EC.pose,
+            track_axis_W=rig.track.axis_unit_W,
+            X_WM0=rig.track.X_WM0.pose,
+            max_track_speed=rig.track.max_speed,
+        )
+
+    def X_WM(self, track_position: float) -> Pose:
+        return Pose(self.X_WM0.R, self.X_WM0.p + track_position * self.track_axis_W)
+
+    def X_WC(self, X_BE: Pose) -> Pose:
+        return self.X_WB @ X_BE @ self.X_EC
+
+    def X_CM(self, X_BE: Pose, track_position: float) -> Pose:
+        """Pose of the carriage in the camera — what fusion needs to map X_MT to X_CT."""
+        return self.X_WC(X_BE).inverse() @ self.X_WM(track_position)

@@ -1,0 +1,245 @@
+"""The vision pipeline beside the control loop: newest frames in, fused estimates out.
+
+Data flow of one frame (docs/architecture.md):
+
+1. ``on_frame``: the camera hands over its newest frame (capture stamp = mid-exposure). A frame
+   that is replaced before any estimator took it is dropped and counted.
+2. ``step``: every system whose worker is free takes the newest frame it has not processed yet,
+   with fusion's prior *at the frame's capture stamp* and the camera-to-carriage pose of that
+   instant — so the three systems run concurrently, each as fast as it can, on the newest data.
+3. When a result comes back, fusion applies it at the frame's capture stamp with ``X_CM`` of that
+   instant (``PoseFusion`` re-filters when results arrive out of capture order) — unless the
+   frame is older than ``max_frame_age_s`` by then: a stale result is discarded, never acted on.
+4. ``latest``: the filter's newest state (``FusionState``) and the pipeline's counters; the control
+   loop predicts that state to its own tick time. It never waits for any of this.
+
+The same object runs in both clocks. Under ``--clock sim`` it is stepped between control ticks
+with ``InlineWorkers`` that charge each system a modelled processing time (deterministic); under
+``--clock wall`` it runs in a process of its own with ``ProcessWorkers`` (``hil.runtime.wall``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from configuration.vision import VisionConfig
+from estimators.frame import Frame, frame_problem
+from estimators.fusion import FusionState, PoseFusion
+from estimators.measurement import Measurement
+from hil.logs.records import VisionOutcome, VisionRecord
+from hil.runtime.history import StateHistory, StateSample
+from hil.runtime.workers import VisionJob, VisionResult, Workers
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class VisionStatus:
+    """What the control loop takes from the vision side at a tick.
+
+    ``fusion``: the filter's newest state (None before the first measurement); the loop predicts
+    it to its own time with ``estimators.fusion.estimate_from_state``. ``newest_frame_stamp``:
+    capture stamp of the newest usable frame received; ``frame_problem``: why the newest frame
+    was unusable, if it was. ``estimator_faults`` counts estimator malfunctions (an exception,
+    non-finite output) and ``estimator_fault`` names the latest: the supervisor stops on a new one.
+    """
+
+    fusion: FusionState | None
+    frames_received: int = 0
+    frames_processed: int = 0
+    frames_dropped: int = 0
+    results_stale: int = 0
+    newest_frame_stamp: float | None = None
+    frame_problem: str | None = None
+    estimator_faults: int = 0
+    estimator_fault: str | None = None
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class LoggedImage:
+    """A frame the trial log keeps (one every ``log_frames_every_s``)."""
+
+    stamp: float
+    image: np.ndarray
+
+
+class VisionPipeline:
+    """Frames → estimators (each on the newest frame it can take) → fusion at capture time.
+
+    ``t0`` is the trial's start on the same clock as the stamps: records carry times since it.
+    """
+
+    def __init__(
+        self,
+        *,
+        systems: Sequence[str],
+        fusion: PoseFusion,
+        history: StateHistory,
+        workers: Workers,
+        config: VisionConfig,
+        t0: float = 0.0,
+    ):
+        self.systems = tuple(systems)
+        self.fusion = fusion
+        self.history = history
+        self.workers = workers
+        self.config = config
+        self.t0 = t0
+        self._newest: Frame | None = None
+        self._newest_taken = False
+        self._last_seq: dict[str, int] = {s: -1 for s in self.systems}
+        self._received = self._processed = self._dropped = self._stale = 0
+        self._frame_problem: str | None = None
+        self._faults = 0
+        self._fault: str | None = None
+        self._records: list[VisionRecord | LoggedImage] = []
+        self._last_logged_image = -math.inf
+        self._status: VisionStatus | None = None
+
+    # --- inputs ---------------------------------------------------------------------------
+    def begin(self, t0: float) -> None:
+        """The trial starts at ``t0``: records are timed from it."""
+        self.t0 = t0
+
+    def publish_state(self, sample: StateSample) -> None:
+        """The arm's and the track's state at a control tick (for ``X_CM`` at capture)."""
+        self.history.add(sample)
+
+    def on_frame(self, frame: Frame, now: float) -> None:
+        """The camera's newest frame. An unusable one is counted and named, never processed."""
+        self._status = None
+        problem = frame_problem(frame)
+        if problem is not None:
+            self._frame_problem = f"corrupt frame {frame.seq}: {problem}"
+            return
+        self._frame_problem = None
+        if self._newest is not None and frame.seq <= self._newest.seq:
+            return  # the camera handed the same frame twice: nothing new
+        if self._newest is not None and not self._newest_taken:
+            self._dropped += 1
+        self._newest, self._newest_taken = frame, False
+        self._received += 1
+        log_every = self.config.log_frames_every_s
+        if log_every > 0 and frame.stamp - self._last_logged_image >= log_every:
+            self._records.append(LoggedImage(frame.stamp, frame.image))
+            self._last_logged_image = frame.stamp
+
+    def step(self, now: float) -> None:
+        """Fuse the results that are done by ``now``, then hand the newest frame to every free
+        system that has not seen it."""
+        for result in self.workers.finished(now):
+            self._ingest(result, now)
+        frame = self._newest
+        if frame is None:
+            return
+        for system in self.workers.idle():
+            if frame.seq <= self._last_seq[system]:
+                continue
+            # A frame that would be stale before the system is done with it is not worth taking.
+            if now - frame.stamp + self.config.processing_s(system) > self.config.max_frame_age_s:
+                continue
+            X_CM = self.history.X_CM_at(frame.stamp)
+            prior = self.fusion.prior_X_CT(X_CM, frame.stamp) if X_CM is not None else None
+            self.workers.start(VisionJob(system, frame, prior, now))
+            self._last_seq[system] = frame.seq
+            if not self._newest_taken:
+                self._newest_taken = True
+                self._processed += 1
+            self._status = None
+
+    # --- outputs --------------------------------------------------------------------------
+    def latest(self) -> VisionStatus:
+        if self._status is None:
+            self._status = VisionStatus(
+                fusion=self.fusion.state(),
+                frames_received=self._received,
+                frames_processed=self._processed,
+                frames_dropped=self._dropped,
+                results_stale=self._stale,
+                newest_frame_stamp=None if self._newest is None else self._newest.stamp,
+                frame_problem=self._frame_problem,
+                estimator_faults=self._faults,
+                estimator_fault=self._fault,
+            )
+        return self._status
+
+    def drain(self) -> list[VisionRecord | LoggedImage]:
+        """The records (and images to keep) since the last call, for the trial log."""
+        records, self._records = self._records, []
+        return records
+
+    def close(self) -> None:
+        self.workers.close()
+
+    # --- internals ------------------------------------------------------------------------
+    def _ingest(self, result: VisionResult, now: float) -> None:
+        self._status = None
+        job, m = result.job, result.measurement
+        capture = job.frame.stamp
+        if result.error is not None:
+            self._faults += 1
+            self._fault = result.error
+        outcome: VisionOutcome
+        fused_at = None
+        if now - capture > self.config.max_frame_age_s:
+            self._stale += 1
+            outcome = "stale"
+            reason = (
+                f"frame {1000 * (now - capture):.0f} ms old when the result came "
+                f"(max_frame_age_s {self.config.max_frame_age_s})"
+            )
+        else:
+            outcome, reason, fused_at = self._fuse(m, capture, now)
+        truth = job.frame.truth
+        self._records.append(
+            VisionRecord(
+                t=now - self.t0,
+                system=job.system,
+                seq=job.frame.seq,
+                capture_t=capture - self.t0,
+                arrival_t=None
+                if job.frame.arrival_stamp is None
+                else job.frame.arrival_stamp - self.t0,
+                started_t=job.started - self.t0,
+                finished_t=result.finished - self.t0,
+                outcome=outcome,
+                measurement=m,
+                reason=reason,
+                fused_at_t=None if fused_at is None else fused_at - self.t0,
+                processing_ms=1000.0 * result.processing_s,
+                truth_X_CT=None if truth is None else truth.X_CT,
+            )
+        )
+
+    def _fuse(
+        self, m: Measurement, capture: float, now: float
+    ) -> tuple[VisionOutcome, str, float | None]:
+        """Apply ``m`` at its capture stamp (or, for comparison, at ``now``): outcome, reason,
+        and the stamp it was applied at."""
+        stamp = capture if self.config.fuse_at == "capture" else now
+        X_CM = self.history.X_CM_at(stamp)
+        if X_CM is None:
+            return "rejected", "no arm/track state at the stamp it would be applied at", None
+        if stamp != m.stamp:
+            m = dataclasses.replace(m, stamp=stamp)
+        estimate = self.fusion.update([m], X_CM, stamp)
+        if m.system in estimate.accepted:
+            return "accepted", "", stamp
+        for system, why in estimate.rejected:
+            if system == m.system:
+                return "rejected", why, stamp
+        for system, why in estimate.not_measured:
+            if system == m.system:
+                return "not_measured", why, stamp
+        return "rejected", "fusion did not use it", stamp
+
+
+def drain_images(items: Iterable[VisionRecord | LoggedImage]) -> tuple[list, list]:
+    """Split drained items into (vision records, images)."""
+    records, images = [], []
+    for item in items:
+        (images if isinstance(item, LoggedImage) else records).append(item)
+    return records, images

@@ -1,0 +1,257 @@
+"""Who runs the estimators for the vision pipeline: one worker per system, each busy with at most
+one frame at a time.
+
+``InlineWorkers`` (``--clock sim``) runs an estimator as soon as its job starts and hands the
+result over only once the modelled processing time has passed on the simulated clock — the
+control loop sees results as late as the rig would, and the run is deterministic.
+``ProcessWorkers`` (``--clock wall``) runs each system in a process of its own: the estimators
+are Python and NumPy and hold the GIL for much of their time, so threads would take turns on
+one core where processes use both (``satgrasp bench loop`` measures the difference).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing as mp
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from typing import Protocol
+
+import numpy as np
+
+from estimators.frame import CameraInfo, Frame
+from estimators.geometry import Pose
+from estimators.measurement import Estimator, Measurement
+from estimators.registry import build_estimator
+from estimators.target import TargetModel
+from hil.runtime.processes import peak_rss_mib, stop_process
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class VisionJob:
+    """A frame for one system, with fusion's prior at the frame's capture stamp."""
+
+    system: str
+    frame: Frame
+    prior_X_CT: Pose | None
+    started: float
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class VisionResult:
+    """A finished job: the measurement, when it was done and how long it took (modelled under
+    ``--clock sim``, measured under ``--clock wall``). ``error`` says how the estimator
+    malfunctioned (it raised, or returned non-finite numbers); the measurement is then ``lost``."""
+
+    job: VisionJob
+    measurement: Measurement
+    finished: float
+    processing_s: float
+    error: str | None = None
+
+
+class Workers(Protocol):
+    def idle(self) -> list[str]: ...
+
+    def start(self, job: VisionJob) -> None: ...
+
+    def finished(self, now: float) -> list[VisionResult]: ...
+
+    def close(self) -> None: ...
+
+
+def measurement_problem(m: Measurement) -> str | None:
+    """Why a measurement must not be trusted (non-finite numbers), or None."""
+    for name in ("covariance", "center_C", "normal_C", "covariance_5dof"):
+        value = getattr(m, name)
+        if value is not None and not np.all(np.isfinite(value)):
+            return f"{m.system} returned non-finite {name}"
+    if m.X_CT is not None and not (np.all(np.isfinite(m.X_CT.R)) and np.all(np.isfinite(m.X_CT.p))):
+        return f"{m.system} returned a non-finite pose"
+    return None
+
+
+def run_estimator(
+    estimator: Estimator, frame: Frame, prior: Pose | None
+) -> tuple[Measurement, str | None]:
+    """``estimator`` on ``frame``, and how it malfunctioned (None when it did not): a bug in
+    vision becomes a ``lost`` measurement that says so, never an exception in the pipeline."""
+    system = getattr(estimator, "system", "?")
+    try:
+        m = estimator.estimate(frame, prior)
+    except Exception as exc:
+        error = f"{system} raised {type(exc).__name__}: {exc}"
+        return Measurement.lost(system, frame, error), error
+    error = measurement_problem(m)
+    if error is not None:
+        return Measurement.lost(system, frame, error), error
+    return m, None
+
+
+class InlineWorkers:
+    """Estimators run in this process, one after the other. Each result is released
+    ``processing_s(system)`` after its job started on the caller's clock (``--clock sim``), or,
+    with ``processing_s`` None, as soon as the estimator returns, on ``clock`` (on the wall
+    clock: the serial pipeline that ``satgrasp bench loop`` compares with ``ProcessWorkers``)."""
+
+    def __init__(
+        self,
+        estimators: Mapping[str, Estimator],
+        processing_s: Callable[[str], float] | None,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        #: The estimator of each system (replaceable, e.g. to inject a fault).
+        self.estimators = dict(estimators)
+        self._processing_s = processing_s
+        self._clock = clock
+        self._busy: dict[str, VisionResult] = {}
+
+    def idle(self) -> list[str]:
+        return [s for s in self.estimators if s not in self._busy]
+
+    def start(self, job: VisionJob) -> None:
+        if job.system in self._busy:
+            raise RuntimeError(f"the {job.system} worker is busy")
+        started = time.perf_counter()
+        m, error = run_estimator(self.estimators[job.system], job.frame, job.prior_X_CT)
+        if self._processing_s is None:
+            result = VisionResult(job, m, self._clock(), time.perf_counter() - started, error)
+        else:
+            duration = self._processing_s(job.system)
+            result = VisionResult(job, m, job.started + duration, duration, error)
+        self._busy[job.system] = result
+
+    def finished(self, now: float) -> list[VisionResult]:
+        done = sorted(
+            (r for r in self._busy.values() if r.finished <= now + 1e-12),
+            key=lambda r: (r.finished, r.job.system),
+        )
+        for r in done:
+            del self._busy[r.job.system]
+        return done
+
+    def close(self) -> None:
+        self._busy.clear()
+
+
+# --- one process per system ------------------------------------------------------------------
+
+
+def _worker_main(
+    system: str, target: TargetModel, info: CameraInfo, jobs: Connection, ready: Connection
+) -> None:
+    """A worker process: build the estimator once, then answer jobs until told to stop."""
+    import cv2
+
+    cv2.setNumThreads(1)  # one core per worker: the workers themselves are the parallelism
+    try:
+        estimator = build_estimator(system, target, info)
+    except Exception as exc:
+        ready.send(f"{type(exc).__name__}: {exc}")
+        return
+    ready.send("ready")
+    while True:
+        try:
+            message = jobs.recv()
+        except (EOFError, OSError):
+            return
+        if message is None:
+            return
+        frame, prior = message
+        started = time.perf_counter()
+        m, error = run_estimator(estimator, frame, prior)
+        jobs.send((m, time.perf_counter() - started, error))
+
+
+class ProcessWorkers:
+    """One process per system (``spawn`` start method: safe beside threads and pybullet)."""
+
+    def __init__(
+        self,
+        systems: Sequence[str],
+        target: TargetModel,
+        info: CameraInfo,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        start_timeout_s: float = 60.0,
+    ) -> None:
+        context = mp.get_context("spawn")
+        self._clock = clock
+        self._connections: dict[str, Connection] = {}
+        self._processes: dict[str, mp.process.BaseProcess] = {}
+        self._busy: dict[str, VisionJob] = {}
+        try:
+            readies = {}
+            for system in systems:
+                ours, theirs = context.Pipe()
+                ready_ours, ready_theirs = context.Pipe(duplex=False)
+                process = context.Process(
+                    target=_worker_main,
+                    args=(system, target, info, theirs, ready_theirs),
+                    name=f"satgrasp-{system}",
+                    daemon=True,
+                )
+                process.start()
+                theirs.close()
+                ready_theirs.close()
+                self._connections[system], self._processes[system] = ours, process
+                readies[system] = ready_ours
+            for system, ready in readies.items():
+                if not ready.poll(start_timeout_s):
+                    raise RuntimeError(f"the {system} worker did not start in {start_timeout_s} s")
+                answer = ready.recv()
+                if answer != "ready":
+                    raise RuntimeError(f"the {system} worker failed to start: {answer}")
+        except BaseException:
+            self.close()
+            raise
+
+    def idle(self) -> list[str]:
+        return [s for s in self._connections if s not in self._busy]
+
+    def start(self, job: VisionJob) -> None:
+        if job.system in self._busy:
+            raise RuntimeError(f"the {job.system} worker is busy")
+        self._connections[job.system].send((job.frame, job.prior_X_CT))
+        self._busy[job.system] = job
+
+    def finished(self, now: float) -> list[VisionResult]:
+        done = []
+        for system, job in list(self._busy.items()):
+            connection = self._connections[system]
+            try:
+                if not connection.poll(0):
+                    if not self._processes[system].is_alive():
+                        raise EOFError
+                    continue
+                m, seconds, error = connection.recv()
+            except (EOFError, OSError):
+                error = f"the {system} worker process died"
+                m = Measurement.lost(system, job.frame, error)
+                seconds = now - job.started
+            del self._busy[system]
+            done.append(VisionResult(job, m, self._clock(), seconds, error))
+        return done
+
+    def peak_rss_mib(self) -> dict[str, float]:
+        """Peak resident memory of each worker process (MiB)."""
+        return {s: peak_rss_mib(p.pid) for s, p in self._processes.items() if p.is_alive()}
+
+    def connections(self) -> list[Connection]:
+        """The busy workers' connections (to wait on)."""
+        return [self._connections[s] for s in self._busy]
+
+    def close(self) -> None:
+        for connection in self._connections.values():
+            with contextlib.suppress(OSError, ValueError):
+                connection.send(None)
+        for process in self._processes.values():
+            stop_process(process, timeout_s=2.0)
+        for connection in self._connections.values():
+            connection.close()
+        self._connections.clear()
+        self._processes.clear()
+        self._busy.clear()

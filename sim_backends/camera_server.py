@@ -1,0 +1,74 @@
+"""``--clock wall``: the simulated camera in a process of its own (pybullet holds the GIL while it
+renders, so it must not share a process with the control loop or the physics).
+
+It renders each ``RenderRequest`` from the world process — the scene as it was at the frame's
+capture instant — applies the sensor model, waits until the frame's delivery time (capture +
+latency ± jitter, as a real OAK delivers 100–130 ms late) and sends the ``Frame`` to its
+consumer. When rendering falls behind the frame rate it renders only the newest request: the
+frames in between are dropped, as a real camera's newest-only queue would drop them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import time
+from multiprocessing.connection import Connection
+
+import numpy as np
+
+from configuration.camera import CameraConfig
+from configuration.mockup import MockupConfig
+from configuration.render import NoiseConfig, RenderConfig
+from configuration.vision import CameraTiming
+from sim_backends.camera import SimCamera, Viewpoint
+from sim_backends.renderer import PybulletRenderer
+from sim_backends.scene import MockupScene
+from sim_backends.world_server import RenderRequest
+
+
+def camera_main(
+    mockup: MockupConfig,
+    camera: CameraConfig,
+    noise: NoiseConfig,
+    render: RenderConfig,
+    timing: CameraTiming,
+    seed: int,
+    requests: Connection,
+    frames: Connection,
+    ready: Connection,
+) -> None:
+    """The camera process: render requests in, frames out (each at its delivery time)."""
+    with contextlib.suppress(KeyboardInterrupt), MockupScene(mockup) as scene:
+        view: list[Viewpoint] = []  # each request's
+        sim_camera = SimCamera(
+            PybulletRenderer(scene, camera.camera_info(), render),
+            lambda: view[-1],
+            noise,
+            seed=seed,
+        )
+        sim_camera.connect()
+        sim_camera.activate()
+        rng = np.random.default_rng([seed, 0x1A7E])
+        ready.send("ready")
+        while True:
+            try:
+                request = requests.recv()
+                while request is not None and requests.poll(0):  # newest only
+                    request = requests.recv()
+            except (EOFError, OSError):
+                return
+            if request is None:
+                return
+            assert isinstance(request, RenderRequest)
+            scene.set_pose(request.X_WT)
+            view[:] = [request.view]
+            frame = sim_camera.render_frame(stamp=request.stamp, seq=request.seq)
+            jitter = rng.uniform(-timing.jitter_s, timing.jitter_s) if timing.jitter_s else 0.0
+            delay = request.stamp + timing.latency_s + jitter - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            try:
+                frames.send(dataclasses.replace(frame, arrival_stamp=time.monotonic()))
+            except (BrokenPipeError, OSError):
+                return
