@@ -38,7 +38,7 @@ from drivers.clock import Clock
 from estimators.frame import Frame, frame_problem
 from estimators.geometry import Pose
 from estimators.measurement import Estimator, Measurement
-from hil.runtime.pose_history import PoseHistory
+from hil.runtime.history import PoseHistory
 from hil.runtime.sequencer import TERMINAL, ApproachSequencer, Phase, SequencerInputs
 from hil.runtime.servo import camera_twist_to_flange, pose_error
 from hil.runtime.supervisor import SafetySnapshot, Violation, check
