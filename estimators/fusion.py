@@ -41,12 +41,12 @@ from typing import Literal
 import numpy as np
 from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
-from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from estimators.conics import circle_plane_basis
 from estimators.geometry import Pose, skew
 from estimators.measurement import Measurement
+from estimators.so3 import exp_so3, log_so3, so3_left_jacobian, so3_left_jacobian_inverse
 from estimators.target import Circle3D, TargetModel
 
 Health = Literal["uninitialized", "ok", "coasting", "lost"]
@@ -54,56 +54,7 @@ STATE_DIM = 12
 _SMALL_ANGLE = 1e-8
 
 
-# --- SO(3) and S² helpers -------------------------------------------------------------------
-
-
-def exp_so3(phi: np.ndarray) -> np.ndarray:
-    """Rotation matrix Exp(φ) of a rotation vector φ (rad), by Rodrigues' formula."""
-    phi = np.asarray(phi, dtype=float)
-    angle = math.sqrt(float(phi @ phi))
-    W = skew(phi)
-    if angle < 1e-8:
-        return np.eye(3) + W + 0.5 * (W @ W)
-    return np.eye(3) + math.sin(angle) / angle * W + (1.0 - math.cos(angle)) / angle**2 * (W @ W)
-
-
-def log_so3(R: np.ndarray) -> np.ndarray:
-    """Rotation vector Log(R) (rad), the inverse of ``exp_so3`` (angle in [0, π])."""
-    R = np.asarray(R, dtype=float)
-    cos_angle = 0.5 * (float(np.trace(R)) - 1.0)
-    if cos_angle < -0.99:  # near π the antisymmetric part vanishes: let scipy handle the axis
-        return Rotation.from_matrix(R).as_rotvec()
-    w = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    sin_angle = math.sqrt(float(w @ w))
-    angle = math.atan2(sin_angle, min(cos_angle, 1.0))
-    if angle < 1e-6:
-        return w * (1.0 + angle * angle / 6.0)
-    return w * (angle / sin_angle)
-
-
-def so3_left_jacobian(phi: np.ndarray) -> np.ndarray:
-    """Left Jacobian J_l(φ) of SO(3): Exp(φ + δ) ≈ Exp(J_l(φ)·δ)·Exp(φ) (Solà et al. 2018, (145))."""
-    phi = np.asarray(phi, dtype=float)
-    angle = float(np.linalg.norm(phi))
-    W = skew(phi)
-    if angle < 1e-6:
-        return np.eye(3) + 0.5 * W + W @ W / 6.0
-    return (
-        np.eye(3)
-        + (1.0 - math.cos(angle)) / angle**2 * W
-        + (angle - math.sin(angle)) / angle**3 * (W @ W)
-    )
-
-
-def so3_left_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
-    """J_l(φ)⁻¹: Log(Exp(δ)·Exp(φ)) ≈ φ + J_l(φ)⁻¹·δ (Solà et al. 2018, (146))."""
-    phi = np.asarray(phi, dtype=float)
-    angle = float(np.linalg.norm(phi))
-    W = skew(phi)
-    if angle < 1e-6:
-        return np.eye(3) - 0.5 * W + W @ W / 12.0
-    coefficient = 1.0 / angle**2 - (1.0 + math.cos(angle)) / (2.0 * angle * math.sin(angle))
-    return np.eye(3) - 0.5 * W + coefficient * (W @ W)
+# --- S² helpers ----------------------------------------------------------------------------
 
 
 def tangent_log(base: np.ndarray, n: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from estimators.conics import circle_plane_basis
-from estimators.fusion import FusionParams, PoseFusion, exp_so3, pose_error_C
+from estimators.fusion import FusionParams, PoseFusion, pose_error_C
 from estimators.geometry import (
     Pose,
     look_at,
@@ -21,6 +21,7 @@ from estimators.geometry import (
     translation_error,
 )
 from estimators.measurement import Measurement
+from estimators.so3 import exp_so3
 from estimators.target import Circle3D, PointFeature, TargetModel
 
 DT = 1.0 / 30.0
