@@ -340,6 +340,24 @@ def run(
     return fused, single, estimates, fusion
 
 
+def measurement_stream(
+    scenario: Scenario,
+    target: TargetModel,
+    *,
+    seed: int = 0,
+    systems: tuple[SystemModel, ...] = SYSTEMS,
+) -> list[tuple[int, Measurement]]:
+    """(step, measurement) of every system at every step of ``scenario``, in capture order —
+    for tests that deliver them late, one system at a time."""
+    rng = np.random.default_rng(seed)
+    rotations = system_rotations(rng)
+    return [
+        (k, measure(rng, system, target, scenario.X_CT(k), stamp, k, rotations))
+        for k, stamp in enumerate(scenario.stamps)
+        for system in systems
+    ]
+
+
 def rms(values) -> float:
     """Root mean square of the finite values."""
     values = np.asarray(values, dtype=float)
