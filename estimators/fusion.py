@@ -20,6 +20,12 @@ the track carriage frame M, with a constant-velocity process model (see docs/fus
   quantile of its degrees of freedom and applied sequentially: poses with filterpy's
   Joseph-form update, circles with a Schmidt ("consider") update that cannot touch the turn
   about the circle's axis, which a circle does not observe (``schmidt_update``).
+* Latency: each batch is applied at its frame's capture stamp with the X_CM of that instant,
+  whenever it arrives. A batch that arrives after later ones (the estimators run in parallel
+  and take different times) is re-filtered in: the filter keeps the state before every update
+  of the last ``history_s`` and replays the later updates (``PoseFusion``; the "reprocessing"
+  solution to out-of-sequence measurements, Bar-Shalom 2002). ``state()`` is a small snapshot
+  that ``estimate_from_state`` brings forward to "now" anywhere, e.g. in the control process.
 
 Residuals follow the covariance conventions of ``estimators.measurement``: the measurement's
 error is e(truth, estimate) (``pose_error_C`` / ``circle_error_C``), which its covariance
@@ -32,6 +38,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from bisect import bisect_left, bisect_right
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from functools import partial
@@ -41,12 +48,13 @@ from typing import Literal
 import numpy as np
 from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
-from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from estimators.conics import circle_plane_basis
+from estimators.frame import readonly_array
 from estimators.geometry import Pose, skew
 from estimators.measurement import Measurement
+from estimators.so3 import exp_so3, log_so3, so3_left_jacobian, so3_left_jacobian_inverse
 from estimators.target import Circle3D, TargetModel
 
 Health = Literal["uninitialized", "ok", "coasting", "lost"]
@@ -54,56 +62,7 @@ STATE_DIM = 12
 _SMALL_ANGLE = 1e-8
 
 
-# --- SO(3) and S² helpers -------------------------------------------------------------------
-
-
-def exp_so3(phi: np.ndarray) -> np.ndarray:
-    """Rotation matrix Exp(φ) of a rotation vector φ (rad), by Rodrigues' formula."""
-    phi = np.asarray(phi, dtype=float)
-    angle = math.sqrt(float(phi @ phi))
-    W = skew(phi)
-    if angle < 1e-8:
-        return np.eye(3) + W + 0.5 * (W @ W)
-    return np.eye(3) + math.sin(angle) / angle * W + (1.0 - math.cos(angle)) / angle**2 * (W @ W)
-
-
-def log_so3(R: np.ndarray) -> np.ndarray:
-    """Rotation vector Log(R) (rad), the inverse of ``exp_so3`` (angle in [0, π])."""
-    R = np.asarray(R, dtype=float)
-    cos_angle = 0.5 * (float(np.trace(R)) - 1.0)
-    if cos_angle < -0.99:  # near π the antisymmetric part vanishes: let scipy handle the axis
-        return Rotation.from_matrix(R).as_rotvec()
-    w = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    sin_angle = math.sqrt(float(w @ w))
-    angle = math.atan2(sin_angle, min(cos_angle, 1.0))
-    if angle < 1e-6:
-        return w * (1.0 + angle * angle / 6.0)
-    return w * (angle / sin_angle)
-
-
-def so3_left_jacobian(phi: np.ndarray) -> np.ndarray:
-    """Left Jacobian J_l(φ) of SO(3): Exp(φ + δ) ≈ Exp(J_l(φ)·δ)·Exp(φ) (Solà et al. 2018, (145))."""
-    phi = np.asarray(phi, dtype=float)
-    angle = float(np.linalg.norm(phi))
-    W = skew(phi)
-    if angle < 1e-6:
-        return np.eye(3) + 0.5 * W + W @ W / 6.0
-    return (
-        np.eye(3)
-        + (1.0 - math.cos(angle)) / angle**2 * W
-        + (angle - math.sin(angle)) / angle**3 * (W @ W)
-    )
-
-
-def so3_left_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
-    """J_l(φ)⁻¹: Log(Exp(δ)·Exp(φ)) ≈ φ + J_l(φ)⁻¹·δ (Solà et al. 2018, (146))."""
-    phi = np.asarray(phi, dtype=float)
-    angle = float(np.linalg.norm(phi))
-    W = skew(phi)
-    if angle < 1e-6:
-        return np.eye(3) - 0.5 * W + W @ W / 12.0
-    coefficient = 1.0 / angle**2 - (1.0 + math.cos(angle)) / (2.0 * angle * math.sin(angle))
-    return np.eye(3) - 0.5 * W + coefficient * (W @ W)
+# --- S² helpers ----------------------------------------------------------------------------
 
 
 def tangent_log(base: np.ndarray, n: np.ndarray) -> np.ndarray:
@@ -412,6 +371,9 @@ class FusionParams:
     #: Per-system model-error floor (σ rotation rad, σ position m) added to the stated
     #: covariance after scaling (``calibrated_covariance``; from ``hil.analysis.calibration``).
     covariance_floor: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    #: How far (s) behind the newest update a late batch may still land at its own stamp
+    #: (out-of-sequence updates by re-filtering; 0: late batches are refused).
+    history_s: float = 1.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -419,6 +381,7 @@ class FusionParams:
             "linear_accel_psd",
             "camera_pointing_sigma_rad",
             "camera_position_sigma_m",
+            "history_s",
         ):
             _check_positive(name, getattr(self, name), allow_zero=True)
         for name in (
@@ -549,7 +512,58 @@ class TargetEstimate:
         }
 
 
-# --- the filter -----------------------------------------------------------------------------
+# --- the filter's state and the estimate from it (pure) -------------------------------------
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FusionState:
+    """A snapshot of ``PoseFusion`` after its newest update, at ``stamp``: all that
+    ``estimate_from_state`` needs to answer "the estimate at t" for any t ≥ ``stamp``, in this
+    process or another (it pickles to about 2.2 kB and holds no history).
+
+    ``stamp`` is −inf before the first update. ``X_MT``, ``V_MT`` (6,) and ``covariance``
+    (12×12) are as in ``TargetEstimate`` (all None when there is no track). The bookkeeping
+    behind ``health``: ``last_accepted``, the stamp of the last accepted measurement (−inf if
+    none); ``support_systems``, the systems of the accepted, unambiguous measurements since the
+    track started, until they reached ``params.confirm_measurements`` and made it
+    ``confirmed``.
+    """
+
+    params: FusionParams
+    stamp: float = -math.inf
+    X_MT: Pose | None = None
+    V_MT: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    last_accepted: float = -math.inf
+    support_systems: tuple[str, ...] = ()
+    confirmed: bool = False
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.params, FusionParams):
+            raise TypeError(f"FusionState.params must be FusionParams; got {type(self.params)}")
+        object.__setattr__(self, "support_systems", tuple(self.support_systems))
+        track = (self.X_MT, self.V_MT, self.covariance)
+        if any(v is None for v in track):
+            if any(v is not None for v in track):
+                raise ValueError("FusionState: X_MT, V_MT and covariance are all set or all None")
+            return
+        if not isinstance(self.X_MT, Pose):
+            raise TypeError(f"FusionState.X_MT must be a Pose; got {type(self.X_MT).__name__}")
+        for name, shape in (("V_MT", (6,)), ("covariance", (STATE_DIM, STATE_DIM))):
+            value = readonly_array(getattr(self, name), shape, f"FusionState.{name}")
+            object.__setattr__(self, name, value)
+
+    def __reduce__(self):
+        # Through the constructor, so that an unpickled state is checked and read-only too.
+        return (FusionState, tuple(getattr(self, f.name) for f in fields(self)))
+
+
+def estimate_from_state(state: FusionState, stamp: float) -> TargetEstimate:
+    """The estimate at ``stamp`` from ``state``: its track predicted by the process model, with
+    health and age at ``stamp``. Pure, so the control loop can run it on the newest state the
+    vision side sent; ``PoseFusion.estimate`` answers with it too. The prediction never runs
+    backwards: for ``stamp`` < ``state.stamp`` the track is returned as it is."""
+    return _estimate(state, stamp, _Outcome())
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -577,12 +591,99 @@ def _system_of(m: object) -> str:
     return str(getattr(m, "system", type(m).__name__))
 
 
+def _track_of(state: FusionState) -> _Track | None:
+    if state.X_MT is None:
+        return None
+    return _Track(state.stamp, state.X_MT, state.V_MT, state.covariance)
+
+
+def _predict(track: _Track | None, stamp: float, params: FusionParams) -> _Track | None:
+    """``track`` brought forward to ``stamp`` by the process model (never backwards)."""
+    if track is None:
+        return None
+    dt = stamp - track.stamp
+    if not dt > 0.0:  # no prediction backwards in time (or to a NaN stamp)
+        return track
+    tau = params.velocity_time_constant_s
+    F = process_jacobian(track.V_MT, dt, tau)
+    Q = process_noise(dt, params.angular_accel_psd, params.linear_accel_psd)
+    _, P = kf_predict(np.zeros(STATE_DIM), track.P, F, Q)  # P = F P Fᵀ + Q
+    X_MT = predict_nominal(track.X_MT, track.V_MT, dt, tau)
+    return _Track(stamp, X_MT, predict_velocity(track.V_MT, dt, tau), _sym(P))
+
+
+def _health(
+    has_track: bool, confirmed: bool, last_accepted: float, stamp: float, params: FusionParams
+) -> Health:
+    if not has_track:
+        return "uninitialized"
+    age = stamp - last_accepted
+    if not confirmed:
+        # A tentative track that found no support in time is dropped, reported as such.
+        return "uninitialized" if age <= params.lost_timeout_s else "lost"
+    if age <= params.coast_timeout_s:
+        return "ok"
+    if age <= params.lost_timeout_s:
+        return "coasting"
+    return "lost"
+
+
+def _estimate(state: FusionState, stamp: float, outcome: _Outcome) -> TargetEstimate:
+    """The estimate at ``stamp`` from ``state``, listing ``outcome`` (one update's verdicts)."""
+    params = state.params
+    track = _predict(_track_of(state), stamp, params)
+    age = stamp - state.last_accepted
+    verdicts = (
+        tuple(outcome.accepted),
+        tuple(outcome.rejected),
+        age if math.isfinite(state.last_accepted) else math.inf,
+        tuple(outcome.not_measured),
+        tuple(outcome.innovations),
+    )
+    if track is None:
+        # After a lost track is dropped and nothing re-initialised it, keep saying "lost".
+        lost = math.isfinite(state.last_accepted) and age > params.lost_timeout_s
+        return TargetEstimate(
+            stamp, None, None, None, "lost" if lost else "uninitialized", *verdicts
+        )
+    health = _health(True, state.confirmed, state.last_accepted, stamp, params)
+    return TargetEstimate(
+        stamp, track.X_MT, _frozen(track.V_MT), _frozen(track.P), health, *verdicts
+    )
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Batch:
+    """One applied update, kept for re-filtering: its inputs and the filter just before it."""
+
+    stamp: float
+    measurements: tuple[object, ...]
+    X_CM: Pose
+    before: FusionState
+
+
+# --- the filter -----------------------------------------------------------------------------
+
+
 class PoseFusion:
-    """The fusion filter: feed it each frame's measurements with X_CM; ask it for priors.
+    """The fusion filter: feed it each frame's measurements with X_CM at the frame's capture
+    stamp, in any order within ``params.history_s``; ask it for priors and estimates.
 
     ``update`` never raises for bad input: a malformed measurement, an outlier or an unusable
     frame is listed in ``TargetEstimate.rejected`` with the reason. See the module docstring and
     docs/fusion.md for the models.
+
+    Out-of-sequence updates by re-filtering (the "reprocessing" solution): for every update of
+    the last ``history_s`` seconds the filter keeps its inputs and the filter state just before
+    it. A batch stamped earlier than the newest restores the state before the first later
+    batch, is applied there, and every later batch is applied again in stamp order, prediction
+    included. This runs the very operations an in-order arrival would have run, so the result
+    equals that of receiving everything in stamp order bit for bit — the exact reference that
+    Bar-Shalom's one-step solutions reproduce for a linear filter with less memory (Bar-Shalom
+    2002, "Update with out-of-sequence measurements in tracking: exact solution", IEEE TAES
+    38(3); Challa, Evans & Wang 2003, "A Bayesian solution and its approximations to
+    out-of-sequence measurement problems", Information Fusion 4(3)). Here it also replays the
+    track's start, confirmation and drop, which the one-step solutions do not model.
     """
 
     def __init__(self, target: TargetModel, params: FusionParams | None = None):
@@ -592,22 +693,38 @@ class PoseFusion:
         self.reset()
 
     def reset(self) -> None:
-        """Forget the track: the next valid measurement starts a new one."""
-        self._track: _Track | None = None
-        self._last_accepted = -math.inf
-        # systems of the accepted, unambiguous measurements since the track started
-        self._support_systems: list[str] = []
-        self._confirmed = False
+        """Forget the track and the history: the next valid measurement starts a new track."""
+        self._restore(FusionState(self.params))
+        # applied batches of the last history_s seconds, in the order they were applied
+        self._history: list[_Batch] = []
 
     # --- queries ------------------------------------------------------------------------
+    def state(self) -> FusionState:
+        """A snapshot after the newest update (for ``estimate_from_state``, e.g. in another
+        process)."""
+        track = self._track
+        return FusionState(
+            self.params,
+            self._stamp,
+            None if track is None else track.X_MT,
+            None if track is None else track.V_MT,
+            None if track is None else track.P,
+            self._last_accepted,
+            tuple(self._support_systems),
+            self._confirmed,
+        )
+
     def estimate(self, stamp: float) -> TargetEstimate:
-        """The prediction at ``stamp`` (no measurement; the filter is not changed)."""
-        track = self._predicted(stamp)
-        return self._estimate_of(track, stamp, _Outcome())
+        """The belief at ``stamp`` from the updates stamped up to it (the filter is not changed):
+        for ``stamp`` ≥ the newest update, the current state predicted to ``stamp``; inside the
+        history, the state saved before the first later update, predicted to ``stamp``. Before
+        the history it is the oldest state kept, never predicted backwards."""
+        return estimate_from_state(self._state_before(stamp), stamp)
 
     def prior_X_CT(self, X_CM: Pose, stamp: float) -> Pose | None:
-        """Predicted X_CT at ``stamp`` for the estimators; None unless the track is confirmed
-        and not lost (a lost or tentative track must not steer the estimators' searches)."""
+        """Predicted X_CT at ``stamp`` (the frame's capture stamp; ``X_CM`` at that stamp) for
+        the estimators; None unless the track is confirmed and not lost (a lost or tentative
+        track must not steer the estimators' searches)."""
         estimate = self.estimate(stamp)
         if estimate.health not in ("ok", "coasting"):
             return None
@@ -617,26 +734,88 @@ class PoseFusion:
     def update(
         self, measurements: Sequence[Measurement], X_CM: Pose, stamp: float
     ) -> TargetEstimate:
-        """Predict to ``stamp`` (the frame's time), apply each measurement through the gate,
-        return the estimate. ``X_CM``: the carriage in the camera at ``stamp``."""
+        """Apply one batch at ``stamp`` (the frame's capture stamp): predict to it, apply each
+        measurement through the gate; a batch earlier than the newest update is re-filtered in
+        (class docstring). ``X_CM``: the carriage in the camera at ``stamp``.
+
+        Returns the estimate at the filter's newest stamp, with this batch's accepted, rejected
+        and innovations. A batch more than ``params.history_s`` behind the newest update is
+        refused whole, and the filter is left unchanged.
+        """
         outcome = _Outcome()
         try:
-            items = list(measurements)
+            items = tuple(measurements)
         except TypeError:
-            items = []
+            items = ()
             outcome.reject("?", f"measurements is not a sequence ({type(measurements).__name__})")
         problem = self._frame_problem(X_CM, stamp)
         if problem:
             for m in items:
                 outcome.reject(_system_of(m), problem)
-            when = self._track.stamp if self._track is not None else math.nan
+            when = self._stamp if math.isfinite(self._stamp) else math.nan
             if isinstance(stamp, numbers.Real) and math.isfinite(float(stamp)):
                 when = float(stamp) if math.isnan(when) else max(when, float(stamp))
-            return self._estimate_of(self._predicted(when), when, outcome)
+            return _estimate(self.state(), when, outcome)
         stamp = float(stamp)
+        if stamp >= self._stamp:  # in order (a tie goes after the batches of its stamp)
+            self._history.append(_Batch(stamp, items, X_CM, self.state()))
+            self._apply_batch(items, X_CM, stamp, outcome)
+            self._prune()
+            return _estimate(self.state(), stamp, outcome)
+        age = self._stamp - stamp
+        if age > self.params.history_s:
+            reason = (
+                f"update stamp {stamp:.6f} s is earlier than the filter's history: {age:.3f} s "
+                f"behind its newest update {self._stamp:.6f} s (history_s {self.params.history_s})"
+            )
+            for m in items:
+                outcome.reject(_system_of(m), reason)
+            return _estimate(self.state(), self._stamp, outcome)
+        self._refilter(_Batch(stamp, items, X_CM, self.state()), outcome)
+        return _estimate(self.state(), self._stamp, outcome)
 
-        self._track = self._predicted(stamp)
-        if self._track is not None and self._health(stamp) == "lost":
+    # --- internals ------------------------------------------------------------------------
+    def _restore(self, state: FusionState) -> None:
+        self._stamp = state.stamp
+        self._track = _track_of(state)
+        self._last_accepted = state.last_accepted
+        # systems of the accepted, unambiguous measurements since the track started
+        self._support_systems = list(state.support_systems)
+        self._confirmed = state.confirmed
+
+    def _state_before(self, stamp: float) -> FusionState:
+        """The state before the first kept update later than ``stamp`` (the current state if
+        there is none, or if ``stamp`` is not a number)."""
+        i = bisect_right(self._history, stamp, key=_stamp_of)
+        return self._history[i].before if i < len(self._history) else self.state()
+
+    def _refilter(self, late: _Batch, outcome: _Outcome) -> None:
+        """Insert ``late`` at its stamp: restore the state before the first later batch, apply
+        ``late`` there (its verdicts go to ``outcome``), then every later batch again."""
+        i = bisect_right(self._history, late.stamp, key=_stamp_of)
+        later = self._history[i:]
+        self._restore(later[0].before)
+        self._history[i:] = [_Batch(late.stamp, late.measurements, late.X_CM, self.state())]
+        self._apply_batch(late.measurements, late.X_CM, late.stamp, outcome)
+        for batch in later:
+            self._history.append(_Batch(batch.stamp, batch.measurements, batch.X_CM, self.state()))
+            self._apply_batch(batch.measurements, batch.X_CM, batch.stamp, _Outcome())
+
+    def _prune(self) -> None:
+        # A late batch may land at newest − history_s: it needs the state before the first
+        # batch after it, so batches at or after that instant stay.
+        oldest = self._stamp - self.params.history_s
+        keep = bisect_left(self._history, oldest, key=_stamp_of)
+        del self._history[:keep]
+
+    def _apply_batch(
+        self, items: Sequence[object], X_CM: Pose, stamp: float, outcome: _Outcome
+    ) -> None:
+        """Predict to ``stamp`` and apply each measurement through the gate (the in-order
+        update; the caller keeps the history)."""
+        self._stamp = stamp
+        self._track = _predict(self._track, stamp, self.params)
+        if self._track is not None and self._health_at(stamp) == "lost":
             self._drop_track()
         # 6-DOF first, unambiguous first: a new track then starts from the best evidence.
         ordered = sorted(items, key=_application_order)
@@ -647,85 +826,23 @@ class PoseFusion:
                 outcome.reject(_system_of(m), f"internal error ({type(exc).__name__}: {exc})")
         if outcome.accepted:
             self._last_accepted = stamp
-        return self._estimate_of(self._track, stamp, outcome)
 
-    # --- internals ------------------------------------------------------------------------
     def _frame_problem(self, X_CM: Pose, stamp: float) -> str:
         if not isinstance(X_CM, Pose):
             return f"X_CM is not a Pose (got {type(X_CM).__name__})"
         if not isinstance(stamp, numbers.Real) or not math.isfinite(float(stamp)):
             return f"update stamp is not a finite number (got {stamp!r})"
-        if self._track is not None and stamp < self._track.stamp - 1e-9:
-            return (
-                f"update stamp {stamp:.6f} s is earlier than the filter's {self._track.stamp:.6f} s"
-            )
         return ""
 
-    def _predicted(self, stamp: float) -> _Track | None:
-        track = self._track
-        if track is None:
-            return None
-        dt = stamp - track.stamp
-        if not dt > 0.0:  # no prediction backwards in time (or to a NaN stamp)
-            return track
-        tau = self.params.velocity_time_constant_s
-        F = process_jacobian(track.V_MT, dt, tau)
-        Q = process_noise(dt, self.params.angular_accel_psd, self.params.linear_accel_psd)
-        _, P = kf_predict(np.zeros(STATE_DIM), track.P, F, Q)  # P = F P Fᵀ + Q
-        X_MT = predict_nominal(track.X_MT, track.V_MT, dt, tau)
-        return _Track(stamp, X_MT, predict_velocity(track.V_MT, dt, tau), _sym(P))
-
-    def _health(self, stamp: float) -> Health:
-        if self._track is None:
-            return "uninitialized"
-        age = stamp - self._last_accepted
-        if not self._confirmed:
-            # A tentative track that found no support in time is dropped, reported as such.
-            return "uninitialized" if age <= self.params.lost_timeout_s else "lost"
-        if age <= self.params.coast_timeout_s:
-            return "ok"
-        if age <= self.params.lost_timeout_s:
-            return "coasting"
-        return "lost"
+    def _health_at(self, stamp: float) -> Health:
+        return _health(
+            self._track is not None, self._confirmed, self._last_accepted, stamp, self.params
+        )
 
     def _drop_track(self) -> None:
         self._track = None
         self._support_systems = []
         self._confirmed = False
-
-    def _estimate_of(self, track: _Track | None, stamp: float, outcome: _Outcome) -> TargetEstimate:
-        if track is None:
-            health: Health = "lost" if self._confirmed_lost_pending(stamp) else "uninitialized"
-            return TargetEstimate(
-                stamp,
-                None,
-                None,
-                None,
-                health,
-                tuple(outcome.accepted),
-                tuple(outcome.rejected),
-                math.inf if not math.isfinite(self._last_accepted) else stamp - self._last_accepted,
-                tuple(outcome.not_measured),
-                tuple(outcome.innovations),
-            )
-        return TargetEstimate(
-            stamp,
-            track.X_MT,
-            _frozen(track.V_MT),
-            _frozen(track.P),
-            self._health(stamp),
-            tuple(outcome.accepted),
-            tuple(outcome.rejected),
-            stamp - self._last_accepted,
-            tuple(outcome.not_measured),
-            tuple(outcome.innovations),
-        )
-
-    def _confirmed_lost_pending(self, stamp: float) -> bool:
-        # After a lost track is dropped and nothing re-initialised it, keep saying "lost".
-        return math.isfinite(self._last_accepted) and stamp - self._last_accepted > (
-            self.params.lost_timeout_s
-        )
 
     def _problem(self, m: Measurement, stamp: float) -> str:
         """Why ``m`` cannot be used ('' if it can). Measurement validates itself on creation;
@@ -824,7 +941,9 @@ class PoseFusion:
             )
         self._track = _inject(self._track, dx, P)
         outcome.accepted.append(m.system)
-        if not m.ambiguous:
+        if not m.ambiguous and not self._confirmed:
+            # Only a tentative track needs its witnesses; a confirmed one stops counting, so
+            # that the state stays small over a long track.
             self._support_systems.append(m.system)
             if len(self._support_systems) >= self.params.confirm_measurements:
                 self._confirmed = True
@@ -879,6 +998,10 @@ def _application_order(m: object) -> tuple[int, bool]:
     if not isinstance(m, Measurement) or not m.valid:
         return (2, False)
     return (0 if uses_pose(m) else 1, bool(m.ambiguous))
+
+
+def _stamp_of(batch: _Batch) -> float:
+    return batch.stamp
 
 
 def _sym(P: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from estimators.conics import circle_plane_basis
-from estimators.fusion import FusionParams, PoseFusion, exp_so3, pose_error_C
+from estimators.fusion import FusionParams, PoseFusion, pose_error_C
 from estimators.geometry import (
     Pose,
     look_at,
@@ -21,6 +21,7 @@ from estimators.geometry import (
     translation_error,
 )
 from estimators.measurement import Measurement
+from estimators.so3 import exp_so3
 from estimators.target import Circle3D, PointFeature, TargetModel
 
 DT = 1.0 / 30.0
@@ -337,6 +338,24 @@ def run(
             cov = estimate.pose_covariance_C(scenario.X_CM[k])
             fused["nees"][k] = error @ np.linalg.solve(cov, error)
     return fused, single, estimates, fusion
+
+
+def measurement_stream(
+    scenario: Scenario,
+    target: TargetModel,
+    *,
+    seed: int = 0,
+    systems: tuple[SystemModel, ...] = SYSTEMS,
+) -> list[tuple[int, Measurement]]:
+    """(step, measurement) of every system at every step of ``scenario``, in capture order —
+    for tests that deliver them late, one system at a time."""
+    rng = np.random.default_rng(seed)
+    rotations = system_rotations(rng)
+    return [
+        (k, measure(rng, system, target, scenario.X_CT(k), stamp, k, rotations))
+        for k, stamp in enumerate(scenario.stamps)
+        for system in systems
+    ]
 
 
 def rms(values) -> float:

@@ -16,8 +16,6 @@ from estimators.fusion import (
     camera_pose_noise,
     circle_error_C,
     circle_model,
-    exp_so3,
-    log_so3,
     pose_error_C,
     pose_model,
     predict_nominal,
@@ -25,12 +23,11 @@ from estimators.fusion import (
     process_jacobian,
     roll_directions,
     schmidt_update,
-    so3_left_jacobian,
-    so3_left_jacobian_inverse,
     tangent_log,
 )
 from estimators.geometry import Pose, normal_angle, rotation_error_geodesic, translation_error
 from estimators.measurement import Measurement
+from estimators.so3 import exp_so3, log_so3, so3_left_jacobian, so3_left_jacobian_inverse
 from tests.estimators import fusion_sim
 from tests.estimators.fusion_sim import (
     DT,

@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators.fusion import FusionParams, exp_so3
+from estimators.fusion import FusionParams
 from estimators.geometry import Pose
 from estimators.measurement import Measurement
+from estimators.so3 import exp_so3
 from hil.analysis.calibration import covariance_scales, nees_statistics
 from tests.estimators.fusion_sim import covariance, make_target, sample_circle, sample_pose
 
