@@ -11,9 +11,14 @@ from typing import Protocol
 
 
 class Clock(Protocol):
+    """``now`` and ``sleep_until`` keep the control schedule; ``work_time`` is the stopwatch a
+    tick's own work is measured with against the real control period."""
+
     def now(self) -> float: ...
 
     def sleep_until(self, t: float) -> None: ...
+
+    def work_time(self) -> float: ...
 
 
 class RealClock:
@@ -26,6 +31,10 @@ class RealClock:
         remaining = t - time.monotonic()
         if remaining > 0:
             time.sleep(remaining)
+
+    def work_time(self) -> float:
+        """Wall time: on a rig, everything that delays a tick counts against its deadline."""
+        return time.perf_counter()
 
 
 class SimClock:
@@ -45,3 +54,8 @@ class SimClock:
     def sleep_until(self, t: float) -> None:
         if t > self._t:
             self._t = t
+
+    def work_time(self) -> float:
+        """CPU time of this thread: a simulation shares the machine with other runs, and what
+        must fit the real control period is the work the tick does, not its waits for a core."""
+        return time.thread_time()

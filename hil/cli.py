@@ -410,36 +410,49 @@ SimOpt = Annotated[
 @bench_app.command("loop")
 def bench_loop(
     config: SimOpt = "sim",
-    seed: Annotated[int, typer.Option(help="Trial seed.")] = 1,
-    duration: Annotated[
-        float, typer.Option(help="Simulated seconds of the approach to time.")
+    ticks: Annotated[int, typer.Option(min=100, help="Control ticks timed.")] = 2000,
+    seconds: Annotated[
+        float, typer.Option(min=2.0, help="Seconds each vision pipeline runs.")
     ] = 20.0,
-    log_dir: Annotated[Path, typer.Option(help="Where the timed trial's log goes.")] = Path(
-        "runs/bench"
-    ),
+    fps: Annotated[float, typer.Option(min=1.0, help="Camera frame rate fed to vision.")] = 30.0,
+    camera: CameraOpt = "reference",
 ) -> None:
-    """Median and p95 of one control tick with a frame (every estimator + fusion + command,
-    one thread, camera wait excluded) during a simulated approach."""
-    import time as _time
+    """The two rates on this machine: the control tick without vision (wall time, p50/p99/max
+    against the period), and the vision pipeline's throughput and latency with the three
+    systems serial (one process) and concurrent (a process each), side by side."""
+    from rich.table import Table
 
-    from hil.analysis.bench import loop_timings
+    from hil.analysis.bench_loop import approach_frames, control_tick_timing, pipeline_timing
 
-    log_dir.mkdir(parents=True, exist_ok=True)
-    log_path = log_dir / f"bench_loop_{_time.strftime('%Y%m%d-%H%M%S')}.mcap"
     try:
-        r = loop_timings(config, seed=seed, duration_s=duration, log_path=log_path)
-    except (ValueError, NotImplementedError) as exc:
+        tick = control_tick_timing(config, ticks=ticks)
+    except (ValueError, ConfigError) as exc:
         raise _fail(str(exc)) from None
     out.print(
-        f"ticks with a frame: {r.frame_ticks}, median {r.frame_tick_median_ms:.1f} ms, "
-        f"p95 {r.frame_tick_p95_ms:.1f} ms (estimators + fusion + command; camera wait excluded)"
+        f"control tick without vision ({tick.ticks} ticks, period {tick.period_ms:.1f} ms): "
+        f"p50 {tick.p50_ms:.2f} ms, p99 {tick.p99_ms:.2f} ms, max {tick.max_ms:.2f} ms"
     )
-    for system, ms in r.estimator_median_ms.items():
-        out.print(f"  {system}: median {ms:.1f} ms")
-    out.print(f"  fusion: median {r.fusion_median_ms:.2f} ms")
-    out.print(f"ticks without a frame: {r.other_ticks}, median {r.other_tick_median_ms:.2f} ms")
-    out.print(f"camera read (simulation: rendering): median {r.camera_read_median_ms:.1f} ms")
-    out.print(f"log: {log_path}")
+    systems = ("corners", "lines", "ellipses")
+    console.print("rendering an approach from 3 m to 0.5 m …")
+    frames = approach_frames(camera, "default", frames=24)
+    rows = [
+        pipeline_timing(mode, frames, systems, fps=fps, seconds=seconds, progress=console.print)
+        for mode in ("serial", "concurrent")
+    ]
+    table = Table(title=f"vision pipeline, camera at {fps:.0f} fps, {seconds:.0f} s each")
+    for column in ("mode", "frames/s (all systems)", *systems, "latency p50 (ms)", "p95 (ms)"):
+        table.add_column(column, justify="right")
+    for r in rows:
+        table.add_row(
+            r.mode,
+            f"{r.frames_per_s:.1f}",
+            *(f"{r.results_per_s[s]:.1f}/s" for s in systems),
+            f"{r.latency_p50_ms:.0f}",
+            f"{r.latency_p95_ms:.0f}",
+        )
+    out.print(table)
+    ratio = rows[1].frames_per_s / rows[0].frames_per_s if rows[0].frames_per_s else float("nan")
+    out.print(f"concurrent / serial throughput: {ratio:.2f}×")
 
 
 def _simulation(

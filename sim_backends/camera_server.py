@@ -24,7 +24,7 @@ from configuration.vision import CameraTiming
 from sim_backends.camera import SimCamera, Viewpoint
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene
-from sim_backends.world_server import RenderRequest
+from sim_backends.world_server import LatestSender, RenderRequest
 
 
 def camera_main(
@@ -50,6 +50,7 @@ def camera_main(
         sim_camera.connect()
         sim_camera.activate()
         rng = np.random.default_rng([seed, 0x1A7E])
+        outgoing = LatestSender(frames)  # a reader that fell behind gets the newest frame
         ready.send("ready")
         while True:
             try:
@@ -68,7 +69,6 @@ def camera_main(
             delay = request.stamp + timing.latency_s + jitter - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            try:
-                frames.send(dataclasses.replace(frame, arrival_stamp=time.monotonic()))
-            except (BrokenPipeError, OSError):
+            if outgoing.broken:
                 return
+            outgoing.put(dataclasses.replace(frame, arrival_stamp=time.monotonic()))

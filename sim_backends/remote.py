@@ -70,13 +70,15 @@ class WorldLink:
         self._send(("fault", device, fault, args))
 
     def wait_for_state(self, timeout_s: float) -> WorldSnapshot:
+        """Wait for a fresh state (one younger than the link's time-out)."""
         deadline = self._clock() + timeout_s
         while self._clock() < deadline:
             if self._connection.poll(0.01):
                 self._drain()
-                if self._newest is not None:
-                    return self._newest
-        raise DeviceTimeout(f"the world process sent no state within {timeout_s} s")
+                newest = self._newest
+                if newest is not None and self._clock() - newest.stamp <= self._timeout_s:
+                    return newest
+        raise DeviceTimeout(f"the world process sent no fresh state within {timeout_s} s")
 
     def close(self) -> None:
         if not self.closed:

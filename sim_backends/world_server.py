@@ -11,6 +11,8 @@ proxies of ``sim_backends.remote``, exactly as it would reach a rig.
 from __future__ import annotations
 
 import contextlib
+import os
+import threading
 import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -21,6 +23,8 @@ from estimators.geometry import Pose
 from sim_backends.camera import Viewpoint
 from sim_backends.world import SimRig
 
+#: SCHED_FIFO priority of the world process (the control loop runs at 50).
+WORLD_PRIORITY = 45
 #: Device methods the control side may call (anything else is refused by name).
 CALLS = {
     "arm": {"connect", "activate", "deactivate", "close", "servo", "stop"},
@@ -79,7 +83,7 @@ def snapshot(world: SimRig) -> WorldSnapshot:
     )
 
 
-def _apply(world: SimRig, message: tuple, control: Connection) -> bool:
+def _apply(world: SimRig, message: tuple, replies: LatestSender) -> bool:
     """Carry out one message from the control side; False when told to stop."""
     kind = message[0]
     if kind == "stop":
@@ -95,8 +99,56 @@ def _apply(world: SimRig, message: tuple, control: Connection) -> bool:
                 raise DeviceError(f"{device}.{method} is not available in the simulated world")
             getattr(target, method)(*args)
         except Exception as exc:  # reported to the caller's next call, never fatal here
-            control.send(("error", device, method, f"{type(exc).__name__}: {exc}"))
+            replies.tell(("error", device, method, f"{type(exc).__name__}: {exc}"))
     return True
+
+
+class LatestSender:
+    """Sends from a thread of its own, so that the physics never waits for a slow reader:
+    ``put`` keeps only the newest state (a reader that fell behind gets the present, not a
+    backlog); ``tell`` queues a message that must arrive (a refused command)."""
+
+    def __init__(self, connection: Connection):
+        self._connection = connection
+        self._item: Any = None
+        self._messages: list[Any] = []
+        self._ready = threading.Condition()
+        self._closed = False
+        self.broken = False
+        self._thread = threading.Thread(target=self._run, name="world-sender", daemon=True)
+        self._thread.start()
+
+    def put(self, item: Any) -> None:
+        with self._ready:
+            self._item = item
+            self._ready.notify()
+
+    def tell(self, message: Any) -> None:
+        with self._ready:
+            self._messages.append(message)
+            self._ready.notify()
+
+    def close(self) -> None:
+        with self._ready:
+            self._closed = True
+            self._ready.notify()
+        self._thread.join(timeout=2.0)
+
+    def _run(self) -> None:
+        while True:
+            with self._ready:
+                while self._item is None and not self._messages and not self._closed:
+                    self._ready.wait()
+                if self._closed:
+                    return
+                outgoing = [*self._messages, *([self._item] if self._item is not None else [])]
+                self._messages, self._item = [], None
+            try:
+                for item in outgoing:
+                    self._connection.send(item)
+            except (BrokenPipeError, OSError):
+                self.broken = True
+                return
 
 
 def run_world(
@@ -108,39 +160,54 @@ def run_world(
 ) -> None:
     """Run ``world`` in real time until the control side says stop (or goes away)."""
     seq = 0
+    requests = LatestSender(camera) if camera is not None else None
 
     def on_capture(stamp: float) -> None:
         nonlocal seq
-        if camera is not None:
-            camera.send(RenderRequest(seq, stamp, world.viewpoint(), world.track_model.X_WT()))
+        if requests is not None:  # the newest only: a camera behind the frame rate drops frames
+            requests.put(RenderRequest(seq, stamp, world.viewpoint(), world.track_model.X_WT()))
         seq += 1
 
     world.on_capture = on_capture  # type: ignore[method-assign]
+    sender = LatestSender(control)
     running = True
     next_step = time.monotonic()
-    while running:
+    while running and not sender.broken:
         try:
             while control.poll(0):
-                running = _apply(world, control.recv(), control) and running
+                running = _apply(world, control.recv(), sender) and running
         except (EOFError, OSError):
             break
         lag = time.monotonic() - world.clock.now()
         if lag > 0:
             world.advance(lag)
-        try:
-            control.send(snapshot(world))
-        except (BrokenPipeError, OSError):
-            break
+        sender.put(snapshot(world))
         next_step += step_s
         delay = next_step - time.monotonic()
         if delay > 0:
             time.sleep(delay)
         else:
             next_step = time.monotonic()  # fell behind: no burst to catch up
+    sender.close()
+    if requests is not None:
+        requests.close()
+
+
+def realtime_priority(priority: int) -> str:
+    """Ask for ``SCHED_FIFO`` at ``priority`` for this thread; '' when granted, else why not."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError) as exc:
+        return f"SCHED_FIFO refused ({exc})"
+    return ""
 
 
 def world_main(build: Any, control: Connection, camera: Connection | None) -> None:
-    """The world process: build the rig with ``build(start_time)``, say ready, run, clean up."""
+    """The world process: build the rig with ``build(start_time)``, say ready, run, clean up.
+
+    Like a robot controller it runs at real-time priority when the system allows (below the
+    control loop's): on a loaded machine a world that falls behind the wall clock would make
+    the trial fail for reasons no rig has."""
     with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C goes to the control process
         # The activation in start() runs on simulated time (about a second): begin that far in
         # the past, then catch up with the present before the control side takes over.
@@ -148,7 +215,7 @@ def world_main(build: Any, control: Connection, camera: Connection | None) -> No
         try:
             world.start()
             world.advance(max(0.0, time.monotonic() - world.clock.now()))
-            control.send(("ready", None))
+            control.send(("ready", realtime_priority(WORLD_PRIORITY)))
             run_world(world, control, camera)
         except Exception as exc:
             with contextlib.suppress(OSError):

@@ -117,11 +117,12 @@ class TruthRecord:
 
 @dataclass(frozen=True, slots=True)
 class TimingRecord:
-    """Wall-clock timing of the tick. ``period_ms``: since the previous tick started;
-    ``late_ms``: how late it started after its deadline; ``work_ms``: its own work (reading the
-    devices to writing the log); ``deadline_miss``: it started a whole period late or its work
-    overran the period. Under ``--clock sim`` the period is simulated and only ``work_ms`` is
-    measured on the wall clock."""
+    """Timing of the tick. ``period_ms``: since the previous tick started; ``late_ms``: how late
+    it started after its deadline; ``work_ms``: its own work, from reading the devices to writing
+    the log; ``deadline_miss``: it started half a period late or its work overran the period.
+    Under ``--clock wall`` all of it is wall-clock time. Under ``--clock sim`` the period is
+    simulated (never late) and ``work_ms`` is the tick's CPU time: the simulation shares the
+    machine with other runs, and the work is what must fit the real period."""
 
     period_ms: float | None
     late_ms: float

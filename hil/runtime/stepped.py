@@ -38,6 +38,9 @@ class SteppedClock:
     def now(self) -> float:
         return self.world.clock.now()
 
+    def work_time(self) -> float:
+        return self.world.clock.work_time()
+
     def sleep_until(self, t: float) -> None:
         while (now := self.world.clock.now()) < t - 1e-12:
             self.world.advance(min(self.step_s, t - now))
