@@ -150,6 +150,26 @@ def _lean(item: VisionRecord | LoggedImage) -> VisionRecord | LoggedImage:
     return item
 
 
+def start_vision(
+    spec: VisionSpec, frames: Connection, context: Any = None
+) -> tuple[mp.process.BaseProcess, VisionClient]:
+    """Start the vision process on the reading end ``frames`` of a camera's pipe; returns it
+    and the control side's link once it is ready (its workers built)."""
+    context = context or mp.get_context("spawn")
+    ours, theirs = context.Pipe()
+    process = context.Process(
+        target=vision_main, args=(spec, theirs, frames), name="satgrasp-vision"
+    )
+    process.start()
+    theirs.close()
+    try:
+        _await_ready(ours, "vision", process)
+    except BaseException:
+        stop_process(process, timeout_s=0.0)
+        raise
+    return process, VisionClient(ours)
+
+
 class VisionClient:
     """The control loop's ``VisionLink`` to the vision process: sending never blocks on the
     pipeline, reading takes whatever has arrived."""
@@ -261,7 +281,6 @@ def build_wall(trial: Trial) -> None:
     requests_in, requests_out = context.Pipe(duplex=False)  # world → camera
     frames_in, frames_out = context.Pipe(duplex=False)  # camera → vision
     camera_ready_in, camera_ready_out = context.Pipe(duplex=False)
-    vision_ours, vision_theirs = context.Pipe()
     processes: dict[str, mp.process.BaseProcess] = {}
 
     def stop_all() -> None:
@@ -287,6 +306,10 @@ def build_wall(trial: Trial) -> None:
     processes["world"] = context.Process(
         target=world_main, args=(build, world_theirs, requests_out), name="satgrasp-world"
     )
+    for process in processes.values():
+        process.start()
+    for connection in (world_theirs, requests_out, requests_in, frames_out, camera_ready_out):
+        connection.close()
     spec = VisionSpec(
         tuple(config.systems),
         trial.mockup.target_model(),
@@ -295,22 +318,14 @@ def build_wall(trial: Trial) -> None:
         trial.geometry,
         config.vision,
     )
-    processes["vision"] = context.Process(
-        target=vision_main, args=(spec, vision_theirs, frames_in), name="satgrasp-vision"
-    )
-    for process in processes.values():
-        process.start()
-    for connection in (world_theirs, requests_out, requests_in, frames_out, frames_in,
-                       camera_ready_out, vision_theirs):  # fmt: skip
-        connection.close()
+    processes["vision"], vision = start_vision(spec, frames_in, context)
+    frames_in.close()
     _await_ready(_Ready(camera_ready_in), "camera", processes["camera"])
     _await_ready(world_ours, "world", processes["world"])
-    _await_ready(vision_ours, "vision", processes["vision"])
 
     link = WorldLink(world_ours)
     stack.callback(link.close)
     link.wait_for_state(5.0)
-    vision = VisionClient(vision_ours)
     stack.callback(vision.stop)
     trial.vision = vision
     trial.world_link = link

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from estimators.frame import CameraInfo, Frame
@@ -58,3 +60,21 @@ def build_blind(target, camera, **options):
             return Measurement.lost(self.system, frame, "sees nothing")
 
     return Blind()
+
+
+class Sleepy(Oracle):
+    """The oracle, but it takes ``sleep_s`` over every frame (a slow or stuck estimator)."""
+
+    system = "sleepy"
+
+    def __init__(self, target: TargetModel, camera: CameraInfo, sleep_s: float = 0.2):
+        super().__init__(target, camera)
+        self.sleep_s = sleep_s
+
+    def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
+        time.sleep(self.sleep_s)
+        return super().estimate(frame, prior_X_CT)
+
+
+def build_sleepy(target, camera, **options):
+    return Sleepy(target, camera, **options)
