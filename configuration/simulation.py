@@ -10,7 +10,8 @@ import dataclasses
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import Field, field_serializer, model_validator
+import yaml
+from pydantic import Field, ValidationError, field_serializer, model_validator
 
 from configuration.approach import ApproachConfig
 from configuration.base import PositiveM, Strict
@@ -97,3 +98,33 @@ def with_overrides(config: SimulationConfig, **changes: object) -> SimulationCon
     data = config.model_dump(mode="json")
     data.update({k: v for k, v in changes.items() if v is not None})
     return SimulationConfig.model_validate(data)
+
+
+def with_settings(config: SimulationConfig, settings: list[str]) -> SimulationConfig:
+    """``config`` with dotted settings applied, each ``key.path=value`` with the value read as
+    YAML (``vision.fuse_at=arrival``, ``camera_timing.latency_s=0.1``), validated again.
+
+    Raises ``ValueError`` naming the setting that is malformed or that does not validate.
+    """
+    data = config.model_dump(mode="json")
+    for setting in settings:
+        key, sep, text = setting.partition("=")
+        path = [part for part in key.strip().split(".") if part]
+        if not sep or not path:
+            raise ValueError(f"--set {setting!r}: expected KEY=VALUE, e.g. vision.fuse_at=arrival")
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ValueError(f"--set {setting!r}: the value is not valid YAML ({exc})") from None
+        node = data
+        for part in path[:-1]:
+            child = node.get(part) if isinstance(node, dict) else None
+            if not isinstance(child, dict):
+                raise ValueError(f"--set {setting!r}: {part!r} is not a section of the config")
+            node = child
+        node[path[-1]] = value
+    try:
+        return SimulationConfig.model_validate(data)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise ValueError(f"--set {' '.join(settings)}: {problems}") from None

@@ -455,21 +455,32 @@ def bench_loop(
     out.print(f"concurrent / serial throughput: {ratio:.2f}×")
 
 
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        help="Override a config value, KEY=VALUE with a dotted key (repeatable), e.g. "
+        "--set vision.fuse_at=arrival --set camera_timing.latency_s=0.1.",
+    ),
+]
+
+
 def _simulation(
     config: str,
     noise: str | None,
     systems: str | None,
     links: str | None,
     clock: str | None = None,
+    settings: list[str] | None = None,
 ):
-    from configuration.simulation import load_simulation, with_overrides
+    from configuration.simulation import load_simulation, with_overrides, with_settings
 
     if noise is not None:
         _noise_config(noise)
     if clock is not None and clock not in ("sim", "wall"):
         raise _fail(f"--clock must be sim or wall; got {clock!r}")
     try:
-        sim = load_simulation(config)
+        sim = with_settings(load_simulation(config), settings or [])
         return with_overrides(
             sim,
             noise={"preset": noise} if noise else None,
@@ -502,6 +513,7 @@ def approach(
             "[default: the config's, sim]"
         ),
     ] = None,
+    settings: SetOpt = None,
     log_dir: Annotated[Path, typer.Option(help="Directory for the trial log.")] = Path("runs"),
     report_too: Annotated[
         bool, typer.Option("--report/--no-report", help="Write the report after the trial.")
@@ -516,7 +528,7 @@ def approach(
     from hil.progress import tick_line
     from hil.runtime.compose import run_trial
 
-    sim = _simulation(config, noise, systems, links, clock)
+    sim = _simulation(config, noise, systems, links, clock, settings)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     log_path = log_dir / f"approach_{sim.noise.preset}_seed{seed}_{stamp}.mcap"
     out.print(
@@ -580,6 +592,7 @@ def campaign(
     noise: Annotated[str, typer.Option(help="Comma-separated noise levels.")] = "low,high",
     systems: Annotated[str | None, typer.Option(help="Comma-separated estimators.")] = None,
     jobs: Annotated[int, typer.Option(min=1, help="Trials run at once (processes).")] = 1,
+    settings: SetOpt = None,
     out_dir: Annotated[Path, typer.Option(help="Directory for the logs and the summary.")] = Path(
         "runs/campaign"
     ),
@@ -591,7 +604,7 @@ def campaign(
     levels = noise.split(",")
     for level in levels:
         _noise_config(level)
-    sim = _simulation(config, None, systems, None)
+    sim = _simulation(config, None, systems, None, None, settings)
 
     def progress(row, done, total) -> None:
         verdict = "ok  " if row.success else "FAIL"
@@ -687,6 +700,7 @@ def demo(
         systems=None,
         links=None,
         clock=None,
+        settings=None,
         log_dir=out_dir,
         report_too=True,
     )
