@@ -64,6 +64,9 @@ ERROR_SCALES = {
 #: Median processing time per system (s); each result takes 0.8–1.2 × this.
 PROCESSING_S = {"corners": 0.030, "lines": 0.045, "ellipses": 0.060}
 LATENCY_S = 0.120  # capture → arrival, ± 10 ms
+#: Captures (mid-exposure) fall between control ticks, never half-way: the tick nearest a
+#: capture is unambiguous.
+EXPOSURE_OFFSET_S = 0.013
 DROP_EVERY = 9  # frame k is dropped when k % DROP_EVERY == 4
 STALE_EXTRA_S = 0.250  # a stale result's processing overran by this much
 MAX_FRAME_AGE_S = 0.300
@@ -255,7 +258,7 @@ def make_trial(
 
     # --- vision: frames while a phase that uses vision runs ---------------------------------
     frames: list[tuple[int, float, float, bool]] = []  # seq, capture, arrival, dropped
-    capture_t, seq = SCHEDULE[0][1], 0
+    capture_t, seq = SCHEDULE[0][1] + EXPOSURE_OFFSET_S, 0
     while capture_t < end_s:
         if _phase_at(capture_t)[0] in ACTIVE and (abort_at_s is None or capture_t < abort_at_s):
             arrival = capture_t + LATENCY_S + float(rng.uniform(-0.010, 0.010))
