@@ -63,13 +63,15 @@ class Spread:
 @dataclass(frozen=True)
 class SystemSeries:
     """One estimator's results over the trial, in capture order: capture time and the time it
-    was handed to fusion (s), outcome, errors against the truth at capture (NaN when lost or
-    without truth), latency capture → fusion and processing time (ms), and the frame."""
+    was handed to fusion (s), whether the estimator measured (``valid``: not lost), outcome,
+    errors against the truth at capture (NaN when lost or without truth), latency capture →
+    fusion and processing time (ms), and the frame."""
 
     name: str
     seq: np.ndarray
     capture_t: np.ndarray
     t: np.ndarray
+    valid: np.ndarray
     outcome: np.ndarray
     position_error_m: np.ndarray
     attitude_error_rad: np.ndarray
@@ -82,10 +84,12 @@ class SystemSeries:
 class SystemSummary:
     """One system (or the fused estimate) over the trial.
 
-    For a system: ``results`` it handed over, ``valid`` ones (not lost), their outcomes, error
-    statistics, latency capture → fusion over the results that reached fusion (not stale),
-    processing time, and ``fused_better_*``: the fraction of its judged results where the
-    fused estimate, at the tick nearest the capture, had the smaller error. For ``fused``:
+    For a system: ``results`` it handed over, ``valid`` ones (measured, not lost), what
+    fusion made of them (``not_measured``: it took no measurement from the result, normally a
+    lost one), error statistics, latency capture → fusion over the results that reached fusion
+    (not stale), processing time, and ``fused_better_*``: the fraction of its judged results
+    where the fused estimate, at the tick nearest the capture, had the smaller error. For
+    ``fused``:
     ``results`` = ticks since the first result reached fusion, ``valid`` = those with a pose,
     ``not_measured`` = those without."""
 
@@ -407,6 +411,7 @@ def _system_series(
         seq=np.array([r.seq for r in results], dtype=int),
         capture_t=np.array([r.capture_t for r in results], dtype=float),
         t=np.array([r.t for r in results], dtype=float),
+        valid=np.array([r.measurement.valid for r in results], dtype=bool),
         outcome=np.array([r.outcome for r in results], dtype=object),
         position_error_m=position,
         attitude_error_rad=attitude,
@@ -479,7 +484,7 @@ def _summary(
     return SystemSummary(
         name=s.name,
         results=len(s.outcome),
-        valid=int((s.outcome != "not_measured").sum()),
+        valid=int(s.valid.sum()),
         accepted=int((s.outcome == "accepted").sum()),
         rejected=int((s.outcome == "rejected").sum()),
         not_measured=int((s.outcome == "not_measured").sum()),

@@ -77,6 +77,8 @@ def test_analyse_summary_counts_rates_and_fused_comparison(trial, analysis):
     for summary in analysis.summaries:
         status = np.array(trial.status[summary.name])
         assert summary.results == len(status)
+        mine = [r for r in trial.vision if r.system == summary.name]
+        assert summary.valid == sum(r.measurement.valid for r in mine) < len(status)
         assert summary.not_measured == (status == "not_measured").sum()
         assert summary.rejected == (status == "rejected").sum()
         assert summary.stale == (status == "stale").sum()
