@@ -313,9 +313,13 @@ def analyse(log: TrialLog) -> TrialAnalysis:
     if incomplete:
         notes.append(incomplete)
 
-    V = np.array([tick.command.V_BE for tick in ticks], dtype=float).reshape(len(ticks), -1)
-    if V.shape[1] != 6:
-        V = np.full((len(ticks), 6), math.nan)
+    V = np.array(
+        [
+            tick.command.V_BE if np.shape(tick.command.V_BE) == (6,) else [math.nan] * 6
+            for tick in ticks
+        ],
+        dtype=float,
+    ).reshape(len(ticks), 6)
     true_depth = (
         np.array([tick.truth.X_CT.p[2] if tick.truth else math.nan for tick in ticks])
         if has_truth

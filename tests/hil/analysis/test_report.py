@@ -262,3 +262,17 @@ def test_cli_report_on_a_format_1_log_says_so_in_one_line(tmp_path):
         (line,) = result.stderr.strip().splitlines()
         assert "trial log format 1, written before the typed records" in line
         assert line.endswith("re-run the trial to analyse it")
+
+
+def test_report_of_a_log_without_records_says_so(tmp_path):
+    from hil.logs.triallog import TrialLogWriter
+
+    path = tmp_path / "empty.mcap"
+    TrialLogWriter(path, {"config": {}, "seed": None}).close()
+    figures = _json(runner.invoke(app, ["report", str(path), "--json"]))
+    assert set(figures) == JSON_KEYS and figures["ticks"] == 0 and not figures["success"]
+    assert figures["control_period_ms"] == dict.fromkeys(("nominal", "p50", "p99", "max"))
+    assert figures["frames"] == {"received": 0, "processed": 0, "dropped": 0}
+    text = _text(make_report(path, tmp_path / "out").read_text())
+    assert "The log holds no ticks." in text and "outcome ended in phase none" in text
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["index.html"]
