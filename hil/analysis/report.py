@@ -127,10 +127,7 @@ def plot_errors(analysis: TrialAnalysis, path: Path) -> Path:
             ax.set_yscale("log")
         ax.set_ylabel(unit)
         ax.grid(alpha=0.3, which="both")
-    ax_p.set_title(
-        "Errors against ground truth: each result at its frame's capture (truth of that "
-        "instant), the fused estimate at each tick"
-    )
+    ax_p.set_title("Errors against ground truth: results at capture, the fused estimate per tick")
     ax_p.legend(loc="upper right", fontsize=8, ncols=3)
     ax_a.set_xlabel("time (s)")
     return _save(fig, path)
