@@ -383,23 +383,48 @@ def report(
     log: Annotated[Path, typer.Argument(help="Trial log (.mcap), complete or cut off by a crash.")],
     out_dir: Annotated[
         Path | None,
-        typer.Option("--out", help="Report directory [default: <log name>_report beside the log]."),
+        typer.Option(
+            "--out",
+            help="Report directory [default: <log name>_report beside the log; with --json, "
+            "none unless given].",
+        ),
     ] = None,
+    as_json: Annotated[
+        bool,
+        typer.Option(
+            "--json",
+            help="Print the trial's figures as one JSON object on stdout (outcome, timing, "
+            "frames, vision latency, stand-off error, per-system results).",
+        ),
+    ] = False,
 ) -> None:
     """Plots and an HTML page for one trial log: range and phases, errors of each estimator
-    and of the fused estimate against ground truth (simulation), measurements accepted /
-    rejected / lost, commands, and a summary."""
-    from hil.analysis.report import make_report
-    from hil.logs.triallog import TrialLogError
+    and of the fused estimate against ground truth (simulation), estimator results accepted /
+    rejected / lost / stale, commands, control-loop timing and vision latency, and a summary.
+    With --json, the same figures as one JSON object (docs/trial_logs.md lists the keys)."""
+    from hil.analysis.report import report_json, write_report
+    from hil.analysis.trial_analysis import analyse
+    from hil.logs.triallog import TrialLog, TrialLogError
 
-    target = out_dir if out_dir is not None else log.with_name(f"{log.stem}_report")
     try:
-        index = make_report(log, target)
+        analysis = analyse(TrialLog.open(log))
     except (FileNotFoundError, TrialLogError) as exc:
         raise _fail(str(exc)) from None
+    if as_json:
+        typer.echo(json.dumps(report_json(analysis), indent=2, allow_nan=False))
+        if analysis.incomplete:
+            console.print(f"[yellow]warning:[/] {log} is incomplete: {analysis.incomplete}")
+        if out_dir is None:
+            return
+    target = out_dir if out_dir is not None else log.with_name(f"{log.stem}_report")
+    try:
+        index = write_report(analysis, target)
     except OSError as exc:
         raise _fail(f"cannot write the report to {target}: {exc}") from None
-    out.print(f"report: {index}")
+    if as_json:
+        console.print(f"report: {index}")
+    else:
+        out.print(f"report: {index}")
 
 
 SimOpt = Annotated[
@@ -630,16 +655,14 @@ def calibrate(
     ] = None,
 ) -> None:
     """Fit each estimator's covariance calibration (scale × stated + model-error floor) from
-    the measurements and ground truth in simulated trial logs, so that the NEES is honest from
-    near to far; prints the `fusion:` settings for a simulation config."""
+    the measurements in simulated trial logs and the truth at their frames' capture, so that
+    the NEES is honest from near to far; prints the `fusion:` settings for a simulation
+    config."""
     import math
 
-    import numpy as np
     import yaml
 
-    from estimators.geometry import Pose
-    from estimators.measurement import Measurement
-    from hil.analysis.calibration import fit_scale_and_floor
+    from hil.analysis.calibration import fit_scale_and_floor, samples_with_truth
     from hil.analysis.trial_analysis import target_from_header
     from hil.logs.triallog import TrialLog, TrialLogError
 
@@ -650,15 +673,7 @@ def calibrate(
         except (TrialLogError, OSError) as exc:
             raise _fail(str(exc)) from None
         target = target or target_from_header(log.header)
-        for tick in log.ticks():
-            truth = (tick.get("truth") or {}).get("X_CT")
-            if truth is None:
-                continue
-            X_CT_true = Pose.from_matrix(np.array(truth), orthonormalize=True)
-            for record in tick.get("measurements") or []:
-                m = Measurement.from_dict(record)
-                if m.valid:
-                    samples.append((m, X_CT_true))
+        samples += samples_with_truth(log.vision())
     if target is None or not samples:
         raise _fail("no measurements with ground truth in these logs (simulated runs needed)")
     result = fit_scale_and_floor(samples, target)

@@ -7,7 +7,8 @@ is χ²-distributed with dof = len(e) degrees of freedom, so its mean is dof (Ba
 Kirubarajan 2001, "Estimation with Applications to Tracking and Navigation", §5.4.2). A system
 whose mean NEES per degree of freedom is s states covariances s times too small: multiplying
 them by s restores mean NEES = dof. Pure functions; no I/O (the caller collects the pairs, e.g.
-from the matrix runner's frames, and writes the result into the fusion parameters).
+from the matrix runner's frames or a trial log's vision records, and writes the result into the
+fusion parameters).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from estimators.fusion import (
 from estimators.geometry import Pose
 from estimators.measurement import Measurement
 from estimators.target import TargetModel
+from hil.logs.records import VisionRecord
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,6 +57,17 @@ class NeesStatistics:
     consistent: bool
     position_scale: float
     attitude_scale: float
+
+
+def samples_with_truth(records: Iterable[VisionRecord]) -> list[tuple[Measurement, Pose]]:
+    """(measurement, true X_CT at its frame's capture) of every valid result that has truth
+    (a simulated trial's vision records), whatever fusion made of it: a result discarded as
+    stale or rejected by the gate still says how good the estimator is."""
+    return [
+        (r.measurement, r.truth_X_CT)
+        for r in records
+        if r.truth_X_CT is not None and r.measurement.valid
+    ]
 
 
 def measurement_nees(m: Measurement, X_CT_true: Pose, target: TargetModel) -> tuple[float, int]:

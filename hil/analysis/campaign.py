@@ -34,10 +34,12 @@ class TrialSummary:
     best_single_position_median_m: float
     fused_attitude_median_deg: float
     best_single_attitude_median_deg: float
-    fused_below_all_position: float  # fraction of instants with every system valid
+    fused_below_all_position: float  # fraction of frames: fused (nearest tick) vs their results
     fused_below_all_attitude: float
     fused_below_all_1s_position: float  # fraction of 1 s windows, on median errors
     fused_below_all_1s_attitude: float
+    deadline_misses: int = 0
+    vision_latency_p95_ms: float = math.nan
 
 
 def trial_log_path(out_dir: Path, noise: str, seed: int) -> Path:
@@ -45,26 +47,27 @@ def trial_log_path(out_dir: Path, noise: str, seed: int) -> Path:
 
 
 def summarize_log(path: Path, seed: int, noise: str) -> TrialSummary:
-    log = TrialLog.open(path)
-    analysis = analyse(log)
-    outcome = next((e for e in log.events() if e.get("kind") == "outcome"), None)
-    data = (outcome or {}).get("data", {})
-    singles = [s for s in analysis.summaries if s.name != "fused" and s.position_m.count > 0]
+    analysis = analyse(TrialLog.open(path))
+    data = analysis.outcome_data
+    singles = [s for s in analysis.summaries if s.position_m.count > 0]
     fused = analysis.fused
 
     def median(stats, scale=1.0) -> float:
         return scale * stats.median if stats is not None and stats.count > 0 else math.nan
 
+    def number(value) -> float:
+        return float(value) if isinstance(value, int | float) else math.nan
+
     return TrialSummary(
         seed=seed,
         noise=noise,
         log_path=str(path),
-        success=(outcome or {}).get("message") == "success",
-        phase=data.get("phase", analysis.outcome),
-        abort_reason=data.get("abort_reason") or "",
+        success=analysis.success,
+        phase=data.get("phase") or (analysis.phases[-1] if analysis.phases else analysis.outcome),
+        abort_reason=data.get("abort_reason") or analysis.abort_reason or "",
         duration_s=float(analysis.t[-1]) if len(analysis.t) else math.nan,
-        standoff_error_m=data.get("standoff_error_m") or math.nan,
-        standoff_error_deg=math.degrees(data.get("standoff_error_rad") or math.nan),
+        standoff_error_m=number(data.get("standoff_error_m")),
+        standoff_error_deg=math.degrees(number(data.get("standoff_error_rad"))),
         fused_position_median_m=median(fused.position_m) if fused else math.nan,
         best_single_position_median_m=min(
             (median(s.position_m) for s in singles), default=math.nan
@@ -79,6 +82,8 @@ def summarize_log(path: Path, seed: int, noise: str) -> TrialSummary:
         fused_below_all_attitude=analysis.fused_below_all[1],
         fused_below_all_1s_position=analysis.fused_below_all_1s[0],
         fused_below_all_1s_attitude=analysis.fused_below_all_1s[1],
+        deadline_misses=analysis.timing.deadline_misses,
+        vision_latency_p95_ms=analysis.vision.latency_ms.p95,
     )
 
 
@@ -154,16 +159,20 @@ def campaign_markdown(rows: Sequence[TrialSummary]) -> str:
         )
     lines += [
         "",
-        "| noise | seed | outcome | duration | stand-off error | fused median error | best single median error | log |",
-        "|---|---|---|---|---|---|---|---|",
+        "| noise | seed | outcome | duration | stand-off error | fused median error | best single median error "
+        "| vision latency p95 | deadline misses | log |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         outcome = "success" if r.success else f"{r.phase}: {r.abort_reason}"[:60]
+        latency = (
+            "–" if math.isnan(r.vision_latency_p95_ms) else f"{r.vision_latency_p95_ms:.0f} ms"
+        )
         lines.append(
             f"| {r.noise} | {r.seed} | {outcome} | {r.duration_s:.1f} s "
             f"| {_mm(r.standoff_error_m)} / {_deg(r.standoff_error_deg)} "
             f"| {_mm(r.fused_position_median_m)} / {_deg(r.fused_attitude_median_deg)} "
             f"| {_mm(r.best_single_position_median_m)} / {_deg(r.best_single_attitude_median_deg)} "
-            f"| {Path(r.log_path).name} |"
+            f"| {latency} | {r.deadline_misses} | {Path(r.log_path).name} |"
         )
     return "\n".join(lines) + "\n"

@@ -1,10 +1,13 @@
-"""``satgrasp report RUN.mcap``: PNG plots and a small HTML page from one trial log.
+"""``satgrasp report RUN.mcap``: PNG plots and a small HTML page from one trial log, or the
+same figures as one JSON object (``report_json``, for ``--json``).
 
-Reads only the log (``hil.logs.triallog.TrialLog``), analysed by ``hil.analysis.trial_analysis``. Plots:
-range with the phase timeline, translation and rotation error of every estimator and of the
-fused estimate against ground truth (skipped, and said so, for a log without truth), the
-per-system accepted/rejected/lost raster and the commanded speeds. Matplotlib is used through
-its object API on the Agg canvas (no pyplot state, no display needed).
+Reads only the log (``hil.logs.triallog.TrialLog``), analysed by
+``hil.analysis.trial_analysis``. Plots: range with the phase timeline, translation and rotation
+error of every estimator result (at its capture time) and of the fused estimate (at each tick)
+against ground truth (skipped, and said so, for a log without truth), the per-system outcome
+raster, the commanded speeds, and the timing: control period and tick work over the trial,
+and the vision latency capture → fusion per system. Matplotlib is used through its object API
+on the Agg canvas (no pyplot state, no display needed).
 """
 
 from __future__ import annotations
@@ -13,13 +16,14 @@ import html
 import math
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
-from hil.analysis.trial_analysis import FUSED, TrialAnalysis, analyse, phase_spans
+from hil.analysis.trial_analysis import FUSED, Spread, TrialAnalysis, analyse, phase_spans
 from hil.logs.triallog import TrialLog
 
 PHASE_COLORS = {
@@ -33,11 +37,11 @@ PHASE_COLORS = {
     "done": "#d0d0d0",
 }
 SYSTEM_COLORS = {"corners": "#1f77b4", "lines": "#ff7f0e", "ellipses": "#2ca02c"}
-STATUS_STYLE = {  # colour, label
+OUTCOME_STYLE = {  # colour, label
     "accepted": ("#2ca02c", "accepted by fusion"),
     "rejected": ("#ff7f0e", "rejected by fusion"),
-    "unused": ("#9e9e9e", "valid, not fused"),
-    "lost": ("#d62728", "lost"),
+    "not_measured": ("#d62728", "lost (not measured)"),
+    "stale": ("#9e9e9e", "stale (too late for fusion)"),
 }
 DPI = 100
 DEG = math.degrees(1.0)
@@ -93,49 +97,53 @@ def plot_range(analysis: TrialAnalysis, path: Path) -> Path:
 def plot_errors(analysis: TrialAnalysis, path: Path) -> Path:
     fig = Figure(figsize=(10, 6.4), layout="constrained")
     ax_p, ax_a = fig.subplots(2, 1, sharex=True)
-    for ax, errors, scale, unit in (
-        (ax_p, analysis.position_error_m, 1000.0, "translation error (mm)"),
-        (ax_a, analysis.attitude_error_rad, math.degrees(1.0), "rotation error (deg)"),
+    for ax, fused, attribute, scale, unit in (
+        (ax_p, analysis.fused_position_error_m, "position_error_m", 1000.0, "translation (mm)"),
+        (ax_a, analysis.fused_attitude_error_rad, "attitude_error_rad", DEG, "rotation (deg)"),
     ):
         _shade_phases(ax, analysis, alpha=0.35)
+        positive = bool((np.isfinite(fused) & (fused > 0)).any())
         for i, system in enumerate(analysis.systems):
-            values = errors[system] * scale
-            status = analysis.status[system]
+            s = analysis.series[system]
+            values = getattr(s, attribute) * scale
+            positive |= bool((np.isfinite(values) & (values > 0)).any())
             color = _system_color(system, i)
-            label = system + (" (circle centre / normal)" if system in analysis.five_dof else "")
-            used = status != "rejected"
-            ax.plot(analysis.t[used], values[used], ".", ms=3, color=color, label=label)
-            if (~used).any():
-                ax.plot(
-                    analysis.t[~used],
-                    values[~used],
-                    "x",
-                    ms=5,
-                    color=color,
-                    label=f"{system} rejected",
-                )
-        ax.plot(analysis.t, errors[FUSED] * scale, "-", color="black", lw=1.6, label="fused")
-        if any((np.isfinite(v) & (v > 0)).any() for v in errors.values()):
+            label = system + (" (circle centre / normal)" if s.five_dof else "")
+            used = s.outcome == "accepted"
+            ax.plot(s.capture_t[used], values[used], ".", ms=3, color=color, label=label)
+            for outcome, marker in (("rejected", "x"), ("stale", "+")):
+                mask = s.outcome == outcome
+                if mask.any():
+                    ax.plot(
+                        s.capture_t[mask],
+                        values[mask],
+                        marker,
+                        ms=5,
+                        color=color,
+                        label=f"{system} {outcome}",
+                    )
+        ax.plot(analysis.t, fused * scale, "-", color="black", lw=1.6, label="fused")
+        if positive:
             ax.set_yscale("log")
         ax.set_ylabel(unit)
         ax.grid(alpha=0.3, which="both")
-    ax_p.set_title("Errors against ground truth: each estimator and the fused estimate")
+    ax_p.set_title("Errors against ground truth: results at capture, the fused estimate per tick")
     ax_p.legend(loc="upper right", fontsize=8, ncols=3)
     ax_a.set_xlabel("time (s)")
     return _save(fig, path)
 
 
-def plot_measurements(analysis: TrialAnalysis, path: Path) -> Path:
+def plot_results(analysis: TrialAnalysis, path: Path) -> Path:
     fig = Figure(figsize=(10, 1.2 + 0.6 * max(1, len(analysis.systems))), layout="constrained")
     ax = fig.add_subplot()
     _shade_phases(ax, analysis, alpha=0.35)
     for row, system in enumerate(analysis.systems):
-        status = analysis.status[system]
-        for name, (color, label) in STATUS_STYLE.items():
-            mask = status == name
+        s = analysis.series[system]
+        for name, (color, label) in OUTCOME_STYLE.items():
+            mask = s.outcome == name
             if mask.any():
                 ax.plot(
-                    analysis.t[mask],
+                    s.capture_t[mask],
                     np.full(mask.sum(), row),
                     "|",
                     ms=14,
@@ -146,8 +154,8 @@ def plot_measurements(analysis: TrialAnalysis, path: Path) -> Path:
     ax.set_yticks(range(len(analysis.systems)), analysis.systems)
     ax.set_ylim(-0.6, len(analysis.systems) - 0.4)
     ax.invert_yaxis()
-    ax.set_xlabel("time (s)")
-    ax.set_title("Measurements per tick")
+    ax.set_xlabel("capture time (s)")
+    ax.set_title("Estimator results and what fusion made of them")
     handles, labels = ax.get_legend_handles_labels()
     unique = dict(zip(labels, handles, strict=True))
     ax.legend(unique.values(), unique.keys(), loc="upper right", fontsize=8, ncols=4)
@@ -171,7 +179,17 @@ def plot_command(analysis: TrialAnalysis, path: Path) -> Path:
         ax.grid(alpha=0.3)
     ax_v.plot(analysis.t, analysis.linear_speed, color="black", label="arm ‖v‖ commanded")
     if np.isfinite(analysis.track_velocity).any():
-        ax_v.plot(analysis.t, analysis.track_velocity, color="#1f77b4", label="track velocity")
+        ax_v.plot(
+            analysis.t, analysis.track_velocity, color="#1f77b4", label="track velocity commanded"
+        )
+    if np.isfinite(analysis.track_velocity_measured).any():
+        ax_v.plot(
+            analysis.t,
+            analysis.track_velocity_measured,
+            color="#1f77b4",
+            ls=":",
+            label="track velocity measured",
+        )
     ax_v.set_ylabel("m/s")
     ax_v.legend(loc="upper right", fontsize=8)
     ax_v.set_title("Commands")
@@ -184,10 +202,138 @@ def plot_command(analysis: TrialAnalysis, path: Path) -> Path:
     return _save(fig, path)
 
 
+def plot_timing(analysis: TrialAnalysis, path: Path) -> Path:
+    """Control period and tick work over the trial (deadline misses marked), and the latency
+    capture → fusion of every result per system, at the time it reached fusion."""
+    fig = Figure(figsize=(10, 6.0), layout="constrained")
+    ax_c, ax_v = fig.subplots(2, 1, sharex=True)
+    for ax in (ax_c, ax_v):
+        _shade_phases(ax, analysis, alpha=0.35)
+        ax.grid(alpha=0.3)
+    nominal = analysis.timing.nominal_period_ms
+    ax_c.plot(analysis.t, analysis.period_ms, color="black", lw=0.8, label="period")
+    ax_c.plot(analysis.t, analysis.work_ms, color="#1f77b4", lw=0.8, label="tick work")
+    if math.isfinite(nominal):
+        ax_c.axhline(nominal, color="#7b1fa2", ls="--", lw=1.0, label=f"nominal {nominal:g} ms")
+    if analysis.deadline_miss.any():
+        miss = analysis.deadline_miss
+        ax_c.plot(
+            analysis.t[miss],
+            np.nan_to_num(analysis.period_ms[miss], nan=nominal),
+            "v",
+            ms=6,
+            color="#d62728",
+            label=f"deadline miss ({int(miss.sum())})",
+        )
+    ax_c.set_ylabel("ms")
+    ax_c.set_ylim(bottom=0)
+    ax_c.set_title("Control loop: period and work of each tick (wall clock)")
+    ax_c.legend(loc="upper right", fontsize=8, ncols=4)
+    for i, system in enumerate(analysis.systems):
+        s = analysis.series[system]
+        fused = s.outcome != "stale"
+        color = _system_color(system, i)
+        ax_v.plot(s.t[fused], s.latency_ms[fused], ".", ms=3, color=color, label=system)
+        if (~fused).any():
+            ax_v.plot(
+                s.t[~fused], s.latency_ms[~fused], "+", ms=6, color=color, label=f"{system} stale"
+            )
+    ax_v.set_ylabel("ms")
+    ax_v.set_ylim(bottom=0)
+    ax_v.set_xlabel("time (s)")
+    ax_v.set_title("Vision latency: frame capture → result handed to fusion")
+    if analysis.systems:
+        ax_v.legend(loc="upper right", fontsize=8, ncols=3)
+    return _save(fig, path)
+
+
+# --- figures as JSON --------------------------------------------------------------------------
+
+
+def _number(value: Any, scale: float = 1.0) -> float | None:
+    """A finite number scaled, else None (JSON null)."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        return None
+    return value * scale
+
+
+def _spread(s: Spread, *keys: str) -> dict[str, float | None]:
+    values = {"p50": s.median, "p95": s.p95, "p99": s.p99, "max": s.max}
+    return {key: _number(values[key]) for key in keys}
+
+
+def _errors(position: Spread, attitude: Spread) -> dict[str, Any]:
+    return {
+        "position_error_mm": {
+            "median": _number(position.median, 1000.0),
+            "p95": _number(position.p95, 1000.0),
+        },
+        "attitude_error_deg": {
+            "median": _number(attitude.median, DEG),
+            "p95": _number(attitude.p95, DEG),
+        },
+    }
+
+
+def report_json(analysis: TrialAnalysis) -> dict[str, Any]:
+    """The trial's figures as JSON data (docs/trial_logs.md lists the keys); NaN as null."""
+    timing, vision, data = analysis.timing, analysis.vision, analysis.outcome_data
+    systems = {}
+    for s in analysis.summaries:
+        systems[s.name] = {
+            "results": s.results,
+            "accepted": s.accepted,
+            "rejected": s.rejected,
+            "not_measured": s.not_measured,
+            "stale": s.stale,
+            "latency_ms": _spread(s.latency_ms, "p50", "p95"),
+            "processing_ms": _spread(s.processing_ms, "p50", "p95"),
+            **(_errors(s.position_m, s.attitude_rad) if analysis.has_truth else {}),
+        }
+    fused = analysis.fused
+    return {
+        "log": analysis.path,
+        "complete": analysis.complete,
+        "incomplete": analysis.incomplete,
+        "success": analysis.success,
+        "outcome": analysis.outcome,
+        "phase": analysis.phases[-1] if analysis.phases else None,
+        "abort_reason": analysis.abort_reason,
+        "duration_s": _number(analysis.duration_s),
+        "clock": data.get("clock"),
+        "seed": analysis.header.get("seed"),
+        "ticks": len(analysis.t),
+        "control_period_ms": {
+            "nominal": _number(timing.nominal_period_ms),
+            **_spread(timing.period_ms, "p50", "p99", "max"),
+        },
+        "tick_work_ms": _spread(timing.work_ms, "p50", "p99", "max"),
+        "deadline_misses": timing.deadline_misses,
+        "frames": {
+            "received": vision.frames_received,
+            "processed": vision.frames_processed,
+            "dropped": vision.frames_dropped,
+        },
+        "results_stale": vision.results_stale,
+        "vision_latency_ms": _spread(vision.latency_ms, "p50", "p95", "max"),
+        "standoff_error_mm": _number(data.get("standoff_error_m"), 1000.0),
+        "standoff_error_deg": _number(data.get("standoff_error_rad"), DEG),
+        "systems": systems,
+        "fused": None
+        if fused is None
+        else {
+            "ticks": fused.results,
+            "with_estimate": fused.valid,
+            **(_errors(fused.position_m, fused.attitude_rad) if analysis.has_truth else {}),
+        },
+        "notes": list(analysis.notes),
+    }
+
+
 # --- HTML -------------------------------------------------------------------------------------
 
 
-def _fmt(value: float, scale: float = 1.0, digits: int = 1, unit: str = "") -> str:
+def _fmt(value: float | None, scale: float = 1.0, digits: int = 1, unit: str = "") -> str:
     if value is None or not math.isfinite(value):
         return "–"
     return f"{value * scale:.{digits}f}{unit}"
@@ -210,8 +356,10 @@ def _table(rows: list[list[str]], header: list[str] | None = None) -> str:
 def summary_rows(analysis: TrialAnalysis) -> list[list[str]]:
     """The trial summary as (label, value) rows."""
     h = analysis.header
+    figures = report_json(analysis)
     rows = [
         ["outcome", analysis.outcome],
+        ["success", "yes" if analysis.success else "no"],
         ["abort reason", analysis.abort_reason or "–"],
         ["duration", f"{analysis.duration_s:.2f} s"],
         ["ticks", str(len(analysis.t))],
@@ -223,6 +371,7 @@ def summary_rows(analysis: TrialAnalysis) -> list[list[str]]:
             if analysis.complete
             else "not closed by its writer",
         ],
+        ["clock", str(figures["clock"] or "–")],
         ["satgrasp", str(h.get("satgrasp_version", "?"))],
         ["started (UTC)", str(h.get("start_time_utc", "?"))],
         ["host", str(h.get("host", "?"))],
@@ -251,12 +400,19 @@ def summary_rows(analysis: TrialAnalysis) -> list[list[str]]:
             ]
     else:
         rows.append(["stand-off", "not reached"])
+    rows.append(
+        [
+            "stand-off true error when reached (outcome)",
+            f"{_fmt(figures['standoff_error_mm'], 1, 2, ' mm')} / "
+            f"{_fmt(figures['standoff_error_deg'], 1, 3, '°')}",
+        ]
+    )
     if analysis.has_truth:
         p, a, n = analysis.fused_below_all
         rows.append(
             [
-                "fused error below every single estimator at the same tick",
-                f"translation {_pct(p)}, rotation {_pct(a)} of {n} ticks",
+                "fused error (nearest tick) below every estimator's result of the same frame",
+                f"translation {_pct(p)}, rotation {_pct(a)} of {n} frames",
             ]
         )
         p, a, n = analysis.fused_below_all_1s
@@ -269,9 +425,48 @@ def summary_rows(analysis: TrialAnalysis) -> list[list[str]]:
     return rows
 
 
+def timing_rows(analysis: TrialAnalysis) -> list[list[str]]:
+    """The control loop's and the vision pipeline's figures: those of ``report_json``."""
+    f = report_json(analysis)
+    period, work, latency = f["control_period_ms"], f["tick_work_ms"], f["vision_latency_ms"]
+    frames = f["frames"]
+    return [
+        [
+            "control period nominal / p50 / p99 / max",
+            f"{_fmt(period['nominal'], 1, 2)} / {_fmt(period['p50'], 1, 2)} / "
+            f"{_fmt(period['p99'], 1, 2)} / {_fmt(period['max'], 1, 2)} ms",
+        ],
+        [
+            "tick work p50 / p99 / max",
+            f"{_fmt(work['p50'], 1, 2)} / {_fmt(work['p99'], 1, 2)} / {_fmt(work['max'], 1, 2)} ms",
+        ],
+        ["deadline misses", str(f["deadline_misses"])],
+        [
+            "frames received / processed / dropped",
+            f"{frames['received']} / {frames['processed']} / {frames['dropped']}",
+        ],
+        ["results discarded as stale", str(f["results_stale"])],
+        [
+            "vision latency capture → fusion p50 / p95 / max",
+            f"{_fmt(latency['p50'])} / {_fmt(latency['p95'])} / {_fmt(latency['max'])} ms",
+        ],
+    ]
+
+
 def system_rows(analysis: TrialAnalysis) -> tuple[list[str], list[list[str]]]:
     """Header and rows of the per-system table (error columns only with ground truth)."""
-    header = ["system", "kind", "ticks", "valid", "accepted", "rejected", "lost"]
+    header = [
+        "system",
+        "kind",
+        "results",
+        "valid",
+        "accepted",
+        "rejected",
+        "lost",
+        "stale",
+        "latency p50 / p95 (ms)",
+        "processing p50 / p95 (ms)",
+    ]
     if analysis.has_truth:
         header += [
             "translation error median / p95 (mm)",
@@ -286,11 +481,14 @@ def system_rows(analysis: TrialAnalysis) -> tuple[list[str], list[list[str]]]:
         row = [
             s.name,
             kind,
-            str(s.ticks),
+            str(s.results),
             _pct(s.valid_rate),
             "–" if fused else _pct(s.accepted_rate),
             "–" if fused else str(s.rejected),
-            str(s.lost),
+            str(s.not_measured),
+            "–" if fused else str(s.stale),
+            "–" if fused else f"{_fmt(s.latency_ms.median)} / {_fmt(s.latency_ms.p95)}",
+            "–" if fused else f"{_fmt(s.processing_ms.median)} / {_fmt(s.processing_ms.p95)}",
         ]
         if analysis.has_truth:
             row += [
@@ -318,8 +516,11 @@ def make_report(log_path: str | os.PathLike[str], out_dir: str | os.PathLike[str
     """Write the plots and ``index.html`` for the trial log ``log_path`` into ``out_dir``
     (created if needed); returns the path of ``index.html``. Raises ``FileNotFoundError`` or
     ``hil.logs.triallog.TrialLogError`` for a file that is not a readable trial log."""
-    log = TrialLog.open(log_path)
-    analysis = analyse(log)
+    return write_report(analyse(TrialLog.open(log_path)), out_dir)
+
+
+def write_report(analysis: TrialAnalysis, out_dir: str | os.PathLike[str]) -> Path:
+    """Write the plots and ``index.html`` of an analysed log into ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     plots: list[tuple[str, Path]] = []
@@ -328,8 +529,9 @@ def make_report(log_path: str | os.PathLike[str], out_dir: str | os.PathLike[str
         if analysis.has_truth:
             plots.append(("Errors against ground truth", plot_errors(analysis, out / "errors.png")))
         if analysis.systems:
-            plots.append(("Measurements", plot_measurements(analysis, out / "measurements.png")))
+            plots.append(("Estimator results", plot_results(analysis, out / "results.png")))
         plots.append(("Commands", plot_command(analysis, out / "command.png")))
+        plots.append(("Timing", plot_timing(analysis, out / "timing.png")))
     index = out / "index.html"
     index.write_text(render_html(analysis, plots), encoding="utf-8")
     return index
@@ -348,6 +550,7 @@ def render_html(analysis: TrialAnalysis, plots: list[tuple[str, Path]]) -> str:
         notes.append("The log holds no ticks.")
     parts += [f'<p class="note">{html.escape(n)}</p>' for n in notes]
     parts += ["<h2>Summary</h2>", _table(summary_rows(analysis))]
+    parts += ["<h2>Timing and vision pipeline</h2>", _table(timing_rows(analysis))]
     if analysis.systems:
         header, rows = system_rows(analysis)
         parts += ["<h2>Estimators and fusion</h2>", _table(rows, header)]

@@ -1,5 +1,8 @@
 """JSON Schemas of the trial-log channels, a validator for them, and their Foxglove form.
 
+The tick and vision schemas are derived from their record classes (``hil.logs.records``); the
+header, event, measurement and image schemas are written here.
+
 The schemas are standard JSON Schema (draft 2020-12 keywords: ``type`` — possibly a list, for
 nullable values —, ``enum``, ``properties``, ``required``, ``additionalProperties``, ``items``,
 ``minItems``, ``maxItems``). They are tolerant: unknown keys are allowed everywhere, so the
@@ -19,7 +22,6 @@ import copy
 from collections.abc import Callable
 from typing import Any
 
-PHASES = ("idle", "acquire", "approach", "standoff", "grasp", "retreat", "abort", "done")
 MEASUREMENT_STATUSES = ("acquired", "tracking", "lost")
 
 NUMBER = {"type": "number"}
@@ -81,78 +83,6 @@ MEASUREMENT_SCHEMA = _object(
     },
     ("system", "status"),
     description="estimators.measurement.Measurement.to_dict()",
-)
-
-ESTIMATE_SCHEMA = _object(
-    {
-        "health": STRING,
-        "X_CT": _pose("fused target in camera"),
-        "X_MT": _pose("fused target in track carriage"),
-        "covariance": _matrix(6, 6, description="6×6 over [δθ, δp]"),
-        "accepted": {"type": "array", "items": STRING},
-        "rejected": {
-            "type": "array",
-            "items": _object({"system": STRING, "reason": STRING}, ("system", "reason")),
-        },
-        "age_s": NUMBER_OR_NULL,
-    },
-    ("health", "X_CT"),
-)
-
-TICK_SCHEMA = _object(
-    {
-        "t": {"type": "number", "description": "seconds since the trial started"},
-        "tick": {"type": "integer", "minimum": 0},
-        "phase": {"type": "string", "enum": list(PHASES)},
-        "range_m": {
-            "type": ["number", "null"],
-            "description": "camera to ring face along the optical axis, from the estimate",
-        },
-        "measurements": {"type": "array", "items": MEASUREMENT_SCHEMA},
-        "estimate": {**ESTIMATE_SCHEMA, "type": ["object", "null"]},
-        "command": _object(
-            {"V_BE": _vector(6), "stop": BOOLEAN, "reason": STRING},
-            ("V_BE", "stop"),
-            description="flange twist [v (m/s), ω (rad/s)] in B",
-        ),
-        "arm": _object(
-            {
-                "q": _vector(6),
-                "X_BE": _pose("flange in base", nullable=False),
-                "V_BE": _vector(6),
-                "protective_stop": BOOLEAN,
-                "fault": STRING_OR_NULL,
-            },
-            ("X_BE",),
-        ),
-        "track": _object(
-            {"position": NUMBER, "velocity": NUMBER, "fault": STRING_OR_NULL},
-            type=["object", "null"],
-        ),
-        "gripper": _object(
-            {"position": NUMBER, "object_detected": BOOLEAN}, type=["object", "null"]
-        ),
-        "truth": _object(
-            {
-                "X_CT": _pose("true target in camera", nullable=False),
-                "X_WT": _pose("true target in world"),
-                "X_WC": _pose("true camera in world"),
-            },
-            ("X_CT",),
-            type=["object", "null"],
-            description="simulator ground truth; null on real hardware",
-        ),
-        "timing_ms": _object(
-            {
-                "estimators": {"type": "object", "properties": {}, "additionalProperties": NUMBER},
-                "fusion": NUMBER_OR_NULL,
-                "tick": NUMBER_OR_NULL,
-            }
-        ),
-    },
-    ("t", "tick", "phase", "range_m", "measurements", "estimate", "command", "arm"),
-    title="satgrasp.Tick",
-    description="One control tick of the approach sequencer.",
 )
 
 EVENT_SCHEMA = _object(
@@ -228,7 +158,7 @@ _JSON_TYPES = {
 
 def validate(value: Any, schema: dict, *, limit: int = 10) -> list[str]:
     """Problems of a JSON value (``json.loads`` output) against ``schema``, each naming its
-    path (``$.measurements[1].status: 'lots' is not one of …``); empty when it conforms.
+    path (``$.measurement.status: 'lots' is not one of …``); empty when it conforms.
 
     Implements the keywords the schemas here use (see the module docstring); stops after
     ``limit`` problems. Schemas are compiled to checking functions once and cached.
@@ -238,8 +168,28 @@ def validate(value: Any, schema: dict, *, limit: int = 10) -> list[str]:
     return problems
 
 
-_Checker = Callable[[Any, str, list, int], None]
+# A value's path is built only for a problem: (parent path, ".key" or "[i]"), from "$".
+_Path = str | tuple
+_Checker = Callable[[Any, _Path, list, int], None]
 _CACHE: dict[int, tuple[dict, _Checker]] = {}
+#: The Python types ``json.loads`` gives for each JSON type (exact types: a fast first test).
+_PY_TYPES = {
+    "null": (type(None),),
+    "boolean": (bool,),
+    "integer": (int,),
+    "number": (int, float),
+    "string": (str,),
+    "array": (list,),
+    "object": (dict,),
+}
+
+
+def _where(path: _Path) -> str:
+    parts = []
+    while isinstance(path, tuple):
+        path, part = path
+        parts.append(part)
+    return path + "".join(reversed(parts))
 
 
 def _compiled(schema: dict) -> _Checker:
@@ -254,13 +204,25 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, int | float) and not isinstance(v, bool)
 
 
+def _numbers_only(items: Any) -> frozenset[type] | None:
+    """The exact types of a numbers-only ``items`` schema (vectors, matrix rows; null where
+    NaN was written), else None."""
+    if items == NUMBER:
+        return frozenset((float, int))
+    if items == NUMBER_OR_NULL:
+        return frozenset((float, int, type(None)))
+    return None
+
+
 def _compile(schema: dict) -> _Checker:
     """A function (value, path, problems, limit) that appends the problems of ``value``."""
     kinds = schema.get("type")
     kinds = [kinds] if isinstance(kinds, str) else kinds
     type_tests = [_JSON_TYPES[k] for k in kinds] if kinds else []
+    exact_types = frozenset(t for k in kinds or () for t in _PY_TYPES[k])
     enum = schema.get("enum")
     minimum, maximum = schema.get("minimum"), schema.get("maximum")
+    bounded = minimum is not None or maximum is not None
     properties = {k: _compile(v) for k, v in schema.get("properties", {}).items()}
     required = schema.get("required", ())
     extra = schema.get("additionalProperties", True)
@@ -268,47 +230,68 @@ def _compile(schema: dict) -> _Checker:
     min_items, max_items = schema.get("minItems"), schema.get("maxItems")
     items = schema.get("items")
     item_check = _compile(items) if isinstance(items, dict) else None
-    # numbers-only items (vectors, matrix rows): one pass instead of a call per element
-    numeric_items = isinstance(items, dict) and items == {"type": "number"}
+    # numbers-only items, or rows of numbers of a fixed length (matrices): one pass instead of
+    # a call per element
+    numeric = _numbers_only(items)
+    row_numeric = _numbers_only(items.get("items")) if isinstance(items, dict) else None
+    row_length = items.get("minItems") if isinstance(items, dict) else None
+    if row_numeric is None or row_length is None or items.get("maxItems") != row_length:
+        row_numeric = None
 
-    def check(value: Any, path: str, problems: list[str], limit: int) -> None:
+    def check(value: Any, path: _Path, problems: list[str], limit: int) -> None:
         if len(problems) >= limit:
             return
-        if type_tests and not any(test(value) for test in type_tests):
-            problems.append(f"{path}: expected {' or '.join(kinds)}, got {_describe(value)}")
+        # exact types first; the general tests accept subclasses (numpy floats)
+        if (
+            type_tests
+            and type(value) not in exact_types
+            and not any(test(value) for test in type_tests)
+        ):
+            problems.append(
+                f"{_where(path)}: expected {' or '.join(kinds)}, got {_describe(value)}"
+            )
             return
         if enum is not None and value not in enum:
-            problems.append(f"{path}: {value!r} is not one of {', '.join(map(str, enum))}")
+            problems.append(f"{_where(path)}: {value!r} is not one of {', '.join(map(str, enum))}")
             return
-        if _is_number(value):
-            if minimum is not None and value < minimum:
-                problems.append(f"{path}: {value} is less than {minimum}")
-            if maximum is not None and value > maximum:
-                problems.append(f"{path}: {value} is greater than {maximum}")
-        elif isinstance(value, dict):
+        if isinstance(value, dict):
             for key in required:
                 if key not in value:
-                    problems.append(f"{path}: missing {key!r}")
+                    problems.append(f"{_where(path)}: missing {key!r}")
             for key, item in value.items():
                 sub = properties.get(key)
                 if sub is not None:
-                    sub(item, f"{path}.{key}", problems, limit)
+                    sub(item, (path, f".{key}"), problems, limit)
                 elif extra is False:
-                    problems.append(f"{path}: unexpected key {key!r}")
+                    problems.append(f"{_where(path)}: unexpected key {key!r}")
                 elif extra_check is not None:
-                    extra_check(item, f"{path}.{key}", problems, limit)
+                    extra_check(item, (path, f".{key}"), problems, limit)
         elif isinstance(value, list):
             if min_items is not None and len(value) < min_items:
-                problems.append(f"{path}: {len(value)} items, expected at least {min_items}")
+                problems.append(
+                    f"{_where(path)}: {len(value)} items, expected at least {min_items}"
+                )
             if max_items is not None and len(value) > max_items:
-                problems.append(f"{path}: {len(value)} items, expected at most {max_items}")
-            if numeric_items and all(t is float or t is int for t in map(type, value)):
+                problems.append(f"{_where(path)}: {len(value)} items, expected at most {max_items}")
+            if numeric is not None and all(t in numeric for t in map(type, value)):
+                return
+            if row_numeric is not None and all(
+                type(row) is list
+                and len(row) == row_length
+                and all(t in row_numeric for t in map(type, row))
+                for row in value
+            ):
                 return
             if item_check is not None:
                 for i, item in enumerate(value):
-                    item_check(item, f"{path}[{i}]", problems, limit)
+                    item_check(item, (path, f"[{i}]"), problems, limit)
                     if len(problems) >= limit:
                         return
+        elif bounded and _is_number(value):
+            if minimum is not None and value < minimum:
+                problems.append(f"{_where(path)}: {value} is less than {minimum}")
+            if maximum is not None and value > maximum:
+                problems.append(f"{_where(path)}: {value} is greater than {maximum}")
 
     return check
 

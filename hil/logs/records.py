@@ -206,26 +206,74 @@ class VisionRecord:
 # --- JSON ------------------------------------------------------------------------------------
 
 
-def to_json(record: Any) -> Any:
-    """A record as plain JSON data (see the module docstring)."""
-    if record is None or isinstance(record, bool | str | int):
-        return record
-    if isinstance(record, float):
-        return record if math.isfinite(record) else None
-    if isinstance(record, Pose):
-        return record.to_list()
-    if isinstance(record, np.ndarray):
-        values = np.asarray(record, dtype=float)
-        if np.isfinite(values).all():
-            return values.tolist()
-        return np.where(np.isfinite(values), values, None).tolist()
-    if isinstance(record, Measurement):
-        return record.to_dict()
-    if isinstance(record, list | tuple):
-        return [to_json(item) for item in record]
-    if dataclasses.is_dataclass(record):
-        return {f.name: to_json(getattr(record, f.name)) for f in dataclasses.fields(record)}
-    raise TypeError(f"cannot write a {type(record).__name__} into a trial-log record")
+def to_json(record: Any, path: str = "$") -> Any:
+    """A record as plain JSON data (see the module docstring); raises ``TypeError`` naming the
+    path (``$.arm.q``) of a value it cannot write."""
+    try:
+        return _plain(record)
+    except _Unwritable as exc:
+        raise TypeError(f"{path}{exc.where}: {exc}") from None
+
+
+class _Unwritable(TypeError):
+    """A value ``to_json`` cannot write; ``where`` grows from the value up to the record (the
+    path is built only on this error path: records are written at the control rate)."""
+
+    def __init__(self, message: str):
+        super().__init__(message)
+        self.where = ""
+
+
+#: Field names per record class (``dataclasses.fields`` is slow to call per value).
+_FIELD_NAMES: dict[type, tuple[str, ...]] = {}
+
+
+def _plain(value: Any) -> Any:
+    kind = type(value)
+    if kind is float:
+        return value if math.isfinite(value) else None
+    if value is None or kind is str or kind is bool or kind is int:
+        return value
+    names = _FIELD_NAMES.get(kind)
+    if names is None and dataclasses.is_dataclass(kind) and kind not in (Pose, Measurement):
+        names = _FIELD_NAMES[kind] = tuple(f.name for f in dataclasses.fields(kind))
+    if names is not None:
+        out = {}
+        for name in names:
+            try:
+                out[name] = _plain(getattr(value, name))
+            except _Unwritable as exc:
+                exc.where = f".{name}{exc.where}"
+                raise
+        return out
+    if isinstance(value, Pose):  # a diverged pose keeps its shape; its NaNs become null
+        return _array_json(value.matrix)
+    if isinstance(value, np.ndarray):
+        if value.dtype.kind not in "biuf":
+            raise _Unwritable(f"cannot write a numpy array of dtype {value.dtype}")
+        return _array_json(np.asarray(value, dtype=float))
+    if isinstance(value, Measurement):
+        return value.to_dict()
+    if isinstance(value, float):  # numpy floats
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, bool | str | int):
+        return value
+    if isinstance(value, list | tuple):
+        out = []
+        for i, item in enumerate(value):
+            try:
+                out.append(_plain(item))
+            except _Unwritable as exc:
+                exc.where = f"[{i}]{exc.where}"
+                raise
+        return out
+    raise _Unwritable(f"cannot write a {kind.__name__} into a trial-log record")
+
+
+def _array_json(values: np.ndarray) -> Any:
+    if np.isfinite(values).all():
+        return values.tolist()
+    return np.where(np.isfinite(values), values, None).tolist()
 
 
 RecordT = typing.TypeVar("RecordT")
@@ -240,6 +288,15 @@ def from_json(cls: type[RecordT], data: Any) -> RecordT:
 @functools.cache
 def _hints(cls: type) -> dict[str, Any]:
     return typing.get_type_hints(cls)
+
+
+def _required(kind: type) -> list[str]:
+    """The fields of a record class that have no default."""
+    return [
+        f.name
+        for f in dataclasses.fields(kind)
+        if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+    ]
 
 
 def _optional(kind: Any) -> tuple[Any, bool]:
@@ -281,6 +338,7 @@ def _parser(annotation: Any):
     if _is_record(kind):
         hints = _hints(kind)
         fields = [(f.name, _parser(hints[f.name])) for f in dataclasses.fields(kind)]
+        required = _required(kind)
 
         def parse_record(value: Any, where: str) -> Any:
             if value is None:
@@ -289,13 +347,16 @@ def _parser(annotation: Any):
                 raise ValueError(f"{where}: missing value")
             if not isinstance(value, dict):
                 raise ValueError(f"{where}: expected an object")
-            return kind(
-                **{
-                    name: parse(value[name], f"{where}.{name}")
-                    for name, parse in fields
-                    if name in value
-                }
-            )
+            values = {
+                name: parse(value[name], f"{where}.{name}")
+                for name, parse in fields
+                if name in value
+            }
+            try:
+                return kind(**values)
+            except TypeError:  # a required field is missing
+                missing = [name for name in required if name not in value]
+                raise ValueError(f"{where}: missing {', '.join(missing)}") from None
 
         return parse_record
     leaf = _LEAF_PARSERS.get(kind)
@@ -360,11 +421,7 @@ def json_schema(cls: type, *, title: str | None = None, description: str = "") -
         return {
             "type": "object",
             "properties": {f.name: schema_of(hints[f.name], f.metadata) for f in fields},
-            "required": [
-                f.name
-                for f in fields
-                if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
-            ],
+            "required": _required(kind),
         }
 
     schema = object_of(cls)

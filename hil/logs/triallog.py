@@ -1,11 +1,13 @@
 """Trial logs: one self-describing MCAP file per trial, written tick by tick, readable after a
 crash.
 
-Layout (details in docs/trial_logs.md): the header — versions, host, start time, seed, the
-resolved configuration, notes — comes first, as the metadata record ``satgrasp.header`` and as
-the first message on ``/trial/header``; then one JSON message per control tick on
-``/trial/tick``, events on ``/trial/event`` and optional ``foxglove.CompressedImage`` frames on
-``/camera/image``. Messages are JSON with a JSON Schema per channel, in zstd chunks.
+Layout (format 2; details in docs/trial_logs.md): the header — versions, host, start time,
+seed, the resolved configuration, notes — comes first, as the metadata record
+``satgrasp.header`` and as the first message on ``/trial/header``; then one ``TickRecord`` per
+control tick on ``/trial/tick``, one ``VisionRecord`` per estimator result on
+``/vision/result`` (``hil.logs.records``), events on ``/trial/event`` and optional
+``foxglove.CompressedImage`` frames on ``/camera/image``. Messages are JSON with a JSON Schema
+per channel, in zstd chunks. A log of an older format is refused with one line that says so.
 
 Crash safety: the writer closes its chunk and flushes the file about once a second, so a
 process killed with SIGKILL loses only the open chunk. ``TrialLog.open`` reads such a file
@@ -13,7 +15,8 @@ record by record up to the last complete chunk (``recovered`` is then True) and 
 rewrites it as a valid MCAP file.
 
 Writing never raises into the control loop for a bad value: NaN and ±inf become null, numpy
-arrays and poses become lists (4×4 for a ``Pose``), and a record that cannot be serialised is
+arrays and poses become lists (4×4 for a ``Pose``), a record that does not match its schema is
+written with a ``log`` event naming the problems, and a record that cannot be serialised is
 replaced by a ``log`` event that says why.
 """
 
@@ -53,15 +56,23 @@ from hil.logs.logschema import (
     COMPRESSED_IMAGE_SCHEMA,
     EVENT_SCHEMA,
     HEADER_SCHEMA,
-    TICK_SCHEMA,
     foxglove_schema,
     validate,
 )
+from hil.logs.records import (
+    FORMAT_VERSION,
+    TICK_SCHEMA,
+    VISION_SCHEMA,
+    TickRecord,
+    VisionRecord,
+    from_json,
+    to_json,
+)
 
 FORMAT = "satgrasp.trial_log"
-FORMAT_VERSION = 1
 HEADER_TOPIC = "/trial/header"
 TICK_TOPIC = "/trial/tick"
+VISION_TOPIC = "/vision/result"
 EVENT_TOPIC = "/trial/event"
 FRAME_TOPIC = "/camera/image"
 HEADER_METADATA = "satgrasp.header"
@@ -102,7 +113,8 @@ MAX_SCHEMA_EVENTS = 20
 
 _SCHEMAS = {
     HEADER_TOPIC: ("satgrasp.TrialHeader", HEADER_SCHEMA),
-    TICK_TOPIC: ("satgrasp.Tick", TICK_SCHEMA),
+    TICK_TOPIC: (TICK_SCHEMA["title"], TICK_SCHEMA),
+    VISION_TOPIC: (VISION_SCHEMA["title"], VISION_SCHEMA),
     EVENT_TOPIC: ("satgrasp.Event", EVENT_SCHEMA),
     FRAME_TOPIC: ("foxglove.CompressedImage", COMPRESSED_IMAGE_SCHEMA),
 }
@@ -283,7 +295,15 @@ class TrialLogWriter:
         self._lock = threading.RLock()
         self._closed = False
         self.error: str | None = None
-        self.counts = {"ticks": 0, "events": 0, "frames": 0, "invalid_ticks": 0, "replaced": 0}
+        self.counts = {
+            "ticks": 0,
+            "vision": 0,
+            "events": 0,
+            "frames": 0,
+            "invalid_ticks": 0,
+            "invalid_vision": 0,
+            "replaced": 0,
+        }
         #: How many times the open chunk was closed and the file flushed (for tests/monitors).
         self.flush_count = 0
         self._last_t = 0.0
@@ -320,41 +340,47 @@ class TrialLogWriter:
             SCHEMAS_METADATA,
             {topic: json.dumps(schema) for topic, (_, schema) in _SCHEMAS.items()},
         )
-        for topic in (HEADER_TOPIC, TICK_TOPIC, EVENT_TOPIC):
+        for topic in (HEADER_TOPIC, TICK_TOPIC, VISION_TOPIC, EVENT_TOPIC):
             self._register(topic)
         self._add(HEADER_TOPIC, 0.0, _dumps(self.header))
         self.flush()  # the header is on disk before the first tick
 
     # --- public API -----------------------------------------------------------------------
-    def write_tick(self, record: Mapping[str, Any]) -> bool:
-        """Log one tick record (see ``hil.logs.logschema.TICK_SCHEMA``). A record that does not
-        match the schema is still written, with a ``log`` event naming the problems; one that
+    def write_tick(self, record: TickRecord) -> bool:
+        """Log one control tick (``hil.logs.records.TickRecord``). A record that does not match
+        the tick schema is still written, with a ``log`` event naming the problems; one that
         cannot be serialised is replaced by such an event. True when written as given."""
         with self._lock:
-            return self._write_tick(record)
+            return self._write_record(TICK_TOPIC, record, TickRecord, "tick", "ticks")
 
-    def _write_tick(self, record: Mapping[str, Any]) -> bool:
+    def write_vision(self, record: VisionRecord) -> bool:
+        """Log one estimator result (``hil.logs.records.VisionRecord``), as ``write_tick``."""
+        with self._lock:
+            return self._write_record(VISION_TOPIC, record, VisionRecord, "vision", "vision")
+
+    def _write_record(self, topic: str, record: Any, kind: type, what: str, count: str) -> bool:
         t = self._time_of(record)
-        number = record.get("tick") if isinstance(record, Mapping) else None
+        name = _label(record) if isinstance(record, kind) else f"{what} record"
         try:
-            clean = to_jsonable(record, "tick")
-            if not isinstance(clean, dict):
-                raise TypeError(f"a tick record must be a mapping; got {type(record).__name__}")
+            if not isinstance(record, kind):
+                raise TypeError(f"expected a {kind.__name__}; got {type(record).__name__}")
+            clean = to_json(record, what)
             data = _dumps(clean)
         except Exception as exc:  # a bad value must never stop the control loop
             self.counts["replaced"] += 1
-            self._log_event(t, f"tick {number} not logged: {exc}", tick=number)
+            self._log_event(t, f"{name} not logged: {exc}")
             return False
-        problems = validate(clean, TICK_SCHEMA, limit=3)
+        schema = _SCHEMAS[topic][1]
+        problems = validate(clean, schema, limit=3)
         if problems:
-            self.counts["invalid_ticks"] += 1
-            if self.counts["invalid_ticks"] <= MAX_SCHEMA_EVENTS:
+            self.counts[f"invalid_{count}"] += 1
+            if self.counts[f"invalid_{count}"] <= MAX_SCHEMA_EVENTS:
                 self._log_event(
-                    t, f"tick {number} does not match the tick schema: {'; '.join(problems)}"
+                    t, f"{name} does not match the {what} schema: {'; '.join(problems)}"
                 )
-        if not self._add(TICK_TOPIC, t, data):
+        if not self._add(topic, t, data):
             return False
-        self.counts["ticks"] += 1
+        self.counts[count] += 1
         return not problems
 
     def write_event(self, t: float, kind: str, message: str, /, **data: Any) -> bool:
@@ -472,7 +498,7 @@ class TrialLogWriter:
 
     def _time_of(self, record: Any) -> float:
         """The record's ``t`` (s), or the last one when it has none usable."""
-        t = record.get("t") if isinstance(record, Mapping) else None
+        t = record.get("t") if isinstance(record, Mapping) else getattr(record, "t", None)
         if isinstance(t, numbers.Real) and not isinstance(t, bool) and math.isfinite(t):
             self._last_t = max(self._last_t, float(t))
             return float(t)
@@ -525,6 +551,13 @@ class TrialLogWriter:
         if self.error is None:
             self.error = f"{type(exc).__name__}: {exc}"
             log.error("%s: trial log writing failed, nothing more is written: %s", self.path, exc)
+
+
+def _label(record: TickRecord | VisionRecord) -> str:
+    """How log events name a record: ``tick 12``, ``vision result corners frame 40``."""
+    if isinstance(record, TickRecord):
+        return f"tick {record.tick}"
+    return f"vision result {record.system} frame {record.seq}"
 
 
 def _encode_image(image: np.ndarray, encoding: str, jpeg_quality: int) -> bytes:
@@ -639,11 +672,14 @@ class LoggedFrame:
 
 
 class TrialLog:
-    """A trial log opened for reading: ``header``, ``ticks()``, ``events()``, ``frames()``.
+    """A trial log opened for reading: ``header``, ``ticks()``, ``vision()``, ``events()``,
+    ``frames()``.
 
     ``recovered`` is True when the file has no MCAP footer (its writer was killed) and the
     records were read from the complete chunks; ``complete`` is True when the writer closed
-    the log normally (its ``satgrasp.footer`` is present). Open with ``TrialLog.open``.
+    the log normally (its ``satgrasp.footer`` is present). ``problems`` lists the records that
+    ``ticks()`` and ``vision()`` skipped because they do not read back as records (each
+    naming the record and the field), filled in as they are read. Open with ``TrialLog.open``.
     """
 
     def __init__(self, path: Path, scan: _Scan):
@@ -676,9 +712,12 @@ class TrialLog:
             raise TrialLogError(
                 f"{path}: header format is {self.header.get('format')!r}, not {FORMAT!r}"
             )
+        _check_format_version(path, self.header)
         self._start_ns = int(self.header["start_time_unix_ns"])
         self._ticks = by_topic.get(TICK_TOPIC, [])
+        self._vision = by_topic.get(VISION_TOPIC, [])
         self._events = by_topic.get(EVENT_TOPIC, [])
+        self.problems: list[str] = []
         self.frame_count = sum(
             n for channel_id, n in scan.counts.items() if topics.get(channel_id) == FRAME_TOPIC
         )
@@ -689,7 +728,8 @@ class TrialLog:
         ``TrialLogError`` (naming the file) for a missing, empty, non-MCAP or foreign file."""
         path = Path(path)
         _check_file(path)
-        scan = _scan(path, keep=lambda c: c.topic in (HEADER_TOPIC, TICK_TOPIC, EVENT_TOPIC))
+        topics = (HEADER_TOPIC, TICK_TOPIC, VISION_TOPIC, EVENT_TOPIC)
+        scan = _scan(path, keep=lambda c: c.topic in topics)
         return cls(path, scan)
 
     @property
@@ -697,13 +737,28 @@ class TrialLog:
         return len(self._ticks)
 
     @property
+    def vision_count(self) -> int:
+        return len(self._vision)
+
+    @property
     def event_count(self) -> int:
         return len(self._events)
 
-    def ticks(self) -> Iterator[dict[str, Any]]:
-        """Tick records in time order, as written (JSON: poses are 4×4 lists, NaN is None)."""
-        for message in self._ticks:
-            yield self._decode(message, "tick")
+    def ticks(self) -> Iterator[TickRecord]:
+        """Tick records in time order (NaN written as null reads back as NaN)."""
+        return self._records(self._ticks, TickRecord, "tick")
+
+    def vision(self) -> Iterator[VisionRecord]:
+        """Vision records (one per estimator result) in the order they reached fusion."""
+        return self._records(self._vision, VisionRecord, "vision result")
+
+    def _records(self, messages: list[Message], kind: type, what: str) -> Iterator[Any]:
+        for message in messages:
+            data = self._decode(message, what)
+            try:
+                yield from_json(kind, data)
+            except ValueError as exc:  # written with a schema problem (the log says which)
+                self.problems.append(f"{what} message {message.sequence} skipped: {exc}")
 
     def events(self) -> Iterator[dict[str, Any]]:
         """Events in time order: ``t``, ``kind``, ``message``, ``data``."""
@@ -729,6 +784,23 @@ class TrialLog:
             raise TrialLogError(
                 f"trial log {self.path}: {what} message {message.sequence} is not JSON ({exc})"
             ) from None
+
+
+def _check_format_version(path: Path, header: Mapping[str, Any]) -> None:
+    """One clear line for a log this reader cannot read (older or newer format)."""
+    found = header.get("format_version")
+    if found == FORMAT_VERSION:
+        return
+    written = f"satgrasp {header.get('satgrasp_version', '?')}, {header.get('start_time_utc', '?')}"
+    if isinstance(found, int) and found < FORMAT_VERSION:
+        raise TrialLogError(
+            f"{path}: trial log format {found}, written before the typed records of format "
+            f"{FORMAT_VERSION} ({written}); re-run the trial to analyse it"
+        )
+    raise TrialLogError(
+        f"{path}: trial log format {found!r} ({written}) is not the format {FORMAT_VERSION} "
+        "this satgrasp reads; use the satgrasp that wrote it"
+    )
 
 
 def recover(path: str | os.PathLike[str], out_path: str | os.PathLike[str]) -> Path:

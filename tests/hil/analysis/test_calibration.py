@@ -233,3 +233,45 @@ def test_fit_scale_and_floor_recovers_a_model_error_floor_over_range():
     for _, count, _before, after in result.bins:
         assert count >= 20 and 0.7 < after < 1.4
     assert result.bins[0][2] > 5  # near range: the stated covariance alone was far too small
+
+
+def test_samples_with_truth_pair_each_valid_result_with_the_truth_at_its_capture():
+    from hil.analysis.calibration import samples_with_truth
+    from tests.hil.logs.synthetic_log import make_trial
+
+    trial = make_trial(seed=31, rate_hz=10.0)
+    samples = samples_with_truth(trial.vision)
+    valid = [r for r in trial.vision if r.measurement.valid]
+    assert len(samples) == len(valid) < len(trial.vision)
+    for (m, X_CT), r in zip(samples, valid, strict=True):
+        assert m is r.measurement and X_CT is r.truth_X_CT
+    assert any(r.outcome in ("stale", "rejected") for r in valid)  # kept: fusion's verdict
+    assert samples_with_truth(make_trial(seed=31, rate_hz=10.0, with_truth=False).vision) == []
+
+
+def test_cli_calibrate_fits_from_the_vision_records_of_a_log(tmp_path):
+    """Honest synthetic covariances, judged against the truth at capture: scale ≈ 1 (against
+    the truth of the tick that received them, 150 ms later, it would be far above)."""
+    import dataclasses
+
+    from typer.testing import CliRunner
+
+    from hil.cli import app
+    from tests.hil.logs.synthetic_log import make_trial, write_trial
+
+    trial = make_trial(seed=32, rate_hz=10.0, camera_hz=5.0, outlier_probability=0.0)
+    trial = dataclasses.replace(trial, vision=[r for r in trial.vision if r.system == "corners"])
+    write_trial(tmp_path / "run.mcap", trial)
+    result = CliRunner().invoke(
+        app, ["calibrate", str(tmp_path / "run.mcap"), "--out", str(tmp_path / "fusion.yaml")]
+    )
+    assert result.exit_code == 0, result.output
+    lines = result.stdout.splitlines()
+    scale = float(lines[0].split("scale ")[1].split(",")[0])
+    assert lines[0].startswith("corners: scale") and scale < 1.3
+    counts = [int(line.split(": ")[1].split()[0]) for line in lines[1:] if "range ≤" in line]
+    assert sum(counts) == sum(r.measurement.valid for r in trial.vision)
+    written = (tmp_path / "fusion.yaml").read_text()
+    assert written.startswith("fusion:\n  covariance_scale:\n    corners:")
+    empty = CliRunner().invoke(app, ["calibrate", str(tmp_path / "run.mcap"), str(tmp_path / "x")])
+    assert empty.exit_code == 2 and "x does not exist" in " ".join(empty.output.split())

@@ -6,48 +6,67 @@ from hil.logs.logschema import (
     COMPRESSED_IMAGE_SCHEMA,
     EVENT_SCHEMA,
     HEADER_SCHEMA,
-    TICK_SCHEMA,
     foxglove_schema,
     validate,
 )
-from hil.logs.triallog import to_jsonable
+from hil.logs.records import TICK_SCHEMA, VISION_SCHEMA, to_json
 from tests.hil.logs.synthetic_log import make_trial
 
 
 @pytest.fixture(scope="module")
-def ticks():
-    trial = make_trial(seed=4)
-    return [json.loads(json.dumps(to_jsonable(t))) for t in trial.ticks]
+def trial():
+    return make_trial(seed=4)
 
 
-def test_validate_accepts_every_synthetic_tick_and_extra_keys(ticks):
+@pytest.fixture(scope="module")
+def ticks(trial):
+    return [json.loads(json.dumps(to_json(t))) for t in trial.ticks]
+
+
+@pytest.fixture(scope="module")
+def vision(trial):
+    return [json.loads(json.dumps(to_json(r))) for r in trial.vision]
+
+
+def test_validate_accepts_every_synthetic_record_and_extra_keys(ticks, vision):
     for tick in ticks:
         assert validate(tick, TICK_SCHEMA) == [], tick["tick"]
+    for result in vision:
+        assert validate(result, VISION_SCHEMA) == [], (result["system"], result["seq"])
     assert validate({**ticks[50], "debug": {"anything": [1, "x"]}}, TICK_SCHEMA) == []
     idle = ticks[0]
-    assert idle["estimate"] is None and idle["range_m"] is None  # nullable fields
+    assert idle["estimate"]["X_CT"] is None and idle["range_m"] is None  # nullable fields
+    assert idle["timing"]["period_ms"] is None
+    lost = next(r for r in vision if r["outcome"] == "not_measured")
+    assert lost["measurement"]["X_CT"] is None
+    with_nan = {**ticks[60], "command": {**ticks[60]["command"], "V_BE": [0.1, None] + [0.0] * 4}}
+    assert validate(with_nan, TICK_SCHEMA) == []  # a NaN in a vector is written as null
 
 
-def test_validate_names_the_path_of_each_problem(ticks):
+def test_validate_names_the_path_of_each_problem(ticks, vision):
     tick = json.loads(json.dumps(ticks[60]))
-    tick["phase"] = "hover"
-    tick["measurements"][1]["status"] = "found"
+    tick["phase"] = 3
     tick["estimate"]["X_CT"] = tick["estimate"]["X_CT"][:3]
-    tick["command"]["V_BE"][2] = None
-    tick["tick"] = -1
-    del tick["arm"]
+    tick["command"]["V_BE"][2] = "fast"
+    tick["vision"]["frames_dropped"] = 1.5
+    del tick["timing"]
     problems = validate(tick, TICK_SCHEMA)
-    assert any(p.startswith("$.phase: 'hover' is not one of idle, acquire") for p in problems)
     expected = [
-        "$.tick: -1 is less than 0",
-        "$: missing 'arm'",
-        "$.measurements[1].status: 'found' is not one of acquired, tracking, lost",
+        "$.phase: expected string, got integer",
+        "$: missing 'timing'",
         "$.estimate.X_CT: 3 items, expected at least 4",
-        "$.command.V_BE[2]: expected number, got null",
+        "$.command.V_BE[2]: expected number or null, got string",
+        "$.vision.frames_dropped: expected integer, got number",
     ]
     for text in expected:
         assert text in problems, problems
     assert len(validate(tick, TICK_SCHEMA, limit=2)) == 2
+    result = json.loads(json.dumps(vision[10]))
+    result["outcome"] = "late"
+    result["measurement"]["status"] = "found"
+    problems = validate(result, VISION_SCHEMA)
+    assert "$.outcome: 'late' is not one of accepted, rejected, not_measured, stale" in problems
+    assert "$.measurement.status: 'found' is not one of acquired, tracking, lost" in problems
 
 
 def _foxglove_parses(schema: dict, where: str = "") -> None:
@@ -73,25 +92,35 @@ def _foxglove_parses(schema: dict, where: str = "") -> None:
 
 
 @pytest.mark.parametrize(
-    "schema", [TICK_SCHEMA, EVENT_SCHEMA, HEADER_SCHEMA, COMPRESSED_IMAGE_SCHEMA]
+    "schema",
+    [TICK_SCHEMA, VISION_SCHEMA, EVENT_SCHEMA, HEADER_SCHEMA, COMPRESSED_IMAGE_SCHEMA],
+    ids=["tick", "vision", "event", "header", "image"],
 )
 def test_foxglove_schema_is_what_foxglove_can_parse(schema):
+    before = json.dumps(schema)
     derived = foxglove_schema(schema)
     _foxglove_parses(derived)
     json.dumps(derived)
-    assert schema == json.loads(json.dumps(schema))  # the original is left as it was
+    assert json.dumps(schema) == before  # the original is left as it was
 
 
 def test_foxglove_schema_keeps_plottable_fields_and_drops_matrices():
     derived = foxglove_schema(TICK_SCHEMA)["properties"]
     assert derived["range_m"]["type"] == "number" and derived["t"]["type"] == "number"
-    assert derived["command"]["properties"]["V_BE"]["items"]["type"] == "number"
-    measurement = derived["measurements"]["items"]["properties"]
-    assert measurement["status"]["enum"] == ["acquired", "tracking", "lost"]
-    assert measurement["residual_px"]["type"] == "number"
-    assert "X_CT" not in measurement and "covariance" not in measurement
-    assert derived["truth"]["type"] == "object" and derived["truth"]["properties"] == {}
+    # nullable number items (NaN written as null) become plain number items
+    assert derived["command"]["properties"]["V_BE"]["items"] == {"type": "number"}
+    assert derived["timing"]["properties"]["period_ms"]["type"] == "number"
+    assert derived["vision"]["properties"]["frames_dropped"]["type"] == "integer"
+    estimate = derived["estimate"]["properties"]
+    assert estimate["V_MT"]["type"] == "array" and estimate["age_s"]["type"] == "number"
+    assert "X_CT" not in estimate and "covariance" not in estimate
+    assert derived["truth"]["type"] == "object" and "X_CT" not in derived["truth"]["properties"]
     assert derived["truth"]["required"] == []
     assert "X_CT" in TICK_SCHEMA["properties"]["truth"]["properties"]  # full schema untouched
+    vision = foxglove_schema(VISION_SCHEMA)["properties"]
+    assert vision["outcome"]["enum"] == ["accepted", "rejected", "not_measured", "stale"]
+    measurement = vision["measurement"]["properties"]
+    assert measurement["residual_px"]["type"] == "number" and "X_CT" not in measurement
+    assert "truth_X_CT" not in vision and vision["processing_ms"]["type"] == "number"
     image = foxglove_schema(COMPRESSED_IMAGE_SCHEMA)["properties"]
     assert image["data"] == {"type": "string", "contentEncoding": "base64"}

@@ -1,3 +1,4 @@
+import dataclasses
 import json
 import math
 import os
@@ -14,20 +15,28 @@ from mcap.reader import make_reader
 
 from drivers.base import ArmState
 from estimators.geometry import Pose
+from hil.logs.records import CommandRecord, to_json
 from hil.logs.triallog import (
     EVENT_TOPIC,
     FOOTER_METADATA,
     HEADER_METADATA,
     TICK_TOPIC,
+    VISION_TOPIC,
     TrialLog,
     TrialLogError,
     TrialLogWriter,
     recover,
     to_jsonable,
 )
-from tests.hil.logs.synthetic_log import make_trial, synthetic_frame, write_trial
+from tests.hil.logs.synthetic_log import (
+    distance_at,
+    make_trial,
+    synthetic_frame,
+    write_format1_log,
+    write_trial,
+)
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 class FakeClock:
@@ -47,10 +56,16 @@ def _header(**extra):
     return {"config": {"camera": "reference", "gain": 1.5}, "seed": 42, **extra}
 
 
-def test_writer_round_trip_header_ticks_events_frames(tmp_path, trial):
+def _same(a, b) -> bool:
+    """Records equal as logged (poses and arrays compared by their JSON values)."""
+    return json.dumps(to_json(a)) == json.dumps(to_json(b))
+
+
+def test_writer_round_trip_header_ticks_vision_events_frames(tmp_path, trial):
     path = tmp_path / "run.mcap"
     writer = write_trial(path, trial, frames_every=50)
     assert writer.error is None and writer.counts["invalid_ticks"] == 0
+    assert writer.counts["invalid_vision"] == 0 and writer.counts["replaced"] == 0
     log = TrialLog.open(path)
     assert (log.recovered, log.complete) == (False, True)
     header = log.header
@@ -63,21 +78,31 @@ def test_writer_round_trip_header_ticks_events_frames(tmp_path, trial):
     ticks = list(log.ticks())
     assert len(ticks) == len(trial.ticks) == log.tick_count
     for written, read in zip(trial.ticks, ticks, strict=True):
-        assert read == json.loads(json.dumps(to_jsonable(written)))
-    assert ticks[40]["truth"]["X_CT"] == trial.ticks[40]["truth"]["X_CT"].to_list()
+        assert type(read) is type(written) and _same(read, written), written.tick
+    assert np.array_equal(ticks[40].truth.X_CT.matrix, trial.ticks[40].truth.X_CT.matrix)
+    assert ticks[40].timing == trial.ticks[40].timing and ticks[40].vision == trial.ticks[40].vision
+    assert ticks[0].estimate.X_CT is None and ticks[0].timing.period_ms is None
+    vision = list(log.vision())
+    assert len(vision) == len(trial.vision) == log.vision_count and not log.problems
+    for written, read in zip(trial.vision, vision, strict=True):
+        assert type(read) is type(written) and _same(read, written), (written.system, written.seq)
     events = list(log.events())
-    assert [e["message"] for e in events] == [e[2] for e in sorted(trial.events)]
+    assert [e["message"] for e in events] == [
+        e[2] for e in sorted(trial.events, key=lambda e: e[0])
+    ]
     assert events[0] == {
-        "t": pytest.approx(0.5),
+        "t": next(r.t for r in trial.ticks if r.phase == "acquire"),
         "kind": "phase",
         "message": "idle → acquire",
         "data": {"from": "idle", "to": "acquire"},
     }
     frames = list(log.frames())
-    assert [f.t for f in frames] == pytest.approx([r["t"] for r in trial.ticks[::50]], abs=1e-9)
-    expected = synthetic_frame(trial.ticks[50]["range_m"])
+    assert len(frames) == len(trial.image_t) >= 4
+    assert [f.t for f in frames] == pytest.approx(trial.image_t, abs=1e-9)
+    expected = synthetic_frame(distance_at(trial.image_t[1]))
     assert np.abs(frames[1].image().astype(int) - expected).mean() < 2.0  # JPEG, lossy
     assert log.footer["ticks"] == str(len(trial.ticks))
+    assert log.footer["vision"] == str(len(trial.vision))
 
 
 def test_frames_png_is_lossless_and_colour_survives(tmp_path):
@@ -97,16 +122,22 @@ def test_standard_mcap_reader_sees_header_first_and_all_channels(tmp_path, trial
         reader = make_reader(f)
         summary = reader.get_summary()
         topics = {c.topic: c for c in summary.channels.values()}
-        assert {TICK_TOPIC, EVENT_TOPIC, "/trial/header"} <= set(topics)
-        for channel in topics.values():
+        assert set(topics) == {TICK_TOPIC, VISION_TOPIC, EVENT_TOPIC, "/trial/header"}
+        names = {}
+        for topic, channel in topics.items():
             schema = summary.schemas[channel.schema_id]
             assert channel.message_encoding == "json" and schema.encoding == "jsonschema"
             assert json.loads(schema.data)["type"] == "object"
+            names[topic] = schema.name
+        assert names[TICK_TOPIC] == "satgrasp.Tick" and names[VISION_TOPIC] == "satgrasp.Vision"
         first = next(reader.iter_messages(log_time_order=False))
         assert first[1].topic == "/trial/header"
+        counts = summary.statistics.channel_message_counts
+        assert counts[topics[VISION_TOPIC].id] == len(trial.vision)
         metadata = {m.name: m.metadata for m in reader.iter_metadata()}
     assert metadata[HEADER_METADATA]["seed"] == "7"
-    assert json.loads(metadata[HEADER_METADATA]["config"])["sequencer"]["standoff_m"] == 0.5
+    assert json.loads(metadata[HEADER_METADATA]["config"])["approach"]["standoff_m"] == 0.5
+    assert metadata[HEADER_METADATA]["format_version"] == "2"
     assert metadata[FOOTER_METADATA]["ticks"] == str(len(trial.ticks))
 
 
@@ -150,34 +181,59 @@ def test_to_jsonable_converts_nan_numpy_pose_and_dataclasses():
 
 def test_write_tick_replaces_an_unserialisable_record_with_an_event(tmp_path, trial):
     path = tmp_path / "bad.mcap"
+    arm = trial.ticks[1].arm
     with TrialLogWriter(path, _header()) as writer:
         assert writer.write_tick(trial.ticks[0])
-        bad = {**trial.ticks[1], "arm": {**trial.ticks[1]["arm"], "driver": object()}}
+        bad = dataclasses.replace(trial.ticks[1], arm=dataclasses.replace(arm, fault=object()))
         assert writer.write_tick(bad) is False
         assert writer.write_tick("not a record") is False
-        assert writer.write_tick(trial.ticks[2])
+        assert writer.write_tick(trial.vision[0]) is False  # a record of the other channel
+        assert writer.write_vision(trial.ticks[2]) is False
+        result = trial.vision[1]
+        odd = dataclasses.replace(result, measurement={"system": "corners"})
+        assert writer.write_vision(odd) is False
+        assert writer.write_vision(result) and writer.write_tick(trial.ticks[2])
     log = TrialLog.open(path)
-    assert [t["tick"] for t in log.ticks()] == [0, 2]
+    assert [t.tick for t in log.ticks()] == [0, 2]
+    assert [(r.system, r.seq) for r in log.vision()] == [(result.system, result.seq)]
     messages = [e["message"] for e in log.events() if e["kind"] == "log"]
-    assert len(messages) == 2
-    assert "tick 1 not logged" in messages[0] and "tick.arm.driver" in messages[0]
-    assert "must be a mapping" in messages[1]
-    assert log.footer["replaced"] == "2"
+    expected = [  # one event each (in the log's time order: a record's event carries its t)
+        "tick 1 not logged: tick.arm.fault: cannot write a object",
+        "tick record not logged: expected a TickRecord; got str",
+        "tick record not logged: expected a TickRecord; got VisionRecord",
+        "vision record not logged: expected a VisionRecord; got TickRecord",
+        f"vision result {result.system} frame {result.seq} not logged: "
+        "vision.measurement: cannot write a dict",
+    ]
+    assert len(messages) == 5
+    for text in expected:
+        assert sum(m.startswith(text) for m in messages) == 1, (text, messages)
+    assert log.footer["replaced"] == "5"
 
 
 def test_write_tick_keeps_a_record_that_breaks_the_schema_and_says_why(tmp_path, trial):
+    """Written anyway, with a log event naming the problems; reading skips what does not read
+    back as a record and says which."""
     path = tmp_path / "schema.mcap"
-    record = {**trial.ticks[30], "phase": "cruise", "extra_key": {"anything": 1}}
-    del record["command"]
+    record = trial.ticks[30]
+    broken = dataclasses.replace(
+        record,
+        phase=None,
+        command=CommandRecord(V_BE=np.zeros(5), stop="no"),
+    )
     with TrialLogWriter(path, _header()) as writer:
-        assert writer.write_tick({**trial.ticks[30], "extra_key": [1, 2]})  # extra keys: fine
-        assert writer.write_tick(record) is False
+        assert writer.write_tick(record)
+        assert writer.write_tick(broken) is False
+        assert writer.write_tick(dataclasses.replace(record, tick=31))
     log = TrialLog.open(path)
-    ticks = list(log.ticks())
-    assert len(ticks) == 2 and ticks[1]["phase"] == "cruise" and ticks[0]["extra_key"] == [1, 2]
+    assert log.footer["invalid_ticks"] == "1"
     (event,) = log.events()
     assert event["kind"] == "log" and "tick 30 does not match the tick schema" in event["message"]
-    assert "'cruise' is not one of" in event["message"] and "missing 'command'" in event["message"]
+    assert "$.phase: expected string, got null" in event["message"]
+    assert "$.command.V_BE: 5 items, expected at least 6" in event["message"]
+    assert "$.command.stop: expected boolean, got string" in event["message"]
+    assert log.tick_count == 3 and [t.tick for t in log.ticks()] == [30, 31]
+    assert log.problems == ["tick message 1 skipped: TickRecord.phase: missing value"]
 
 
 def test_write_event_and_frame_never_raise_for_bad_input(tmp_path):
@@ -297,7 +353,7 @@ def test_truncated_logs_open_as_recovered_prefixes_and_recover_to_valid_files(tm
         flushes = writer.flush_count
         writer.write_tick(record)
         if writer.flush_count > flushes:
-            flushed_at_size.append((path.stat().st_size, record["tick"] + 1))
+            flushed_at_size.append((path.stat().st_size, record.tick + 1))
     writer.close()
     data = path.read_bytes()
     rng = np.random.default_rng(3)
@@ -306,7 +362,7 @@ def test_truncated_logs_open_as_recovered_prefixes_and_recover_to_valid_files(tm
         cut_path.write_bytes(data[:cut])
         log = TrialLog.open(cut_path)
         assert log.recovered and not log.complete and log.stopped
-        ticks = [t["tick"] for t in log.ticks()]
+        ticks = [t.tick for t in log.ticks()]
         on_disk = max(n for size, n in flushed_at_size if size <= cut)
         assert ticks == list(range(len(ticks))) and len(ticks) >= on_disk
         fixed = recover(cut_path, tmp_path / f"fixed_{cut}.mcap")
@@ -324,19 +380,21 @@ def test_truncated_logs_open_as_recovered_prefixes_and_recover_to_valid_files(tm
 
 
 CHILD = """
-import sys, time
+import dataclasses, sys, time
 from hil.logs.triallog import TrialLogWriter
 from tests.hil.logs.synthetic_log import make_trial
 
 trial = make_trial(seed=5)
 writer = TrialLogWriter(sys.argv[1], trial.header, flush_interval_s=1.0)
 start, tick = time.monotonic(), 0
-print("started", flush=True)
+print("started", start, flush=True)
 while True:
-    record = dict(trial.ticks[tick % len(trial.ticks)])
-    now = time.monotonic()
-    record.update(t=now - start, tick=tick, wall=now)
+    now = time.monotonic()  # the same clock as the parent's (CLOCK_MONOTONIC)
+    t = now - start
+    record = dataclasses.replace(trial.ticks[tick % len(trial.ticks)], t=t, tick=tick)
     flushes = writer.flush_count
+    if tick % 10 == 0:  # a vision result every 0.1 s
+        writer.write_vision(dataclasses.replace(trial.vision[tick // 10 % len(trial.vision)], t=t))
     writer.write_tick(record)
     if writer.flush_count > flushes:
         print("flushed", tick, now, flush=True)
@@ -348,6 +406,7 @@ while True:
 @dataclass
 class Killed:
     path: Path
+    start: float
     kill_time: float
     flushed: list[tuple[int, float]]
 
@@ -364,7 +423,8 @@ def killed_log(tmp_path_factory):
     )
     flushed = []
     try:
-        assert child.stdout.readline().strip() == "started"
+        word, start = child.stdout.readline().split()
+        assert word == "started"
         while len(flushed) < 2:
             line = child.stdout.readline()
             assert line.startswith("flushed"), f"child said {line!r}"
@@ -381,28 +441,63 @@ def killed_log(tmp_path_factory):
     assert child.returncode == -signal.SIGKILL
     flushed += [(int(t), float(w)) for _, t, w in (line.split() for line in child.stdout)]
     child.stdout.close()
-    return Killed(path, kill_time, flushed)
+    return Killed(path, float(start), kill_time, flushed)
 
 
 def test_killed_writer_log_opens_with_every_tick_up_to_the_last_flush(killed_log):
     log = TrialLog.open(killed_log.path)
     assert log.recovered and not log.complete and log.header["seed"] == 5
     ticks = list(log.ticks())
-    numbers = [t["tick"] for t in ticks]
+    numbers = [t.tick for t in ticks]
     assert numbers == list(range(len(numbers)))
     last_flushed = max(t for t, _ in killed_log.flushed)
     assert numbers[-1] >= last_flushed
     # Everything written more than 1 s before the kill is in the log (30 ms of slack for the
     # scheduling of a loaded machine).
-    newest = ticks[-1]["wall"]
+    newest = killed_log.start + ticks[-1].t
     print(f"kill − newest logged tick: {killed_log.kill_time - newest:.3f} s")
     assert killed_log.kill_time - newest <= 1.0 + 0.03, killed_log.kill_time - newest
-    assert ticks[-1]["measurements"] and ticks[-1]["truth"]["X_CT"]
+    assert ticks[-1].truth is not None and ticks[-1].truth.X_CT is not None
+    vision = list(log.vision())
+    assert len(vision) == numbers[-1] // 10 + 1 and not log.problems
 
 
 def test_recover_of_a_killed_log_opens_with_the_standard_reader(killed_log, tmp_path):
     fixed = recover(killed_log.path, tmp_path / "fixed.mcap")
     with fixed.open("rb") as f:
         ticks = [json.loads(m[2].data) for m in make_reader(f).iter_messages(topics=[TICK_TOPIC])]
-    original = list(TrialLog.open(killed_log.path).ticks())
-    assert ticks == original
+    log = TrialLog.open(killed_log.path)
+    assert ticks == [json.loads(json.dumps(to_json(t))) for t in log.ticks()]
+    with fixed.open("rb") as f:
+        vision = [
+            json.loads(m[2].data) for m in make_reader(f).iter_messages(topics=[VISION_TOPIC])
+        ]
+    assert vision == [json.loads(json.dumps(to_json(r))) for r in log.vision()] and vision
+
+
+def test_open_refuses_a_format_1_log_in_one_line(tmp_path):
+    path = write_format1_log(tmp_path / "old.mcap")
+    with pytest.raises(TrialLogError) as caught:
+        TrialLog.open(path)
+    message = str(caught.value)
+    assert "\n" not in message and message.startswith(f"{path}: trial log format 1, written")
+    assert "before the typed records of format 2" in message and "2026-11-20" in message
+    assert message.endswith("re-run the trial to analyse it")
+    assert recover(path, tmp_path / "copy.mcap").exists()  # recovery works on any format
+
+
+def test_write_tick_of_a_diverged_pose_keeps_the_tick_with_nan(tmp_path, trial):
+    record = trial.ticks[120]
+    X = np.array(record.estimate.X_CT.matrix)
+    X[0, 3] = math.nan
+    diverged = dataclasses.replace(
+        record,
+        estimate=dataclasses.replace(record.estimate, X_CT=Pose.unchecked(X[:3, :3], X[:3, 3])),
+    )
+    with TrialLogWriter(tmp_path / "nan.mcap", _header()) as writer:
+        assert writer.write_tick(diverged) is False  # written, with a schema event
+    log = TrialLog.open(tmp_path / "nan.mcap")
+    (tick,) = log.ticks()
+    assert math.isnan(tick.estimate.X_CT.p[0]) and tick.estimate.X_CT.p[2] == X[2, 3]
+    (event,) = log.events()
+    assert "$.estimate.X_CT[0][3]: expected number, got null" in event["message"]
