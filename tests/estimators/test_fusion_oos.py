@@ -3,7 +3,6 @@ the history's bounds, the belief in the past, and the snapshot the control loop 
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import pickle
 
@@ -16,7 +15,6 @@ from estimators.fusion import (
     PoseFusion,
     TargetEstimate,
     estimate_from_state,
-    pose_error_C,
 )
 from estimators.geometry import Pose
 from estimators.measurement import Measurement
@@ -24,6 +22,7 @@ from tests.estimators.fusion_sim import (
     DT,
     approach,
     corners_sigmas,
+    delivered_late,
     make_target,
     measurement_stream,
 )
@@ -350,38 +349,11 @@ def test_fusion_at_capture_stamps_is_unbiased_and_at_arrival_is_biased():
     estimate "now" is unbiased and within its covariance; fused at arrival with X_CM at
     arrival — the camera has moved on — it is biased by centimetres: the issue's "what the
     delayed update buys" in miniature."""
-    rng = np.random.default_rng(0)
-    steps = 150
-    scenario = approach(rng, steps)
-    stream = measurement_stream(scenario, TARGET, seed=10)
-    delay = rng.integers(4, 6, size=len(stream))  # frames of 1/30 s
-    order = sorted(range(len(stream)), key=lambda i: (stream[i][0] + delay[i], rng.random()))
-
-    def run(at_capture: bool) -> tuple[np.ndarray, np.ndarray, int]:
-        fusion = PoseFusion(TARGET)
-        errors, nees, rejected, i = [], [], 0, 0
-        for now in range(steps):
-            while i < len(order) and stream[order[i]][0] + delay[order[i]] == now:
-                k, m = stream[order[i]]
-                if at_capture:
-                    e = fusion.update([m], scenario.X_CM[k], scenario.stamps[k])
-                else:  # a pipeline that stamps results when they arrive
-                    arrived = dataclasses.replace(m, stamp=scenario.stamps[now])
-                    e = fusion.update([arrived], scenario.X_CM[now], scenario.stamps[now])
-                rejected += len(e.rejected)
-                i += 1
-            estimate = fusion.estimate(scenario.stamps[now])
-            if now >= steps // 2:
-                error = pose_error_C(scenario.X_MT[now], estimate.X_MT)
-                errors.append(error)
-                nees.append(error @ np.linalg.solve(estimate.covariance[:6, :6], error))
-        return np.array(errors), np.array(nees), rejected
-
-    errors, nees, rejected = run(at_capture=True)
+    errors, nees, rejected = delivered_late(at_capture=True, seed=0)
     assert rejected == 0
     assert np.mean(nees) < 6.0  # mean NEES of a consistent 6-DOF estimate: 6 (static: below)
     assert np.abs(errors[:, 3:].mean(axis=0)).max() < 0.001  # m
-    late_errors, late_nees, late_rejected = run(at_capture=False)
+    late_errors, late_nees, late_rejected = delivered_late(at_capture=False, seed=0)
     bias = np.abs(late_errors[:, 3:].mean(axis=0)).max()
     assert bias > 0.03 and np.mean(late_nees) > 100 * 6
     assert late_rejected > 0  # the gate refuses what disagrees with the biased track
