@@ -140,7 +140,7 @@ def test_campaign_runs_the_seeds_asked_for_and_writes_a_summary(tmp_path):
     config = tmp_path / "sim.yaml"
     config.write_text(
         f"name: campaign-test\ncamera: {camera}\n"
-        "systems: [tests.hil.fake_estimators:build_oracle]\nlog_frames_every_s: 0\n"
+        "systems: [tests.hil.fake_estimators:build_oracle]\nvision: {log_frames_every_s: 0}\n"
     )
     out_dir = tmp_path / "campaign"
     args = ["campaign", "--config", str(config), "--seeds", "1", "--first-seed", "7"]

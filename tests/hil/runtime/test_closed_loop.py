@@ -14,17 +14,17 @@ from estimators.frame import Frame
 from estimators.geometry import rotation_error_geodesic, translation_error
 from estimators.measurement import Measurement
 from hil.analysis.campaign import summarize_log
-from hil.runtime.trial import SimTrial, run_sim_trial
+from hil.runtime.compose import Trial, run_trial
 
 
 @pytest.mark.parametrize("seed", [1, 2])
 def test_closed_loop_approach_succeeds(tmp_path, seed):
     sim = load_simulation("sim")
     log_path = tmp_path / f"seed{seed}.mcap"
-    result = run_sim_trial(sim, seed=seed, log_path=log_path)
-    outcome = result.outcome
-    assert outcome.success, outcome
-    assert outcome.standoff_error_m <= 0.005 and outcome.standoff_error_rad <= math.radians(0.5)
+    result = run_trial(sim, seed=seed, log_path=log_path)
+    assert result.success, result.outcome
+    assert result.standoff_error_m <= 0.005
+    assert result.standoff_error_rad <= math.radians(0.5)
     summary = summarize_log(log_path, seed, sim.noise.preset)
     assert summary.success
     # Fusion beats every single estimator: on 1 s medians in nearly every window (the first
@@ -47,41 +47,35 @@ class Blinded:
 @pytest.mark.parametrize("blind", ["corners", "lines", "ellipses"])
 def test_fusion_keeps_the_lock_when_one_system_drops_out(tmp_path, blind):
     sim = load_simulation("sim")
-    dt = 1.0 / sim.approach.servo.control_rate_hz
-    with SimTrial(sim, seed=3, log_path=tmp_path / "trial.mcap") as trial:
-        loop, world = trial.loop, trial.world
-        loop.sequencer.start(world.clock.now())
-        original = dict(loop.estimators)
+    with Trial(sim, seed=3, log_path=tmp_path / "trial.mcap") as trial:
+        loop = trial.loop
+        ticks = []
+        loop.observers = [*loop.observers, ticks.append]
+        loop.start()
 
-        def run_for(seconds: float, record: list) -> None:
-            for _ in range(round(seconds / dt)):
+        def run_for(seconds: float) -> list:
+            first = len(ticks)
+            for _ in range(round(seconds / loop.period_s)):
                 loop.tick()
-                world.advance(dt)
-                estimate = loop.fusion.estimate(world.clock.now())
-                truth = world.truth()
-                if estimate.health == "ok" and estimate.X_MT is not None:
-                    X_CM = loop.geometry.X_CM(world.arm.state().X_BE, world.track.state().position)
-                    X_CT_true = truth["X_WC"].inverse() @ truth["X_WT"]
-                    X_CT = estimate.X_CT(X_CM)
-                    record.append(
-                        (
-                            estimate.health,
-                            translation_error(X_CT_true, X_CT),
-                            rotation_error_geodesic(X_CT_true, X_CT),
-                        )
-                    )
-                else:
-                    record.append((estimate.health, math.inf, math.inf))
+                loop.clock.sleep_until(loop.clock.now() + loop.period_s)
+            return ticks[first:]
 
-        before, during = [], []
-        run_for(4.0, before)
+        run_for(4.0)
         assert loop.sequencer.phase == "approach"
-        loop.estimators = {**original, blind: Blinded(blind)}
-        run_for(6.0, during)
+        trial.vision.workers.estimators[blind] = Blinded(blind)
+        during = run_for(6.0)
         assert loop.sequencer.phase in ("approach", "standoff"), loop.sequencer.abort_reason
-        health = [h for h, _, _ in during]
+        health = [t.estimate.health for t in during]
         assert health.count("ok") == len(health), f"lost the lock without {blind}"
-        errors = np.array([(p, r) for _, p, r in during])
+        errors = np.array(
+            [
+                (
+                    translation_error(t.truth.X_CT, t.estimate.X_CT),
+                    rotation_error_geodesic(t.truth.X_CT, t.estimate.X_CT),
+                )
+                for t in during
+            ]
+        )
         # Still a good pose from the other two: millimetres and tenths of a degree.
         assert np.median(errors[:, 0]) < 0.005 and np.median(errors[:, 1]) < math.radians(0.5)
-        assert not np.any(np.linalg.norm(world.arm.state().V_BE[:3]) > 0.3)
+        assert all(np.linalg.norm(t.arm.V_BE[:3]) <= 0.3 for t in during)
