@@ -343,6 +343,38 @@ def approach_path(
         out_path.write_text(text, encoding="utf-8")
 
 
+@app.command()
+def record(
+    out_dir: Annotated[Path, typer.Option("--out", help="Directory for the recording.")],
+    frames: Annotated[int, typer.Option(min=2, help="Frames from 2.5 m to 0.5 m.")] = 120,
+    noise: NoiseOpt = "low",
+    camera: CameraOpt = "reference",
+    mockup: MockupOpt = "default",
+    seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
+    codec: Annotated[str, typer.Option(help="Video codec: ffv1 (lossless) | mjpg.")] = "ffv1",
+    check: Annotated[
+        bool, typer.Option(help="Replay it through the OAK driver and compare the poses.")
+    ] = False,
+) -> None:
+    """Save the open-loop approach path as an OAK recording: video, depthai calibration JSON,
+    ground truth (JSON lines). With --check, replay it through the OAK driver and print each
+    estimator's poses on the replayed frames against the truth and the direct frames."""
+    from drivers.base import DeviceError
+    from hil.evaluation.recording import markdown_comparison, record_and_check, record_approach
+
+    _noise_config(noise)
+    options = dict(frames=frames, noise=noise, camera=camera, mockup=mockup, seed=seed)
+    try:
+        if check:
+            result = record_and_check(out_dir, codec=codec, **options)
+            out.print(markdown_comparison(result.comparison), markup=False, highlight=False)
+        else:
+            record_approach(out_dir, codec=codec, **options)
+    except (ConfigError, ValueError, OSError, DeviceError) as exc:
+        raise _fail(str(exc)) from None
+    out.print(f"recording in {out_dir}", markup=False, highlight=False)
+
+
 @bench_app.command("estimate")
 def bench_estimate(
     system: Annotated[list[str], typer.Option(help="Estimator(s); repeat for several.")],
