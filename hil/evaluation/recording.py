@@ -346,6 +346,62 @@ def record_and_check(
     return ReplayCheck(recording, direct, replay, comparison)
 
 
+@dataclass(frozen=True, slots=True)
+class ReplayTiming:
+    """How the replay path delivers frames when nothing else runs: paced at the recorded
+    ``fps`` (period between capture stamps, capture stamp → ``read`` latency) and unpaced
+    (wall time per frame: decoding, conversion and hand-over)."""
+
+    fps: float
+    frames: int
+    period_median_s: float
+    period_max_s: float
+    latency_median_s: float
+    latency_p95_s: float
+    latency_max_s: float
+    unpaced_frame_s: float
+
+    def text(self) -> str:
+        ms = 1000.0
+        return (
+            f"replay paced at {self.fps:g} fps: {self.frames} frames, period median "
+            f"{ms * self.period_median_s:.1f} ms (max {ms * self.period_max_s:.1f}), stamp → read "
+            f"median {ms * self.latency_median_s:.2f} ms, p95 {ms * self.latency_p95_s:.2f}, "
+            f"max {ms * self.latency_max_s:.2f}; unpaced {ms * self.unpaced_frame_s:.1f} ms/frame"
+        )
+
+
+def _read_all(camera: OakReplay) -> list:
+    frames = []
+    while True:
+        try:
+            frames.append(camera.read(timeout_s=5.0))
+        except ReplayFinished:
+            return frames
+
+
+def replay_timing(recording: Recording) -> ReplayTiming:
+    """Replay ``recording`` twice with a reader that only takes frames: paced, then unpaced."""
+    with recording.replay(realtime=True) as camera:
+        paced = _read_all(camera)
+    started = time.perf_counter()
+    with recording.replay(realtime=False) as camera:
+        unpaced = _read_all(camera)
+    unpaced_s = (time.perf_counter() - started) / max(len(unpaced), 1)
+    periods = np.diff([f.stamp for f in paced[1:]])  # the first period starts at activation
+    latency = np.array([f.latency_s for f in paced])
+    return ReplayTiming(
+        recording.fps,
+        len(paced),
+        float(np.median(periods)) if len(periods) else math.nan,
+        float(np.max(periods)) if len(periods) else math.nan,
+        float(np.median(latency)),
+        float(np.percentile(latency, 95)),
+        float(np.max(latency)),
+        unpaced_s,
+    )
+
+
 def markdown_comparison(rows: Sequence[ReplayComparison]) -> str:
     """The comparison as a markdown table (cm, degrees; differences in mm and degrees)."""
     lines = [

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from drivers.oak import board_socket, read_calibration
 from hil.cli import app
-from hil.evaluation.recording import Recording, record_and_check
+from hil.evaluation.recording import Recording, record_and_check, replay_timing
 
 #: How far a replayed pose may be from the direct frame's. FFV1 replays the pixels exactly; what
 #: remains is K rounded to float32 by depthai's calibration format (< 1e-5 px), which the
@@ -47,6 +47,10 @@ def test_replayed_approach_matches_the_truth_and_the_direct_frames(tmp_path):
         system: [m.status for m in measurements.values()]
         for system, measurements in result.direct.items()
     }
+    timing = replay_timing(recording)  # paced at the recorded 30 fps, newest frame only
+    assert timing.frames == 8 and 0.028 < timing.period_median_s < 0.040
+    assert timing.latency_median_s < 0.02 and timing.unpaced_frame_s < 0.1
+    assert "replay paced at 30 fps: 8 frames" in timing.text()
 
 
 def test_a_14_coefficient_calibration_works_end_to_end(tmp_path):
