@@ -29,6 +29,7 @@ import numpy as np
 from configuration.camera import load_camera
 from configuration.mockup import load_mockup
 from drivers.oak import OakReplay, ReplayFinished, write_calibration
+from estimators.frame import CameraInfo
 from estimators.geometry import Pose, rotation_error_geodesic, translation_error
 from estimators.measurement import Measurement, Tracker
 from estimators.registry import build_estimator
@@ -154,17 +155,8 @@ def record_approach(
         noise,
         seed,
     )
-    writer = cv2.VideoWriter(
-        str(recording.video),
-        cv2.VideoWriter_fourcc(*CODECS[codec]),
-        recording.fps,
-        (info.width, info.height),
-        isColor=info.channels == 3,
-    )
-    if not writer.isOpened():
-        raise OSError(f"OpenCV cannot write {codec} video {recording.video}")
-    if codec == "mjpg":
-        writer.set(cv2.VIDEOWRITER_PROP_QUALITY, float(jpeg_quality))
+    writer = _video_writer(recording.video, codec, recording.fps, info, jpeg_quality)
+    grey_to_bgr = codec == "mjpg" and info.channels == 1
     try:
         with recording.truth.open("w", encoding="utf-8") as truth:
             for rendered in render_approach(
@@ -182,7 +174,7 @@ def record_approach(
                 image = frame.image
                 if image.dtype != np.uint8:
                     raise ValueError(f"frame {frame.seq} is {image.dtype}, not 8-bit")
-                writer.write(image)
+                writer.write(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if grey_to_bgr else image)
                 record = TruthRecord(frame.seq, frame.stamp, rendered.distance_m, frame.truth.X_CT)
                 truth.write(json.dumps(record.to_dict()) + "\n")
     finally:
@@ -191,6 +183,26 @@ def record_approach(
     fields = {k: getattr(recording, k) for k in Recording.__dataclass_fields__ if k != "directory"}
     (out_dir / METADATA).write_text(json.dumps(fields, indent=1) + "\n", encoding="utf-8")
     return recording
+
+
+def _video_writer(
+    path: Path, codec: str, fps: float, info: CameraInfo, jpeg_quality: int
+) -> cv2.VideoWriter:
+    """FFV1 through FFmpeg (mono frames as one grey plane); MJPG through OpenCV's own encoder,
+    the one that honours ``jpeg_quality`` (FFmpeg's ignores it and errs several times more:
+    docs/oak.md). That encoder's grey-only files do not decode, so MJPG is written as BGR."""
+    if codec == "mjpg":
+        api, color = cv2.CAP_OPENCV_MJPEG, True
+    else:
+        api, color = cv2.CAP_FFMPEG, info.channels == 3
+    fourcc = cv2.VideoWriter_fourcc(*CODECS[codec])
+    writer = cv2.VideoWriter(str(path), api, fourcc, fps, (info.width, info.height), color)
+    if not writer.isOpened():
+        raise OSError(f"OpenCV cannot write {codec} video {path}")
+    if codec == "mjpg" and not writer.set(cv2.VIDEOWRITER_PROP_QUALITY, float(jpeg_quality)):
+        writer.release()
+        raise OSError(f"OpenCV's MJPEG writer refused quality {jpeg_quality}")
+    return writer
 
 
 # --- replay check ---------------------------------------------------------------------------

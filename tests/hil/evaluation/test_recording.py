@@ -78,6 +78,15 @@ def test_record_command_writes_a_recording_and_rejects_bad_options(tmp_path):
     recording = Recording.load(tmp_path / "r")
     assert recording.frames == 2 and recording.video.stat().st_size > 0
     assert len(recording.read_truth()) == 2
+    args = ["record", "--out", str(tmp_path / "m"), "--frames", "2", "--codec", "mjpg"]
+    assert runner.invoke(app, args).exit_code == 0
+    with Recording.load(tmp_path / "r").replay() as lossless:
+        exact = [lossless.read(timeout_s=5.0).image for _ in range(2)]
+    with Recording.load(tmp_path / "m").replay() as jpeg:
+        lossy = [jpeg.read(timeout_s=5.0).image for _ in range(2)]
+    for a, b in zip(exact, lossy, strict=True):  # the same rendered frame, JPEG at quality 100
+        error = np.abs(a.astype(float) - b)
+        assert 0 < error.mean() < 2.0
     result = runner.invoke(app, ["record", "--out", str(tmp_path / "x"), "--codec", "h264"])
     assert result.exit_code == 2 and "codec must be one of ffv1, mjpg" in result.output
     with pytest.raises(ValueError, match="not a recording"):
