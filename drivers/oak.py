@@ -161,6 +161,9 @@ class _Stream:
         self._info: CameraInfo | None = None
         self._pipeline: dai.Pipeline | None = None
         self._queue: dai.MessageQueue | None = None
+        self._expected_seq: int | None = None
+        #: Frames the device sent that were replaced by newer ones before ``read`` took them.
+        self.dropped = 0
 
     @property
     def info(self) -> CameraInfo:
@@ -178,6 +181,7 @@ class _Stream:
         except RuntimeError as exc:
             raise DeviceError(f"{self._what}: the pipeline did not start ({exc})") from None
         self._pipeline, self._queue = pipeline, queue
+        self._expected_seq = None
 
     def deactivate(self) -> None:
         pipeline, self._pipeline, self._queue = self._pipeline, None, None
@@ -202,6 +206,14 @@ class _Stream:
         if self._queue is None:
             raise DeviceError(f"{self._what}: not streaming (call activate())")
         return _take(self._queue, timeout_s, self._what)
+
+    def _deliver(self, message: dai.ImgFrame) -> Frame:
+        """The frame of ``message``; a gap in the sequence numbers counts as dropped frames."""
+        seq = message.getSequenceNum()
+        if self._expected_seq is not None and seq > self._expected_seq:
+            self.dropped += seq - self._expected_seq
+        self._expected_seq = seq + 1
+        return _to_frame(message, self.info, seq)
 
 
 # --- live camera ----------------------------------------------------------------------------
@@ -295,8 +307,7 @@ class OakCamera(_Stream):
             device.close()
 
     def read(self, timeout_s: float = 1.0) -> Frame:
-        message = self._message(timeout_s)
-        return _to_frame(message, self.info, message.getSequenceNum())
+        return self._deliver(self._message(timeout_s))
 
 
 # --- replay ---------------------------------------------------------------------------------
@@ -336,7 +347,6 @@ class OakReplay(_Stream):
         self._fps_asked = fps
         self.fps = 0.0
         self.frame_count = 0
-        self._next_seq = 0
         self._what = f"replay {self.video.name}"
 
     def connect(self) -> None:
@@ -395,19 +405,18 @@ class OakReplay(_Stream):
             queue = replay.out.createOutputQueue(maxSize=1, blocking=False)
         else:
             queue = replay.out.createOutputQueue(maxSize=2, blocking=True)
-        self._next_seq = 0
         self._start(pipeline, queue)
+        self._expected_seq = 0  # the replay starts at its first frame
 
     def close(self) -> None:
         self.deactivate()
 
     def read(self, timeout_s: float = 1.0) -> Frame:
-        if self._next_seq >= self.frame_count:
-            raise ReplayFinished(f"{self._what}: all {self.frame_count} frames replayed")
+        finished = ReplayFinished(f"{self._what}: all {self.frame_count} frames replayed")
+        if self._expected_seq is not None and self._expected_seq >= self.frame_count:
+            raise finished
         message = self._message(timeout_s)
-        seq = message.getSequenceNum()
-        if seq >= self.frame_count:
-            self._next_seq = self.frame_count
-            raise ReplayFinished(f"{self._what}: all {self.frame_count} frames replayed")
-        self._next_seq = seq + 1
-        return _to_frame(message, self.info, seq)
+        if message.getSequenceNum() >= self.frame_count:  # the replay's second loop
+            self._expected_seq = self.frame_count
+            raise finished
+        return self._deliver(message)

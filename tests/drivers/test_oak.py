@@ -91,6 +91,7 @@ def test_replay_delivers_every_frame_exactly_and_in_order(small_recording):
         frames = [camera.read(timeout_s=5.0) for _ in images]
         with pytest.raises(ReplayFinished, match="all 6 frames"):
             camera.read(timeout_s=5.0)
+        assert camera.dropped == 0
     assert [f.seq for f in frames] == list(range(6))
     assert all(np.array_equal(f.image, image) for f, image in zip(frames, images, strict=True))
     assert all(f.info is frames[0].info for f in frames)  # one CameraInfo for the stream
@@ -113,12 +114,15 @@ def test_replay_paces_at_the_recorded_rate_and_keeps_the_newest_frame(tmp_path):
         late = camera.read(timeout_s=2.0)
         after = camera.read(timeout_s=2.0)
     periods = np.diff([f.stamp for f in paced[1:]])  # the first period starts at activation
-    assert 0.015 < np.median(periods) < 0.025  # 20 ms (depthai sleeps whole milliseconds)
+    # 20 ms: never faster (depthai sleeps whole milliseconds); slower only when the machine is
+    # loaded (2 busy cores: medians up to 30 ms measured).
+    assert 0.019 < np.median(periods) < 0.06
     assert [f.seq for f in paced] == list(range(8))
     # The frames that came while nobody read were dropped, not queued: the one read next is
-    # the newest (at most a period old), and never one already returned.
-    assert late.seq >= 15 and late.latency_s < 0.05
+    # the newest (about a period old), and never one already returned.
+    assert late.seq >= 11 and late.latency_s < 0.1
     assert after.seq > late.seq
+    assert camera.dropped == after.seq - 9  # every frame not read was counted
 
 
 def test_replay_rejects_a_missing_file_in_one_line(small_recording):

@@ -48,8 +48,9 @@ def test_replayed_approach_matches_the_truth_and_the_direct_frames(tmp_path):
         for system, measurements in result.direct.items()
     }
     timing = replay_timing(recording)  # paced at the recorded 30 fps, newest frame only
-    assert timing.frames == 8 and 0.028 < timing.period_median_s < 0.040
-    assert timing.latency_median_s < 0.02 and timing.unpaced_frame_s < 0.1
+    # 33 ms (whole milliseconds), never faster; slower only on a loaded machine.
+    assert timing.frames >= 7 and 0.032 < timing.period_median_s < 0.06
+    assert timing.latency_median_s < 0.05 and timing.unpaced_frame_s < 0.1
     assert "replay paced at 30 fps: 8 frames" in timing.text()
 
 
