@@ -29,7 +29,7 @@ import numpy as np
 
 from drivers.base import DeviceError, DeviceTimeout
 from estimators.frame import CameraInfo, Frame
-from estimators.geometry import check_distortion
+from estimators.geometry import padded_distortion
 
 #: Socket names a configuration may use (the OAK's colour camera is CAM_A).
 SOCKETS = tuple(f"CAM_{letter}" for letter in "ABCDEFGH")
@@ -96,14 +96,12 @@ def camera_info_from_calibration(
     K = np.array(calibration.getCameraIntrinsics(dai_socket, width, height), dtype=float)
     dist = np.array(calibration.getDistortionCoefficients(dai_socket), dtype=float)
     if np.all(dist == 0):
-        dist = np.zeros(0)
-    elif dist.size not in (4, 5, 8, 12, 14):
-        if dist.size > 14:
-            raise DeviceError(f"{source}: {dist.size} distortion coefficients for {socket}")
-        dist = np.r_[
-            dist, np.zeros(min(n for n in (4, 5, 8, 12, 14) if n >= dist.size) - dist.size)
-        ]
-    return CameraInfo(width, height, K, check_distortion(dist), model, channels)
+        dist = np.zeros(0)  # so that nothing downstream runs the distortion model for nothing
+    try:
+        dist = padded_distortion(dist)
+    except ValueError as exc:
+        raise DeviceError(f"{source}: socket {socket}: {exc}") from None
+    return CameraInfo(width, height, K, dist, model, channels)
 
 
 def calibration_of(info: CameraInfo, socket: str = "CAM_A") -> dai.CalibrationHandler:

@@ -203,6 +203,16 @@ def check_distortion(dist: np.ndarray) -> np.ndarray:
     return d
 
 
+def padded_distortion(dist: np.ndarray) -> np.ndarray:
+    """``dist`` zero-padded to the next length OpenCV knows (a model's missing trailing
+    coefficients are zeros: the same lens); ValueError beyond 14."""
+    d = np.asarray(dist, dtype=float).reshape(-1)
+    longer = [n for n in _SUPPORTED_DISTORTION_LENGTHS if n >= d.size]
+    if not longer:
+        raise ValueError(f"distortion must have at most 14 coefficients; got {d.size}")
+    return check_distortion(np.r_[d, np.zeros(longer[0] - d.size)])
+
+
 def sensor_tilt_matrix(tau_x: float, tau_y: float) -> np.ndarray:
     """OpenCV's tilted-sensor projection (3×3) for tilts τx, τy (rad) of the image sensor.
 

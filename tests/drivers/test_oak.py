@@ -36,7 +36,9 @@ def _float32(values) -> np.ndarray:
     return np.asarray(values, dtype=np.float32).astype(float)
 
 
-@pytest.mark.parametrize("dist", [DIST_5, DIST_14], ids=["5 coefficients", "14 coefficients"])
+@pytest.mark.parametrize(
+    "dist", [np.zeros(0), DIST_5, DIST_14], ids=["none", "5 coefficients", "14 coefficients"]
+)
 def test_calibration_json_round_trips_k_and_distortion(tmp_path, dist):
     info = CameraInfo(1280, 800, K, dist, "oak", channels=3)
     write_calibration(info, tmp_path / "calibration.json")

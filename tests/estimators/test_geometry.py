@@ -13,6 +13,7 @@ from estimators.geometry import (
     intrinsics_from_fov,
     look_at,
     normal_angle,
+    padded_distortion,
     project,
     project_from,
     rotation_error_geodesic,
@@ -155,6 +156,13 @@ def test_undistort_pixels_matches_opencv_undistort_points(dist):
 @pytest.mark.parametrize("length", [4, 5, 8, 12, 14])
 def test_check_distortion_accepts_every_opencv_length(length):
     assert check_distortion(np.full(length, 0.01)).shape == (length,)
+
+
+def test_padded_distortion_pads_to_the_next_opencv_length():
+    assert padded_distortion(np.ones(3)).tolist() == [1, 1, 1, 0]
+    assert padded_distortion(np.ones(13)).shape == (14,) and padded_distortion([]).size == 0
+    with pytest.raises(ValueError, match="at most 14"):
+        padded_distortion(np.ones(15))
 
 
 @pytest.mark.parametrize("length", [1, 3, 6, 13, 15])
