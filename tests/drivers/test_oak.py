@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.base import DeviceError
+from drivers.base import Camera, DeviceError
 from drivers.oak import (
     OakCamera,
     OakReplay,
@@ -168,6 +168,7 @@ def test_replay_rejects_files_that_are_not_what_they_claim(small_recording):
 def test_replay_reads_only_while_active(small_recording):
     folder, _ = small_recording
     replay = OakReplay(folder / "video.avi", folder / "calibration.json", realtime=False)
+    assert isinstance(replay, Camera) and isinstance(OakCamera(), Camera)
     replay.connect()
     with pytest.raises(DeviceError, match="not streaming"):
         replay.read()
