@@ -115,10 +115,11 @@ def test_replay_paces_at_the_recorded_rate_and_keeps_the_newest_frame(tmp_path):
         time.sleep(0.2)  # a slow reader: ten periods pass
         late = camera.read(timeout_s=2.0)
         after = camera.read(timeout_s=2.0)
-    periods = np.diff([f.stamp for f in paced[1:]])  # the first period starts at activation
-    # 20 ms: never faster (depthai sleeps whole milliseconds); slower only when the machine is
-    # loaded (2 busy cores: medians up to 30 ms measured).
-    assert 0.019 < np.median(periods) < 0.06
+    # 20 ms on average over 6 periods (the first starts at activation): the replay wakes once
+    # per period, then decodes and sends (the send stamps); a loaded machine (2 busy cores)
+    # makes single periods longer or shorter (medians of 20–30 ms measured).
+    mean_period = (paced[-1].stamp - paced[1].stamp) / 6
+    assert 0.017 < mean_period < 0.06
     assert [f.seq for f in paced] == list(range(8))
     # The frames that came while nobody read were dropped, not queued: the one read next is
     # the newest (about a period old), and never one already returned.
