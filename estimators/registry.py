@@ -9,6 +9,7 @@ estimator only ever sees frames of its own camera and precomputes what depends o
 
 from __future__ import annotations
 
+import functools
 import importlib
 from collections import OrderedDict
 from collections.abc import Callable
@@ -94,5 +95,5 @@ def build_estimator(
     here). ``system`` is one of corners, lines, ellipses — or a ``"module:factory"`` path,
     which lets tests and experiments plug in their own estimator.
     """
-    factory = _factory(system)
-    return PerCameraEstimator(lambda info: factory(target, info, **options), camera)
+    # A partial, not a lambda: the estimator pickles (to hand it to another process).
+    return PerCameraEstimator(functools.partial(_factory(system), target, **options), camera)

@@ -2,6 +2,7 @@
 distinct CameraInfo, built on first sight, reused, bounded."""
 
 import math
+import pickle
 from functools import lru_cache
 
 import numpy as np
@@ -77,6 +78,16 @@ def test_per_camera_estimator_keeps_a_bounded_number_of_cameras():
     assert built == [500.0, 600.0, 700.0, 600.0]  # 600 rebuilt
     with pytest.raises(ValueError, match="capacity"):
         PerCameraEstimator(build, _camera(500.0), capacity=0)
+
+
+def test_build_estimator_pickles_and_keeps_routing():
+    estimator = build_estimator("tests.estimators.test_registry:_echo", target(), _camera(500.0))
+    copy = pickle.loads(pickle.dumps(estimator))
+    assert copy.estimate(_frame(_camera(600.0))).reason == "fx=600.0" and copy.builds == 2
+
+
+def _echo(target, camera, **options):
+    return _Echo(camera)
 
 
 def test_build_estimator_rejects_bad_options_at_build_time():
