@@ -58,6 +58,18 @@ class CameraInfo:
         return (self.height, self.width) if self.channels == 1 else (self.height, self.width, 3)
 
     @property
+    def key(self) -> tuple:
+        """The intrinsics' content (size, channels, K, distortion) as a hashable value: two
+        infos with the same key image the world identically, whatever their ``model`` name."""
+        return (
+            self.width,
+            self.height,
+            self.channels,
+            self.K.tobytes(),
+            self.dist.tobytes(),
+        )
+
+    @property
     def has_distortion(self) -> bool:
         return bool(np.any(self.dist != 0))
 

@@ -6,8 +6,9 @@ poses compose when the inner letters cancel: ``X_AC = X_AB @ X_BC``. ``R_AB`` is
 part and ``p_AB`` the position of B's origin in A. Units are SI (metres, radians).
 
 Camera frame C is OpenCV's optical frame (x right, y down, z forward); pixel coordinates put
-integer values at pixel centres. Lens distortion follows OpenCV's model with 4, 5, 8 or 12
-coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4]]])``.
+integer values at pixel centres. Lens distortion follows OpenCV's model with 4, 5, 8, 12 or 14
+coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, τx, τy]]]])``: radial
+(rational), tangential, thin prism and the tilted-sensor terms — depthai reports all 14.
 """
 
 from __future__ import annotations
@@ -188,28 +189,55 @@ def look_at(p_AC: np.ndarray, p_A_target: np.ndarray, up_A: np.ndarray) -> Pose:
 
 # --- camera model ---------------------------------------------------------------------------
 
-_SUPPORTED_DISTORTION_LENGTHS = (0, 4, 5, 8, 12)
+_SUPPORTED_DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 
 
 def check_distortion(dist: np.ndarray) -> np.ndarray:
-    """Return ``dist`` as a float array of a supported OpenCV length (0, 4, 5, 8 or 12)."""
+    """Return ``dist`` as a float array of a supported OpenCV length (0, 4, 5, 8, 12 or 14)."""
     d = np.asarray(dist, dtype=float).reshape(-1)
     if d.size not in _SUPPORTED_DISTORTION_LENGTHS:
         raise ValueError(
-            f"distortion must have 0, 4, 5, 8 or 12 coefficients (OpenCV order); got {d.size}"
+            f"distortion must have 0, 4, 5, 8, 12 or 14 coefficients (OpenCV order); got {d.size}"
         )
     if not np.all(np.isfinite(d)):
         raise ValueError("distortion coefficients must be finite")
     return d
 
 
+def padded_distortion(dist: np.ndarray) -> np.ndarray:
+    """``dist`` zero-padded to the next length OpenCV knows (a model's missing trailing
+    coefficients are zeros: the same lens); ValueError beyond 14."""
+    d = np.asarray(dist, dtype=float).reshape(-1)
+    longer = [n for n in _SUPPORTED_DISTORTION_LENGTHS if n >= d.size]
+    if not longer:
+        raise ValueError(f"distortion must have at most 14 coefficients; got {d.size}")
+    return check_distortion(np.r_[d, np.zeros(longer[0] - d.size)])
+
+
+def sensor_tilt_matrix(tau_x: float, tau_y: float) -> np.ndarray:
+    """OpenCV's tilted-sensor projection (3×3) for tilts τx, τy (rad) of the image sensor.
+
+    The sensor plane is rotated by R = Ry(τy)·Rx(τx) and the image re-projected onto it along
+    the optical axis (Louhichi et al., "Self-calibration of Scheimpflug cameras", 2007; OpenCV's
+    ``computeTiltProjectionMatrix``): M = P_z(R)·R with P_z = [[r22, 0, −r02], [0, r22, −r12],
+    [0, 0, 1]]. A distorted point (x, y) maps to (M·[x, y, 1]) dehomogenised.
+    """
+    cx, sx = np.cos(tau_x), np.sin(tau_x)
+    cy, sy = np.cos(tau_y), np.sin(tau_y)
+    R_x = np.array([[1.0, 0.0, 0.0], [0.0, cx, sx], [0.0, -sx, cx]])
+    R_y = np.array([[cy, 0.0, -sy], [0.0, 1.0, 0.0], [sy, 0.0, cy]])
+    R = R_y @ R_x
+    P_z = np.array([[R[2, 2], 0.0, -R[0, 2]], [0.0, R[2, 2], -R[1, 2]], [0.0, 0.0, 1.0]])
+    return P_z @ R
+
+
 def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """Apply OpenCV lens distortion to normalized image coordinates (N,2) → (N,2)."""
     xy = as_points(xy, 2, "xy")
-    d = np.zeros(12)
+    d = np.zeros(14)
     coeffs = check_distortion(dist)
     d[: coeffs.size] = coeffs
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = d
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tau_x, tau_y = d
     x, y = xy[:, 0], xy[:, 1]
     r2 = x * x + y * y
     r4 = r2 * r2
@@ -217,6 +245,13 @@ def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     radial = (1 + k1 * r2 + k2 * r4 + k3 * r6) / (1 + k4 * r2 + k5 * r4 + k6 * r6)
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + s1 * r2 + s2 * r4
     yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + s3 * r2 + s4 * r4
+    if tau_x != 0.0 or tau_y != 0.0:
+        M = sensor_tilt_matrix(tau_x, tau_y)
+        w = M[2, 0] * xd + M[2, 1] * yd + M[2, 2]
+        xd, yd = (
+            (M[0, 0] * xd + M[0, 1] * yd + M[0, 2]) / w,
+            (M[1, 0] * xd + M[1, 1] * yd + M[1, 2]) / w,
+        )
     return np.column_stack([xd, yd])
 
 

@@ -343,6 +343,43 @@ def approach_path(
         out_path.write_text(text, encoding="utf-8")
 
 
+@app.command()
+def record(
+    out_dir: Annotated[Path, typer.Option("--out", help="Directory for the recording.")],
+    frames: Annotated[int, typer.Option(min=2, help="Frames from 2.5 m to 0.5 m.")] = 120,
+    noise: NoiseOpt = "low",
+    camera: CameraOpt = "reference",
+    mockup: MockupOpt = "default",
+    seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
+    codec: Annotated[str, typer.Option(help="Video codec: ffv1 (lossless) | mjpg.")] = "ffv1",
+    jpeg_quality: Annotated[int, typer.Option(min=1, max=100, help="MJPG quality.")] = 100,
+    check: Annotated[
+        bool, typer.Option(help="Replay it through the OAK driver and compare the poses.")
+    ] = False,
+) -> None:
+    """Save the open-loop approach path as an OAK recording: video, depthai calibration JSON,
+    ground truth (JSON lines). With --check, replay it through the OAK driver and print each
+    estimator's poses on the replayed frames against the truth and the direct frames, and the
+    replay's pacing and latency."""
+    from drivers.base import DeviceError
+    from hil.evaluation import recording as rec
+
+    _noise_config(noise)
+    options = dict(frames=frames, noise=noise, camera=camera, mockup=mockup, seed=seed, codec=codec)
+    options["jpeg_quality"] = jpeg_quality
+    try:
+        if check:
+            result = rec.record_and_check(out_dir, **options)
+            text = rec.markdown_comparison(result.comparison)
+            text += "\n" + rec.replay_timing(result.recording).text() + "\n"
+            out.print(text, markup=False, highlight=False)
+        else:
+            rec.record_approach(out_dir, **options)
+    except (ConfigError, ValueError, OSError, DeviceError) as exc:
+        raise _fail(str(exc)) from None
+    out.print(f"recording in {out_dir}", markup=False, highlight=False)
+
+
 @bench_app.command("estimate")
 def bench_estimate(
     system: Annotated[list[str], typer.Option(help="Estimator(s); repeat for several.")],

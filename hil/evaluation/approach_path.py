@@ -10,15 +10,16 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
 from configuration.camera import load_camera
-from configuration.mockup import load_mockup
+from configuration.mockup import MockupConfig, load_mockup
 from configuration.render import NoiseConfig, RenderConfig
 from estimators.conics import circle_points
-from estimators.frame import Frame, GroundTruth
+from estimators.frame import CameraInfo, Frame, GroundTruth
 from estimators.geometry import Pose
 from estimators.measurement import Tracker
 from estimators.registry import build_estimator
@@ -71,6 +72,43 @@ def circle_visible_fraction(X_CT: Pose, center_T, normal_T, radius: float, camer
     return float(camera.in_view(rim).mean())
 
 
+@dataclass(frozen=True, slots=True)
+class PathFrame:
+    """One rendered frame of the approach path with its distance (m); the frame carries its
+    ground truth (``frame.truth.X_CT``)."""
+
+    index: int
+    distance_m: float
+    frame: Frame
+
+
+def render_approach(
+    info: CameraInfo,
+    mockup_config: MockupConfig,
+    *,
+    frames: int = 120,
+    noise: str = "low",
+    path: ApproachPath | None = None,
+    seed: int = 0,
+    fps: float = 30.0,
+) -> Iterator[PathFrame]:
+    """Render the approach ``path`` in ``frames`` frames (seeded sensor noise), frame ``i``
+    stamped ``i / fps``."""
+    path = path or ApproachPath()
+    noise_config = NoiseConfig(preset=noise)
+    with MockupScene(mockup_config) as scene:
+        renderer = PybulletRenderer(scene, info, RenderConfig())
+        for i in range(frames):
+            distance, offset = path.offset(i / max(frames - 1, 1))
+            X_WC, _ = camera_pose_for(distance, offset)
+            rendering = renderer.render(X_WC)
+            image = expose(
+                rendering.image, rendering.depth_m, info.K, noise_config, frame_rng(seed, i)
+            )
+            truth = GroundTruth(rendering.X_CT, rendering.X_WC)
+            yield PathFrame(i, distance, Frame(image, i / fps, info, i, truth))
+
+
 def run_approach(
     system: str,
     *,
@@ -84,43 +122,31 @@ def run_approach(
     estimator_options: dict | None = None,
 ) -> list[ApproachFrame]:
     """Track ``system`` along the approach; one result per frame."""
-    path = path or ApproachPath()
     info = load_camera(camera).camera_info()
     mockup_config = load_mockup(mockup)
     target = mockup_config.target_model()
     reference = target.circle(circle)
     tracker = Tracker(build_estimator(system, target, info, **(estimator_options or {})))
-    noise_config = NoiseConfig(preset=noise)
     results = []
-    with MockupScene(mockup_config) as scene:
-        renderer = PybulletRenderer(scene, info, RenderConfig())
-        for i in range(frames):
-            distance, offset = path.offset(i / max(frames - 1, 1))
-            X_WC, _ = camera_pose_for(distance, offset)
-            rendering = renderer.render(X_WC)
-            image = expose(
-                rendering.image, rendering.depth_m, info.K, noise_config, frame_rng(seed, i)
+    for rendered in render_approach(
+        info, mockup_config, frames=frames, noise=noise, path=path, seed=seed
+    ):
+        m = tracker.update(rendered.frame)
+        X_CT = rendered.frame.truth.X_CT
+        results.append(
+            ApproachFrame(
+                rendered.index,
+                rendered.distance_m,
+                m.status,
+                m.reason,
+                measurement_error(m, X_CT, target),
+                circle_visible_fraction(
+                    X_CT, reference.center_T, reference.normal_T, reference.radius, info
+                ),
+                m.X_CT is not None,
+                m.time_ms,
             )
-            frame = Frame(image, i / 30.0, info, i, GroundTruth(rendering.X_CT, rendering.X_WC))
-            m = tracker.update(frame)
-            results.append(
-                ApproachFrame(
-                    i,
-                    distance,
-                    m.status,
-                    m.reason,
-                    measurement_error(m, rendering.X_CT, target),
-                    circle_visible_fraction(
-                        rendering.X_CT,
-                        reference.center_T,
-                        reference.normal_T,
-                        reference.radius,
-                        info,
-                    ),
-                    m.X_CT is not None,
-                    m.time_ms,
-                )
-            )
+        )
     return results
 
 

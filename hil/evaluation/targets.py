@@ -67,6 +67,16 @@ def accuracy_target(system: str, distance_m: float, noise: str) -> tuple[float, 
     return None
 
 
+def target_along_approach(system: str, distance_m: float, noise: str) -> tuple[float, float] | None:
+    """The target of the nearest reference distance at or beyond ``distance_m`` (the farthest
+    one beyond them all): a frame between two reference distances is held to the looser."""
+    by_distance = ACCURACY_TARGETS.get(system)
+    if by_distance is None:
+        return None
+    beyond = [d for d in by_distance if d >= distance_m - 1e-9]
+    return accuracy_target(system, min(beyond) if beyond else max(by_distance), noise)
+
+
 def judged_errors(system: str, error: MeasurementError) -> tuple[float, float]:
     """(position m, attitude rad) a case's target is about: the circle's centre and normal for
     the ellipse system, the pose's translation and rotation otherwise."""

@@ -21,6 +21,17 @@ def test_camera_info_validates():
         CameraInfo(640, 480, np.eye(3), np.zeros(0), "x", channels=2)
 
 
+def test_camera_info_key_is_the_content_not_the_name():
+    same = CameraInfo(640, 480, INFO.K.copy(), np.zeros(0), "another name")
+    assert same.key == INFO.key and hash(same.key) == hash(INFO.key)
+    moved = INFO.K.copy()
+    moved[0, 2] += 1e-6
+    assert CameraInfo(640, 480, moved, np.zeros(0), "reference").key != INFO.key
+    assert CameraInfo(640, 480, INFO.K, np.zeros(0), "reference", channels=3).key != INFO.key
+    tilted = CameraInfo(640, 480, INFO.K, np.r_[np.zeros(12), 0.01, 0.0], "reference")
+    assert tilted.key != INFO.key and tilted.dist.shape == (14,)
+
+
 def test_camera_info_in_view_rejects_fold_back_of_distortion():
     oak = load_camera("oak_d_rgb").camera_info()
     far_outside = np.array(

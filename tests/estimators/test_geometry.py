@@ -8,10 +8,12 @@ from scipy.spatial.transform import Rotation
 from estimators.geometry import (
     Pose,
     back_project,
+    check_distortion,
     distort_normalized,
     intrinsics_from_fov,
     look_at,
     normal_angle,
+    padded_distortion,
     project,
     project_from,
     rotation_error_geodesic,
@@ -28,6 +30,8 @@ poses = st.builds(Pose.from_rotvec, rotvecs, vectors)
 K_REF = intrinsics_from_fov(640, 480, 70.0)
 DIST_OAK = np.array([-0.090, 0.110, 0.00030, -0.00040, -0.040])
 DIST_RATIONAL = np.array([0.12, -0.05, 0.001, -0.0007, 0.01, 0.15, -0.03, 0.02])
+#: depthai's full model: rational + thin prism + a tilted sensor (τx, τy in rad).
+DIST_TILTED = np.r_[DIST_RATIONAL, 0.001, -0.002, 0.0005, 0.001, 0.012, -0.018]
 
 
 @given(poses)
@@ -97,7 +101,7 @@ def test_look_at_points_the_optical_axis_at_the_target():
     st.floats(-0.55, 0.55),
     st.floats(-0.45, 0.45),
     st.floats(0.3, 10.0),
-    st.sampled_from([None, DIST_OAK, DIST_RATIONAL]),
+    st.sampled_from([None, DIST_OAK, DIST_RATIONAL, DIST_TILTED]),
 )
 def test_project_back_project_round_trip(x, y, z, dist):
     p_C = np.array([[x * z, y * z, z]])
@@ -108,7 +112,14 @@ def test_project_back_project_round_trip(x, y, z, dist):
 
 @pytest.mark.parametrize(
     "dist",
-    [np.zeros(0), DIST_OAK, DIST_RATIONAL, np.r_[DIST_RATIONAL, 0.001, -0.002, 0.0005, 0.001]],
+    [
+        np.zeros(0),
+        DIST_OAK,
+        DIST_RATIONAL,
+        np.r_[DIST_RATIONAL, 0.001, -0.002, 0.0005, 0.001],
+        DIST_TILTED,
+        np.r_[np.zeros(12), 0.02, 0.0],  # tilt alone
+    ],
 )
 def test_project_matches_opencv(dist):
     rng = np.random.default_rng(3)
@@ -125,6 +136,39 @@ def test_undistort_inverts_distortion_to_high_precision():
     xy = rng.uniform(-0.7, 0.7, size=(500, 2))
     uv = project(np.column_stack([xy, np.ones(len(xy))]), K_REF, DIST_OAK)
     assert np.abs(undistort_pixels(uv, K_REF, DIST_OAK) - xy).max() < 1e-10
+
+
+@pytest.mark.parametrize("dist", [DIST_OAK, DIST_RATIONAL, DIST_TILTED])
+def test_undistort_pixels_matches_opencv_undistort_points(dist):
+    rng = np.random.default_rng(5)
+    K = np.array([[600.0, 0.0, 330.2], [0.0, 610.0, 241.7], [0.0, 0.0, 1.0]])
+    xy = rng.uniform(-0.6, 0.6, size=(300, 2))
+    uv, _ = cv2.projectPoints(
+        np.column_stack([xy, np.ones(len(xy))]), np.zeros(3), np.zeros(3), K, dist
+    )
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    expected = cv2.undistortPoints(uv, K, dist, criteria=criteria).reshape(-1, 2)
+    ours = undistort_pixels(uv.reshape(-1, 2), K, dist)
+    assert np.abs(ours - xy).max() < 1e-10
+    assert np.abs(ours - expected).max() < 1e-8
+
+
+@pytest.mark.parametrize("length", [4, 5, 8, 12, 14])
+def test_check_distortion_accepts_every_opencv_length(length):
+    assert check_distortion(np.full(length, 0.01)).shape == (length,)
+
+
+def test_padded_distortion_pads_to_the_next_opencv_length():
+    assert padded_distortion(np.ones(3)).tolist() == [1, 1, 1, 0]
+    assert padded_distortion(np.ones(13)).shape == (14,) and padded_distortion([]).size == 0
+    with pytest.raises(ValueError, match="at most 14"):
+        padded_distortion(np.ones(15))
+
+
+@pytest.mark.parametrize("length", [1, 3, 6, 13, 15])
+def test_check_distortion_rejects_other_lengths(length):
+    with pytest.raises(ValueError, match="0, 4, 5, 8, 12 or 14 coefficients"):
+        check_distortion(np.zeros(length))
 
 
 def test_project_rejects_points_behind_camera_and_bad_distortion():
