@@ -7,9 +7,9 @@ singularity handling as the simulated arm, so ``actual_q`` and the TCP pose alwa
 the arm advances one period. When nothing commands motion and the arm is at rest the model is
 not stepped (it would not move; this keeps an idle emulator nearly free of CPU).
 
-The TCP offset is zero: the TCP is ``tool0`` (E), so ``actual_TCP_pose`` is X_BE, and
-``actual_TCP_speed`` is V_BE = [v, ω] in B. UR poses are [x, y, z, rx, ry, rz] with an axis-angle
-rotation; they are converted to ``Pose`` here and in the driver, nowhere else.
+The TCP offset is zero unless a test sets one: the TCP is then ``tool0`` (E), so
+``actual_TCP_pose`` is X_BE and ``actual_TCP_speed`` is V_BE = [v, ω] in B. UR poses are
+[x, y, z, rx, ry, rz] with an axis-angle rotation; they are converted here and in the driver.
 
 Modes and states follow UR's enumerations (RTDE guide): robot mode, safety mode, runtime state,
 and the safety-status bits ur-rtde's ``isProtectiveStopped`` / ``isEmergencyStopped`` test.
@@ -26,8 +26,8 @@ import numpy as np
 
 from configuration.rig import ArmConfig
 from drivers.base import DeviceError, ServoCommand
-from estimators.fusion import log_so3
 from estimators.geometry import Pose
+from estimators.so3 import log_so3
 from sim_backends.arm import SimArm
 from sim_backends.ur_emulator.command_log import CommandLog, command_name
 from sim_backends.ur_emulator.motion import LinearMove, pose_error_matrix, servo_twist
@@ -153,9 +153,10 @@ class EmulatedController:
         self.runtime_state = RuntimeState.STOPPED
         self.program: Program | None = None
         self.tcp_force = (0.0,) * 6
+        self._T_EP = np.eye(4)  # TCP offset: pose of the TCP P in the flange frame E
         self.protective_stop_at: float | None = None
-        #: Events ("protective stop", "emergency stop", …) waiting for the first data package
-        #: that shows them; the server stamps them into ``published``.
+        #: Events ("protective stop", "emergency stop", "watchdog") waiting for the first data
+        #: package that shows them; the server stamps them into ``published`` (latest wins).
         self.unpublished_events: list[str] = []
         self.published: dict[str, float] = {}
         self._watchdog: tuple[str, float] | None = None  # (input variable, min frequency)
@@ -212,11 +213,13 @@ class EmulatedController:
         # matrices, not Poses: this runs every period while the arm moves
         self._T_BE = self.arm.T_BE
         self._V_BE = self.arm.V_BE
-        rotvec = log_so3(self._T_BE[:3, :3])
         self.q = tuple(self.arm.q.tolist())
         self.qd = tuple(self.arm.qd.tolist())
-        self.tcp_pose = tuple(self._T_BE[:3, 3].tolist() + rotvec.tolist())
-        self.tcp_speed = tuple(self._V_BE.tolist())
+        # the TCP P = E unless a TCP offset was set (then P's pose and its point's velocity)
+        T_BP = self._T_BE @ self._T_EP
+        v_P = self._V_BE[:3] + np.cross(self._V_BE[3:], T_BP[:3, 3] - self._T_BE[:3, 3])
+        self.tcp_pose = tuple(T_BP[:3, 3].tolist() + log_so3(T_BP[:3, :3]).tolist())
+        self.tcp_speed = tuple(v_P.tolist() + self._V_BE[3:].tolist())
 
     # --- the controller period ----------------------------------------------------------------
     def cycle(self) -> None:
@@ -519,6 +522,19 @@ class EmulatedController:
         if self.moving:
             raise ValueError("set_joint_positions needs the arm at rest")
         self.arm.set_joint_positions(q)
+        self._refresh_outputs()
+
+    @property
+    def tcp_offset(self) -> tuple[float, ...]:
+        """The TCP offset as UR reports it: [x, y, z, rx, ry, rz] of the TCP in the flange."""
+        return tuple(self._T_EP[:3, 3].tolist() + log_so3(self._T_EP[:3, :3]).tolist())
+
+    def set_tcp_offset(self, offset: np.ndarray) -> None:
+        """Set the TCP offset (UR's set_tcp): TCP pose and speed then refer to that point."""
+        X_EP = Pose.from_rotvec(
+            np.asarray(offset[3:], dtype=float), np.asarray(offset[:3], dtype=float)
+        )
+        self._T_EP = X_EP.matrix
         self._refresh_outputs()
 
     def set_tcp_force(self, wrench_B: np.ndarray) -> None:

@@ -182,10 +182,10 @@ class ControlScript:
             frequency = self._in_double(0)
             self._log(command, (frequency,))
             c.set_watchdog(f"input_int_register_{self._int}", frequency)
-        elif command == 40:  # getTCPOffset: the TCP is tool0
+        elif command == 40:  # getTCPOffset
             self._log(command)
-            for k in range(6):
-                self._out_double(k, 0.0)
+            for k, value in enumerate(c.tcp_offset):
+                self._out_double(k, value)
         elif command == STOP_SCRIPT:
             self._log(command)
             c.stop_program("stopScript")

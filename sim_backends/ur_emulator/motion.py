@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from estimators.fusion import exp_so3, log_so3
+from estimators.so3 import exp_so3, log_so3
 
 #: Time constant (s) of the proportional correction around a moveL reference.
 MOVE_TRACKING_TIME_S = 0.05
@@ -30,7 +30,7 @@ MOVE_TRACKING_TIME_S = 0.05
 
 def pose_error_matrix(T_current: np.ndarray, T_target: np.ndarray) -> np.ndarray:
     """[Δp, Δθ] in B taking ``T_current`` to ``T_target``: ``ur_kinematics.pose_error`` on
-    4×4 matrices, with the project's SO(3) log (~10× faster than scipy's ``Rotation``)."""
+    4×4 matrices, with the SO(3) log of ``estimators.so3`` (~10× faster than scipy's ``Rotation``)."""
     dtheta = log_so3(T_target[:3, :3] @ T_current[:3, :3].T)
     return np.concatenate([T_target[:3, 3] - T_current[:3, 3], dtheta])
 

@@ -230,6 +230,11 @@ class UREmulator:
         """What ``actual_TCP_force`` reports from now on: [f (N), τ (N·m)] in B."""
         self._request("set_tcp_force", [float(v) for v in wrench_B])
 
+    def set_tcp_offset(self, offset: Sequence[float]) -> None:
+        """Set the controller's TCP offset [x, y, z, rx, ry, rz] (m, rad) in the flange frame;
+        the TCP pose and speed then refer to that point, as on a UR."""
+        self._request("set_tcp_offset", [float(v) for v in offset])
+
     def set_joint_positions(self, q: Sequence[float]) -> None:
         """Place the resting arm at ``q`` (rad)."""
         self._request("set_joint_positions", np.asarray(q, dtype=float).tolist())

@@ -56,8 +56,8 @@ class EmulatorSettings:
 @dataclass(frozen=True)
 class EmulatorStatus:
     """A snapshot of the emulated controller for tests and the CLI. Stamps are host
-    ``time.monotonic()``; ``published`` holds when each safety event first went out in a data
-    package."""
+    ``time.monotonic()``; ``published`` holds when the latest occurrence of each safety event
+    first went out in a data package."""
 
     stamp: float
     timestamp: float
@@ -319,7 +319,7 @@ class EmulatorServer:
         if sent and self.controller.unpublished_events:
             now = self._clock()
             for event in self.controller.unpublished_events:
-                self.controller.published.setdefault(event, now)
+                self.controller.published[event] = now
             self.controller.unpublished_events.clear()
 
     # --- control channel (fault injection, inspection) ----------------------------------------
@@ -357,6 +357,7 @@ class EmulatorServer:
             "emergency_stop": c.emergency_stop,
             "release_emergency_stop": c.release_emergency_stop,
             "set_tcp_force": c.set_tcp_force,
+            "set_tcp_offset": lambda offset: c.set_tcp_offset(np.asarray(offset, dtype=float)),
             "set_joint_positions": lambda q: c.set_joint_positions(np.asarray(q, dtype=float)),
             "claim_inputs": self.claim_inputs,
             "release_inputs": lambda: self.ownership.release(self._fieldbus),
