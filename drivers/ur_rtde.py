@@ -56,6 +56,14 @@ import rtde_receive
 
 from drivers.base import ArmState, DeviceError, DeviceFault, DeviceTimeout, ServoCommand
 from drivers.ur_probe import SCRIPT_PORT, probe_port, probe_rtde
+from drivers.ur_states import (
+    SAFETY_EMERGENCY,
+    SAFETY_MOVABLE,
+    RobotMode,
+    RuntimeState,
+    SafetyMode,
+    name_of,
+)
 from estimators.geometry import Pose
 from estimators.so3 import exp_so3
 
@@ -75,47 +83,6 @@ RECEIVE_VARIABLES = (
     "robot_status_bits",
 )
 
-# UR's enumerations (RTDE guide)
-ROBOT_MODES = {
-    -1: "NO_CONTROLLER",
-    0: "DISCONNECTED",
-    1: "CONFIRM_SAFETY",
-    2: "BOOTING",
-    3: "POWER_OFF",
-    4: "POWER_ON",
-    5: "IDLE",
-    6: "BACKDRIVE",
-    7: "RUNNING",
-    8: "UPDATING_FIRMWARE",
-}
-ROBOT_MODE_RUNNING = 7
-SAFETY_MODES = {
-    1: "NORMAL",
-    2: "REDUCED",
-    3: "PROTECTIVE_STOP",
-    4: "RECOVERY",
-    5: "SAFEGUARD_STOP",
-    6: "SYSTEM_EMERGENCY_STOP",
-    7: "ROBOT_EMERGENCY_STOP",
-    8: "VIOLATION",
-    9: "FAULT",
-    10: "VALIDATE_JOINT_ID",
-    11: "UNDEFINED_SAFETY_MODE",
-    12: "AUTOMATIC_MODE_SAFEGUARD_STOP",
-    13: "SYSTEM_THREE_POSITION_ENABLING_STOP",
-}
-SAFETY_MOVABLE = (1, 2)  # NORMAL, REDUCED
-SAFETY_PROTECTIVE = 3
-SAFETY_EMERGENCY = (6, 7)
-RUNTIME_STATES = {
-    0: "STOPPING",
-    1: "STOPPED",
-    2: "PLAYING",
-    3: "PAUSING",
-    4: "PAUSED",
-    5: "RESUMING",
-}
-RUNTIME_PLAYING = 2
 _LOCAL_HOSTS = ("localhost", "127.0.0.1")  # ur-rtde skips its remote-control check for these
 
 
@@ -247,35 +214,14 @@ class URArm:
 
     def deactivate(self) -> None:
         """Stop the arm, end the control script and close the control interface."""
-        control = self._control
-        if control is None:
-            return
-        try:
-            # Over a lost link ur-rtde would try to reconnect inside the call: skip the commands
-            # (the controller's watchdog stops the script).
-            usable = self._busy is None and control.isConnected()
-            if usable and not self._stopped:
-                with contextlib.suppress(DeviceError):
-                    self._bounded("speedStop", control.speedStop, self.options.stop_deceleration)
-            if usable and self._busy is None:
-                with contextlib.suppress(DeviceError):
-                    self._bounded("stopScript", control.stopScript)
-        finally:
-            self._release_control()
+        self._disconnect(self._end_control())
 
     def close(self) -> None:
         """Deactivate, then close the state stream and the dashboard (safe to call twice)."""
-        try:
-            self.deactivate()
-        finally:
-            receive, self._receive = self._receive, None
-            dashboard, self._dashboard = self._dashboard, None
-            if receive is not None:
-                with contextlib.suppress(DeviceError):
-                    self._bounded("receive disconnect", receive.disconnect, control_call=False)
-            if dashboard is not None:
-                with contextlib.suppress(DeviceError):
-                    self._bounded("dashboard disconnect", dashboard.disconnect, control_call=False)
+        control = self._end_control()
+        receive, self._receive = self._receive, None
+        dashboard, self._dashboard = self._dashboard, None
+        self._disconnect(control, receive, dashboard)
 
     def reconnect(self, *, attempts: int | None = None, timeout_s: float | None = None) -> None:
         """Close everything, then connect again: at most ``attempts`` tries (default
@@ -341,18 +287,18 @@ class URArm:
 
     def _flags(self, receive) -> tuple[bool, bool, str | None]:
         safety = receive.getSafetyMode()
-        protective = bool(receive.isProtectiveStopped()) or safety == SAFETY_PROTECTIVE
+        protective = bool(receive.isProtectiveStopped()) or safety == SafetyMode.PROTECTIVE_STOP
         emergency = bool(receive.isEmergencyStopped()) or safety in SAFETY_EMERGENCY
         robot_mode = receive.getRobotMode()
         runtime = receive.getRuntimeState()
         fault = None
         if not (protective or emergency) and safety not in SAFETY_MOVABLE:
-            fault = f"safety mode {SAFETY_MODES.get(safety, safety)}"
-        elif robot_mode != ROBOT_MODE_RUNNING:
-            fault = f"robot mode {ROBOT_MODES.get(robot_mode, robot_mode)}"
-        elif self._control is not None and runtime != RUNTIME_PLAYING:
+            fault = f"safety mode {name_of(SafetyMode, safety)}"
+        elif robot_mode != RobotMode.RUNNING:
+            fault = f"robot mode {name_of(RobotMode, robot_mode)}"
+        elif self._control is not None and runtime != RuntimeState.PLAYING:
             fault = (
-                f"control script not running (runtime state {RUNTIME_STATES.get(runtime, runtime)}: "
+                f"control script not running (runtime state {name_of(RuntimeState, runtime)}: "
                 "watchdog, stopScript or a stop on the controller)"
             )
         return protective, emergency, fault
@@ -525,13 +471,43 @@ class URArm:
             raise DeviceError(f"UR {self.host}: {what} failed: {result['error']}")
         return result.get("value")
 
-    def _release_control(self) -> None:
+    def _end_control(self):
+        """Stop the arm and end the script (skipped over a lost link: ur-rtde would try to
+        reconnect inside the call, and the controller's watchdog stops the script anyway);
+        returns the detached control interface, or None when there is none to disconnect
+        (a call that outlived its time-out still holds it; it is dropped when that returns)."""
         control, self._control = self._control, None
-        self._stopped = True
-        if control is None:
-            return
-        if self._busy is not None and self._busy.is_alive():
-            return  # the stuck call still holds it; it is dropped when that call returns
+        moving, self._stopped = not self._stopped, True
+        if control is None or (self._busy is not None and self._busy.is_alive()):
+            return None
         self._busy = None
-        with contextlib.suppress(DeviceError):
-            self._bounded("control disconnect", control.disconnect, control_call=False)
+        if control.isConnected():
+            if moving:
+                with contextlib.suppress(DeviceError):
+                    self._bounded("speedStop", control.speedStop, self.options.stop_deceleration)
+            if self._busy is None:
+                with contextlib.suppress(DeviceError):
+                    self._bounded("stopScript", control.stopScript)
+        return None if self._busy is not None else control
+
+    def _disconnect(self, *interfaces) -> None:
+        """Disconnect ur-rtde interfaces in parallel within ``command_timeout_s`` (each sleeps
+        0.5 s in ``disconnect()``); their destructors then run here, 0.5 s each, holding the GIL."""
+        threads = [
+            threading.Thread(target=interface.disconnect, name="ur-disconnect", daemon=True)
+            for interface in interfaces
+            if interface is not None
+        ]
+        for thread in threads:
+            thread.start()
+        deadline = time.monotonic() + self.options.command_timeout_s
+        for thread in threads:
+            thread.join(max(deadline - time.monotonic(), 0.0))
+        stuck = sum(thread.is_alive() for thread in threads)
+        if stuck:
+            log.warning(
+                "UR %s: %d disconnect(s) still running after %g s",
+                self.host,
+                stuck,
+                self.options.command_timeout_s,
+            )

@@ -68,10 +68,5 @@ def emulate_ur(
     out.print(
         f"UR emulator ({arm.model}) listening on {host}: {ports}. Ctrl-C stops it.", highlight=False
     )
-    try:
-        server.run()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        server.close()
+    server.serve_forever()
     out.print("UR emulator stopped.", highlight=False)

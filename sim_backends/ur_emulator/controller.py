@@ -11,71 +11,40 @@ The TCP offset is zero unless a test sets one: the TCP is then ``tool0`` (E), so
 ``actual_TCP_pose`` is X_BE and ``actual_TCP_speed`` is V_BE = [v, ω] in B. UR poses are
 [x, y, z, rx, ry, rz] with an axis-angle rotation; they are converted here and in the driver.
 
-Modes and states follow UR's enumerations (RTDE guide): robot mode, safety mode, runtime state,
-and the safety-status bits ur-rtde's ``isProtectiveStopped`` / ``isEmergencyStopped`` test.
+Modes and states are UR's enumerations (``drivers.ur_states``): robot mode, safety mode,
+runtime state, and the safety-status bits ur-rtde's ``isProtectiveStopped`` /
+``isEmergencyStopped`` test.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from enum import IntEnum
 from typing import Protocol
 
 import numpy as np
 
 from configuration.rig import ArmConfig
 from drivers.base import DeviceError, ServoCommand
+from drivers.ur_states import (
+    SAFETY_BIT_EMERGENCY_STOPPED,
+    SAFETY_BIT_NORMAL,
+    SAFETY_BIT_PROTECTIVE_STOPPED,
+    SAFETY_BIT_ROBOT_EMERGENCY_STOPPED,
+    SAFETY_BIT_STOPPED_DUE_TO_SAFETY,
+    SAFETY_EMERGENCY,
+    STATUS_BIT_POWER_ON,
+    STATUS_BIT_PROGRAM_RUNNING,
+    RobotMode,
+    RuntimeState,
+    SafetyMode,
+)
 from estimators.geometry import Pose
 from estimators.so3 import log_so3
 from sim_backends.arm import SimArm
 from sim_backends.ur_emulator.command_log import CommandLog, command_name
 from sim_backends.ur_emulator.motion import LinearMove, pose_error_matrix, servo_twist
 from sim_backends.ur_emulator.rtde_variables import REGISTER_COUNT
-
-
-class RobotMode(IntEnum):
-    NO_CONTROLLER = -1
-    DISCONNECTED = 0
-    CONFIRM_SAFETY = 1
-    BOOTING = 2
-    POWER_OFF = 3
-    POWER_ON = 4
-    IDLE = 5
-    BACKDRIVE = 6
-    RUNNING = 7
-
-
-class SafetyMode(IntEnum):
-    NORMAL = 1
-    REDUCED = 2
-    PROTECTIVE_STOP = 3
-    RECOVERY = 4
-    SAFEGUARD_STOP = 5
-    SYSTEM_EMERGENCY_STOP = 6
-    ROBOT_EMERGENCY_STOP = 7
-    VIOLATION = 8
-    FAULT = 9
-
-
-class RuntimeState(IntEnum):
-    STOPPING = 0
-    STOPPED = 1
-    PLAYING = 2
-    PAUSING = 3
-    PAUSED = 4
-    RESUMING = 5
-
-
-# safety_status_bits (RTDE guide)
-SAFETY_NORMAL = 1 << 0
-SAFETY_PROTECTIVE_STOPPED = 1 << 2
-SAFETY_ROBOT_EMERGENCY_STOPPED = 1 << 6
-SAFETY_EMERGENCY_STOPPED = 1 << 7
-SAFETY_STOPPED_DUE_TO_SAFETY = 1 << 10
-# robot_status_bits
-STATUS_POWER_ON = 1 << 0
-STATUS_PROGRAM_RUNNING = 1 << 1
 
 #: Ramp (m/s², rad/s²) of the twists that servoL and moveL become: high, so the joint
 #: acceleration limit of the arm model is what bounds them, as on the controller.
@@ -183,22 +152,22 @@ class EmulatedController:
     @property
     def safety_status_bits(self) -> int:
         if self.safety_mode == SafetyMode.PROTECTIVE_STOP:
-            return SAFETY_PROTECTIVE_STOPPED | SAFETY_STOPPED_DUE_TO_SAFETY
-        if self.safety_mode in (SafetyMode.ROBOT_EMERGENCY_STOP, SafetyMode.SYSTEM_EMERGENCY_STOP):
+            return SAFETY_BIT_PROTECTIVE_STOPPED | SAFETY_BIT_STOPPED_DUE_TO_SAFETY
+        if self.safety_mode in SAFETY_EMERGENCY:
             return (
-                SAFETY_ROBOT_EMERGENCY_STOPPED
-                | SAFETY_EMERGENCY_STOPPED
-                | SAFETY_STOPPED_DUE_TO_SAFETY
+                SAFETY_BIT_ROBOT_EMERGENCY_STOPPED
+                | SAFETY_BIT_EMERGENCY_STOPPED
+                | SAFETY_BIT_STOPPED_DUE_TO_SAFETY
             )
-        return SAFETY_NORMAL
+        return SAFETY_BIT_NORMAL
 
     @property
     def robot_status_bits(self) -> int:
         bits = 0
         if self.robot_mode in (RobotMode.POWER_ON, RobotMode.IDLE, RobotMode.RUNNING):
-            bits |= STATUS_POWER_ON
+            bits |= STATUS_BIT_POWER_ON
         if self.runtime_state == RuntimeState.PLAYING:
-            bits |= STATUS_PROGRAM_RUNNING
+            bits |= STATUS_BIT_PROGRAM_RUNNING
         return bits
 
     @property
@@ -487,10 +456,7 @@ class EmulatedController:
 
     def release_emergency_stop(self) -> None:
         """The e-stop button released: power is off until ``power on`` and ``brake release``."""
-        if self.safety_mode not in (
-            SafetyMode.ROBOT_EMERGENCY_STOP,
-            SafetyMode.SYSTEM_EMERGENCY_STOP,
-        ):
+        if self.safety_mode not in SAFETY_EMERGENCY:
             return
         self.arm.release_emergency_stop()
         self.safety_mode = SafetyMode.NORMAL

@@ -13,8 +13,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from drivers.ur_states import RuntimeState
 from sim_backends.ur_emulator.command_log import CommandLog
-from sim_backends.ur_emulator.controller import EmulatedController, RuntimeState
+from sim_backends.ur_emulator.controller import EmulatedController
 
 WELCOME = "Connected: Universal Robots Dashboard Server"
 POLYSCOPE_VERSION = "URSoftware 5.15.0.0 (emulated by satgrasp)"

@@ -295,6 +295,16 @@ class EmulatorServer:
     def stop(self) -> None:
         self._running = False
 
+    def serve_forever(self) -> None:
+        """``run()`` until stopped, the control channel closes or Ctrl-C; then close every
+        socket."""
+        try:
+            self.run()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            self.close()
+
     def _dispatch(self, data, fileobj) -> None:
         if data == "control":
             self._serve_control()
@@ -423,9 +433,4 @@ def serve(settings: EmulatorSettings, control: Connection) -> None:
         control.send(("error", str(exc)))
         return
     control.send(("ready", {"host": settings.host, "ports": dict(PORTS)}))
-    try:
-        server.run()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        server.close()
+    server.serve_forever()

@@ -11,10 +11,12 @@ import rtde_receive
 from dashboard_client import DashboardClient
 
 from configuration.rig import load_rig
+from drivers.ur_states import RobotMode, RuntimeState, SafetyMode
 from estimators.geometry import Pose
 from sim_backends.ur_emulator import EmulatorError, UREmulator
 from sim_backends.ur_emulator.command_log import CommandLog
-from sim_backends.ur_emulator.controller import EmulatedController, RuntimeState
+from sim_backends.ur_emulator.controller import EmulatedController
+from sim_backends.ur_emulator.dashboard import DashboardSession
 from sim_backends.ur_emulator.faults import LinkFaults
 from sim_backends.ur_emulator.interpreter import ControlScript
 from sim_backends.ur_kinematics import forward_kinematics, ur_model
@@ -255,3 +257,32 @@ def test_control_script_signals_done_only_when_a_blocking_stop_has_stopped_the_a
     controller.write_inputs(["input_int_register_0"], [0])
     controller.cycle()
     assert controller.output_int[0] == 1  # ready for the next command
+
+
+def test_emulated_controller_emergency_stop_needs_power_on_and_brake_release():
+    controller = EmulatedController(ARM, CommandLog(), clock=time.monotonic)
+    assert controller.start_program(ControlScript(controller))
+    controller.emergency_stop()
+    assert (
+        controller.safety_status_bits & (1 << 7)
+        and controller.safety_mode == SafetyMode.ROBOT_EMERGENCY_STOP
+    )
+    assert controller.runtime_state == RuntimeState.STOPPED and controller.program is None
+    assert not controller.start_program(ControlScript(controller))  # refused while stopped
+    controller.release_emergency_stop()
+    assert (
+        controller.safety_mode == SafetyMode.NORMAL and controller.robot_mode == RobotMode.POWER_OFF
+    )
+    dashboard = DashboardSession(controller, controller.log, clock=time.monotonic)
+    assert dashboard.reply("robotmode") == "Robotmode: POWER_OFF"
+    assert dashboard.reply("power on") == "Powering on"
+    assert dashboard.reply("brake release") == "Brake releasing"
+    assert controller.robot_mode == RobotMode.RUNNING and controller.robot_status_bits == 1
+    assert controller.start_program(ControlScript(controller))
+    assert dashboard.reply("programState") == "PLAYING rtde_control"
+    assert dashboard.reply("get robot model") == "UR10"
+    assert dashboard.reply("self destruct") == "could not understand: 'self destruct'"
+    assert [r.name for r in controller.log.since() if r.source == "safety"] == [
+        "emergency stop",
+        "emergency stop released",
+    ]
