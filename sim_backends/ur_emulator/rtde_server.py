@@ -60,7 +60,6 @@ class RTDESession:
         self.log = log
         self.peer = peer
         self._clock = clock
-        self.protocol_version = 1
         self.started = False
         self._output_names: list[str] = []
         self._output_getters: list[Callable] = []
@@ -83,10 +82,8 @@ class RTDESession:
     def _handle(self, kind: int, payload: bytes) -> bytes | None:
         M = rtde.Message
         if kind == M.REQUEST_PROTOCOL_VERSION:
-            version = rtde.decode_version_request(payload)
-            accepted = version in (1, 2)
-            if accepted:
-                self.protocol_version = version
+            # version 2 only: version 1's setup messages differ (no output frequency)
+            accepted = rtde.decode_version_request(payload) == rtde.PROTOCOL_VERSION
             return rtde.encode_accepted(kind, accepted)
         if kind == M.GET_URCONTROL_VERSION:
             return rtde.encode_controller_version(CONTROLLER_VERSION)

@@ -11,6 +11,7 @@ import rtde_receive
 from dashboard_client import DashboardClient
 
 from configuration.rig import load_rig
+from drivers import rtde_protocol as rtde
 from drivers.ur_states import RobotMode, RuntimeState, SafetyMode
 from estimators.geometry import Pose
 from sim_backends.ur_emulator import EmulatorError, UREmulator
@@ -19,6 +20,7 @@ from sim_backends.ur_emulator.controller import EmulatedController
 from sim_backends.ur_emulator.dashboard import DashboardSession
 from sim_backends.ur_emulator.faults import LinkFaults
 from sim_backends.ur_emulator.interpreter import ControlScript
+from sim_backends.ur_emulator.rtde_server import InputOwnership, RTDESession
 from sim_backends.ur_kinematics import forward_kinematics, ur_model
 from tests.sim_backends.ur_emulation import released, running_emulator, wait_until
 
@@ -286,3 +288,38 @@ def test_emulated_controller_emergency_stop_needs_power_on_and_brake_release():
         "emergency stop",
         "emergency stop released",
     ]
+
+
+def test_rtde_session_negotiates_version_2_numbers_inputs_and_guards_their_owner():
+    controller = EmulatedController(ARM, CommandLog(), clock=time.monotonic)
+    ownership = InputOwnership()
+
+    def session() -> RTDESession:
+        return RTDESession(controller, ownership, controller.log, peer="test", clock=time.monotonic)
+
+    def ask(s: RTDESession, message: bytes) -> tuple[int, bytes]:
+        ((kind, payload),) = rtde.MessageReader().feed(message)
+        ((reply_kind, reply),) = rtde.MessageReader().feed(s.handle(kind, payload))
+        assert reply_kind == kind
+        return reply_kind, reply
+
+    first, second = session(), session()
+    assert not rtde.decode_accepted(ask(first, rtde.encode_version_request(1))[1])
+    assert rtde.decode_accepted(ask(first, rtde.encode_version_request(2))[1])
+    _, reply = ask(first, rtde.encode_output_setup(125.0, ["timestamp", "warp_drive"]))
+    assert rtde.decode_setup_reply(reply) == (0, ["DOUBLE", "NOT_FOUND"])
+    names = [["input_int_register_0", "input_double_register_0"], ["input_int_register_1"]]
+    for expected_id, recipe in enumerate(names, start=1):
+        _, reply = ask(first, rtde.encode(rtde.Message.SETUP_INPUTS, rtde.names_payload(recipe)))
+        assert rtde.decode_setup_reply(reply)[0] == expected_id
+    _, reply = ask(
+        second, rtde.encode(rtde.Message.SETUP_INPUTS, b"input_int_register_1,speed_slider_mask")
+    )
+    assert rtde.decode_setup_reply(reply) == (0, ["IN_USE", "UINT32"])
+    first.handle(
+        rtde.Message.DATA_PACKAGE, rtde.RecipeCodec(["INT32", "DOUBLE"]).pack(1, [7, 2.5])[3:]
+    )
+    assert controller.input_int[0] == 7 and controller.input_double[0] == 2.5
+    first.close()  # its inputs are free again
+    _, reply = ask(second, rtde.encode(rtde.Message.SETUP_INPUTS, b"input_int_register_1"))
+    assert rtde.decode_setup_reply(reply) == (1, ["INT32"])
