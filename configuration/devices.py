@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Annotated, Literal
 from pydantic import Field
 
 from configuration.base import Positive, Strict
+from drivers.ur_rtde import URArm, URArmOptions
 
 if TYPE_CHECKING:
     from drivers.oak import OakCamera, OakReplay
@@ -71,3 +72,47 @@ class OakCameraConfig(Strict):
             iso=self.iso,
             device=self.device,
         )
+
+
+# --- UR arm (drivers/ur_rtde.py) ----------------------------------------------------------------
+
+#: The driver's defaults, written once (in URArmOptions).
+_UR = URArmOptions()
+
+
+class URArmConfig(Strict):
+    """A UR e-Series arm over ur-rtde: its address and the driver's time-outs and defaults.
+
+    The controller's ports are fixed (dashboard 29999, script 30003, RTDE 30004); its TCP
+    offset must be zero (the driver reports the flange tool0 as X_BE); remote control must be
+    enabled on the teach pendant. See docs/rig_setup.md.
+    """
+
+    host: Annotated[str, Field(min_length=1)]
+    #: Bound on each connection step (probe, dashboard, the ur-rtde constructors' handshake).
+    connect_timeout_s: Positive = _UR.connect_timeout_s
+    #: No new controller time stamp for this long → DeviceTimeout (link lost, controller hung).
+    state_timeout_s: Positive = _UR.state_timeout_s
+    #: Bound on a blocking control call (speedStop, stopScript, disconnect).
+    command_timeout_s: Positive = _UR.command_timeout_s
+    #: speedL's acceleration (m/s², and rad/s² for rotation) when a command gives none.
+    speed_acceleration: Positive = _UR.speed_acceleration
+    #: speedStop's deceleration (m/s²) for stop commands.
+    stop_deceleration: Positive = _UR.stop_deceleration
+    #: The controller stops the control script when commands stop coming at this rate (0: off).
+    watchdog_min_frequency_hz: Annotated[float, Field(ge=0.0)] = _UR.watchdog_min_frequency_hz
+    #: Rate of the state stream (None: the controller's own, 500 Hz on e-Series).
+    receive_frequency_hz: Annotated[float, Field(gt=0.0, le=500.0)] | None = (
+        _UR.receive_frequency_hz
+    )
+    #: Use RTDE registers 24–47 (when a fieldbus adapter already uses 0–23).
+    upper_range_registers: bool = _UR.upper_range_registers
+    reconnect_attempts: Annotated[int, Field(ge=1, le=100)] = _UR.reconnect_attempts
+    reconnect_backoff_s: Positive = _UR.reconnect_backoff_s
+
+    def options(self) -> URArmOptions:
+        return URArmOptions(**self.model_dump(exclude={"host"}))
+
+    def driver(self) -> URArm:
+        """The (unconnected) driver this configuration describes."""
+        return URArm(self.host, self.options())

@@ -15,6 +15,7 @@ import typer
 from rich.console import Console
 
 from configuration.files import ConfigError
+from hil.cli_emulate import emulate_app
 
 app = typer.Typer(
     help="satgrasp: vision-guided approach and grasp of a satellite mock-up with a UR arm.",
@@ -24,6 +25,7 @@ app = typer.Typer(
 )
 bench_app = typer.Typer(help="Benchmarks (timings on this machine).", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
+app.add_typer(emulate_app, name="emulate")
 
 console = Console(stderr=True, soft_wrap=True)  # never split a path across lines
 out = Console(soft_wrap=True)

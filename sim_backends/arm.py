@@ -167,6 +167,21 @@ class SimArm:
         return self._q.copy()
 
     @property
+    def qd(self) -> np.ndarray:
+        """Joint velocities (rad/s) at the last control period."""
+        return self._qd.copy()
+
+    @property
+    def T_BE(self) -> np.ndarray:
+        """``X_BE`` as a 4×4 matrix (a copy): for loops that cannot afford building a Pose."""
+        return self._T_BE.copy()
+
+    @property
+    def V_BE(self) -> np.ndarray:
+        """Flange twist ``J q̇`` = [v, ω] in B at the last control period."""
+        return self._J @ self._qd
+
+    @property
     def X_WB(self) -> Pose:
         return self._X_WB
 

@@ -13,7 +13,6 @@ that should not pay for sockets.
 from __future__ import annotations
 
 import asyncio
-import ipaddress
 import threading
 from collections.abc import Mapping, Sequence
 from typing import Protocol, runtime_checkable
@@ -24,6 +23,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from drivers.base import DeviceError, DeviceTimeout
 from drivers.modbus_link import exception_error
+from sim_backends.loopback import check_loopback
 
 #: Function codes a device sees: reads of holding (3) and input (4) registers, writes (6, 16).
 READ_HOLDING, READ_INPUT, WRITE_SINGLE, WRITE_MULTIPLE = 3, 4, 6, 16
@@ -52,15 +52,6 @@ class RegisterDevice(Protocol):
     def write_registers(self, address: int, values: Sequence[int]) -> None:
         """Apply a write, or ``RegisterAccessError``."""
         ...
-
-
-def _check_loopback(host: str) -> None:
-    try:
-        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        loopback = False
-    if not loopback:
-        raise ValueError(f"simulated devices are served on loopback only; got host {host!r}")
 
 
 def _action_for(device: RegisterDevice):
@@ -132,7 +123,7 @@ class ModbusDeviceServer:
         port: int = 0,
         start_timeout_s: float = 5.0,
     ):
-        _check_loopback(host)
+        check_loopback(host)
         if not devices:
             raise ValueError("ModbusDeviceServer needs at least one device")
         self.host = host
