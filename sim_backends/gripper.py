@@ -35,6 +35,7 @@ class GripperModel:
     def __init__(self, config: GripperConfig, *, control_rate_hz: float = 500.0):
         self.config = config
         self._lock = threading.Lock()
+        self.control_rate_hz = control_rate_hz
         self._period = 1.0 / control_rate_hz
         self._pending = 0.0
         self._time = 0.0

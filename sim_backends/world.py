@@ -82,6 +82,23 @@ class SimRig:
             self.close()
             raise
 
+    @property
+    def grid_s(self) -> float:
+        """The world's time step: the shortest time after which every device model has finished
+        a whole number of its control periods (arm 2 ms, track 4 ms → 4 ms). At a multiple of it
+        every model's state is the state *of that instant*; in between, a model is up to one of its
+        periods behind the clock, which at 0.25 m/s is a millimetre — so frames are captured, and
+        the wall-clock world advances, on this grid."""
+        periods_us = [
+            round(1e6 / rate)
+            for rate in (
+                self.rig.arm.control_rate_hz,
+                self.rig.track.control_rate_hz,
+                self.gripper_model.control_rate_hz,
+            )
+        ]
+        return math.lcm(*periods_us) / 1e6
+
     def on_capture(self, stamp: float) -> None:
         """A frame instant (nothing to do without a camera)."""
 
@@ -146,6 +163,8 @@ class SimRig:
         for device in reversed(self.devices()):
             device.activate()
         waited = 0.0
+        grid = self.grid_s
+        dt = max(grid, round(dt / grid) * grid)
         while not self.gripper.state().activated:
             if waited > settle_s + self.rig.gripper.activation_s:
                 raise RuntimeError("the simulated gripper did not activate")
@@ -154,13 +173,18 @@ class SimRig:
         self._next_capture = self.clock.now()
 
     def advance(self, dt: float) -> None:
-        """Advance every device by ``dt`` seconds, capturing frames at their instants."""
+        """Advance every device by ``dt`` seconds, capturing a frame at the first grid instant
+        (``grid_s``) at or after each frame time."""
         end = self.clock.now() + dt
+        grid = self.grid_s
         while (now := self.clock.now()) < end - 1e-12:
-            step_to = min(end, self._next_capture)
+            capture = self._next_capture
+            if math.isfinite(capture):  # onto the grid, counted from the clock's origin
+                capture = now + max(0.0, math.ceil((capture - now) / grid - 1e-9) * grid)
+            step_to = min(end, capture)
             if step_to > now:
                 self._step(step_to - now)
-            if self.clock.now() >= self._next_capture - 1e-12:
+            if self.clock.now() >= capture - 1e-12:
                 self.on_capture(self.clock.now())
                 self._next_capture += 1.0 / self.timing.fps
 

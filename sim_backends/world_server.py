@@ -11,6 +11,7 @@ proxies of ``sim_backends.remote``, exactly as it would reach a rig.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import threading
 import time
@@ -169,6 +170,7 @@ def run_world(
         seq += 1
 
     world.on_capture = on_capture  # type: ignore[method-assign]
+    grid = world.grid_s
     sender = LatestSender(control)
     running = True
     next_step = time.monotonic()
@@ -178,9 +180,10 @@ def run_world(
                 running = _apply(world, control.recv(), sender) and running
         except (EOFError, OSError):
             break
-        lag = time.monotonic() - world.clock.now()
-        if lag > 0:
-            world.advance(lag)
+        # Whole grid steps only: every model's state is then the state of the snapshot's stamp.
+        steps = math.floor((time.monotonic() - world.clock.now()) / grid)
+        if steps > 0:
+            world.advance(steps * grid)
         sender.put(snapshot(world))
         next_step += step_s
         delay = next_step - time.monotonic()
@@ -214,7 +217,8 @@ def world_main(build: Any, control: Connection, camera: Connection | None) -> No
         world = build(start_time=time.monotonic() - 2.0)
         try:
             world.start()
-            world.advance(max(0.0, time.monotonic() - world.clock.now()))
+            grid = world.grid_s
+            world.advance(math.floor((time.monotonic() - world.clock.now()) / grid) * grid)
             control.send(("ready", realtime_priority(WORLD_PRIORITY)))
             run_world(world, control, camera)
         except Exception as exc:

@@ -186,7 +186,7 @@ def test_log_of_an_approach_killed_with_sigkill_keeps_all_but_the_last_second(tm
     config = tmp_path / "sim.json"
     config.write_text(sim.model_dump_json())
     log_path = tmp_path / "killed.mcap"
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[3])}
     child = subprocess.Popen(
         [sys.executable, "-c", CHILD, str(config), str(log_path)],
         stdout=subprocess.PIPE,
