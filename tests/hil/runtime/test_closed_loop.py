@@ -1,6 +1,6 @@
 """The closed loop with the real estimators on the simulated rig (the default configuration,
-configs/sim.yaml): two seeds of the full approach, and each estimator blinded in turn in the
-middle of the approach. The 20-seed campaign is a command (`satgrasp campaign`), not a test."""
+configs/sim.yaml): a full approach, and each estimator blinded in turn in the middle of one. The
+20-seed campaign is a command (`satgrasp campaign`, docs/realtime.md), not a test."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from hil.analysis.campaign import summarize_log
 from hil.runtime.compose import Trial, run_trial
 
 
-@pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.parametrize("seed", [1])
 def test_closed_loop_approach_succeeds(tmp_path, seed):
     sim = load_simulation("sim")
     log_path = tmp_path / f"seed{seed}.mcap"
@@ -48,8 +48,7 @@ class Blinded:
         return Measurement.lost(self.system, frame, "blinded by the test")
 
 
-@pytest.mark.parametrize("blind", ["corners", "lines", "ellipses"])
-def test_fusion_keeps_the_lock_when_one_system_drops_out(tmp_path, blind):
+def test_fusion_keeps_the_lock_when_each_system_drops_out_in_turn(tmp_path):
     sim = load_simulation("sim")
     with Trial(sim, seed=3, log_path=tmp_path / "trial.mcap") as trial:
         loop = trial.loop
@@ -66,20 +65,26 @@ def test_fusion_keeps_the_lock_when_one_system_drops_out(tmp_path, blind):
 
         run_for(4.0)
         assert loop.sequencer.phase == "approach"
-        trial.vision.workers.estimators[blind] = Blinded(blind)
-        during = run_for(6.0)
-        assert loop.sequencer.phase in ("approach", "standoff"), loop.sequencer.abort_reason
-        health = [t.estimate.health for t in during]
-        assert health.count("ok") == len(health), f"lost the lock without {blind}"
-        errors = np.array(
-            [
-                (
-                    translation_error(t.truth.X_CT, t.estimate.X_CT),
-                    rotation_error_geodesic(t.truth.X_CT, t.estimate.X_CT),
-                )
-                for t in during
-            ]
-        )
-        # Still a good pose from the other two: millimetres and tenths of a degree.
-        assert np.median(errors[:, 0]) < 0.005 and np.median(errors[:, 1]) < math.radians(0.5)
-        assert all(np.linalg.norm(t.arm.V_BE[:3]) <= 0.3 for t in during)
+        estimators = trial.vision.workers.estimators
+        for blind in ("corners", "lines", "ellipses"):
+            seeing = estimators[blind]
+            estimators[blind] = Blinded(blind)
+            during = run_for(3.0)
+            estimators[blind] = seeing
+            run_for(1.0)  # it re-acquires before the next one is blinded
+            assert loop.sequencer.phase in ("approach", "standoff"), loop.sequencer.abort_reason
+            health = [t.estimate.health for t in during]
+            assert health.count("ok") == len(health), f"lost the lock without {blind}"
+            errors = np.array(
+                [
+                    (
+                        translation_error(t.truth.X_CT, t.estimate.X_CT),
+                        rotation_error_geodesic(t.truth.X_CT, t.estimate.X_CT),
+                    )
+                    for t in during
+                ]
+            )
+            # Still a good pose from the other two: millimetres and tenths of a degree.
+            assert np.median(errors[:, 0]) < 0.005, blind
+            assert np.median(errors[:, 1]) < math.radians(0.5), blind
+            assert all(np.linalg.norm(t.arm.V_BE[:3]) <= 0.3 for t in during)
