@@ -11,9 +11,11 @@ from pydantic import Field
 
 from configuration.base import Strict
 
-#: Tracking time per frame of each system (ms, median on the reference camera), measured with
-#: `satgrasp bench estimate` on the 2-core development machine; what ``--clock sim`` charges.
+#: Time per frame of each system (ms, median on the reference camera at 3 m), measured with
+#: `satgrasp bench estimate` on the 2-core development machine: tracking (with a prior) and
+#: acquisition (a search of the whole image). What ``--clock sim`` charges.
 BENCH_PROCESSING_MS = {"corners": 27.0, "lines": 42.0, "ellipses": 37.0}
+BENCH_ACQUISITION_MS = {"corners": 145.0, "lines": 180.0, "ellipses": 80.0}
 
 
 class CameraTiming(Strict):
@@ -32,10 +34,11 @@ class VisionConfig(Strict):
     ``fuse_at``: ``capture`` applies a measurement at its frame's capture stamp with the
     camera-to-carriage pose of that instant (the right way); ``arrival`` applies it when it
     reaches fusion, with the pose of then — kept to show what the delayed update buys.
-    ``max_frame_age_s``: a result whose frame is older than this when it comes is discarded
-    (no stale frame is acted on). ``processing_ms``: per system, the processing time charged under
-    ``--clock sim`` (a system not listed is charged its ``bench`` figure, or 40 ms); under
-    ``--clock wall`` the real time counts. ``workers``: ``process`` runs each system in a process
+    ``max_frame_age_s``: a result whose frame is older than this when it comes is not fused (no
+    stale frame is acted on; its pose may still seed the system's next search).
+    ``processing_ms`` / ``acquisition_ms``: per system, the time charged under ``--clock sim`` for
+    a frame with a prior / without one (a system not listed is charged its ``bench`` figure, or
+    40 / 150 ms); under ``--clock wall`` the real time counts. ``workers``: ``process`` runs each system in a process
     of its own (pybullet and the estimators hold the GIL); ``inline`` runs them in the vision
     process one after the other (for comparison in ``satgrasp bench loop``).
     ``log_frames_every_s``: frames kept in the trial log (0 keeps none).
@@ -46,9 +49,16 @@ class VisionConfig(Strict):
     processing_ms: dict[str, Annotated[float, Field(ge=0.0, le=10000.0)]] = Field(
         default_factory=lambda: dict(BENCH_PROCESSING_MS)
     )
+    acquisition_ms: dict[str, Annotated[float, Field(ge=0.0, le=10000.0)]] = Field(
+        default_factory=lambda: dict(BENCH_ACQUISITION_MS)
+    )
     workers: Literal["process", "inline"] = "process"
     log_frames_every_s: Annotated[float, Field(ge=0.0)] = 1.0
 
-    def processing_s(self, system: str) -> float:
-        """Modelled processing time of ``system`` (s)."""
-        return self.processing_ms.get(system, BENCH_PROCESSING_MS.get(system, 40.0)) / 1000.0
+    def processing_s(self, system: str, *, acquiring: bool = False) -> float:
+        """Modelled time (s) ``system`` takes over a frame, with a prior or searching without."""
+        if acquiring:
+            ms = self.acquisition_ms.get(system, BENCH_ACQUISITION_MS.get(system, 150.0))
+        else:
+            ms = self.processing_ms.get(system, BENCH_PROCESSING_MS.get(system, 40.0))
+        return ms / 1000.0

@@ -323,7 +323,7 @@ class SimArm:
     @property
     def _X_BE(self) -> Pose:
         if self._X_BE_cache is None:
-            self._X_BE_cache = Pose.from_matrix(self._T_BE)
+            self._X_BE_cache = Pose.unchecked(self._T_BE[:3, :3], self._T_BE[:3, 3])
         return self._X_BE_cache
 
     def _reference_twist(self, h: float) -> np.ndarray:

@@ -97,12 +97,14 @@ class TrackModel:
         """Carriage pose in W at the current position."""
         with self._lock:
             x = self._x
-        return Pose(self._X_WM0.R, self._X_WM0.p + x * self._axis_W)
+        return Pose.unchecked(self._X_WM0.R, self._X_WM0.p + x * self._axis_W)
 
     def X_MT(self) -> Pose:
         """The mock-up (target frame T) on the carriage, drift included."""
+        if not (self._drift_v_M.any() or self._drift_w_T.any()):
+            return self._X_MT0  # on its mount, still: the common case, asked every step
         t = self.time
-        translate = Pose(np.eye(3), self._drift_v_M * t)
+        translate = Pose.unchecked(np.eye(3), self._drift_v_M * t)
         turn = Pose.from_rotvec(self._drift_w_T * t, np.zeros(3))
         return translate @ self._X_MT0 @ turn
 

@@ -194,6 +194,7 @@ class SimRig:
         self.gripper_model.step(dt)
         self.clock.advance(dt)
         X_TC = self.track_model.X_WT().inverse() @ self.arm.camera_pose_W()
+        # Position first: the rotation's angle costs more and matters only at the ring.
         captured = (
             translation_error(X_TC, self._grasp_X_TC) <= self._capture_m
             and rotation_error_geodesic(X_TC, self._grasp_X_TC) <= self._capture_rad

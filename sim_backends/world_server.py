@@ -157,7 +157,7 @@ def run_world(
     control: Connection,
     camera: Connection | None,
     *,
-    step_s: float = 0.004,
+    step_s: float = 0.008,
 ) -> None:
     """Run ``world`` in real time until the control side says stop (or goes away)."""
     seq = 0

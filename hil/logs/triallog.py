@@ -413,20 +413,27 @@ class TrialLogWriter:
         jpeg_quality: int = 90,
     ) -> bool:
         """Log a camera image (uint8 HxW or HxWx3 BGR) as a ``foxglove.CompressedImage``.
-        Decimation is the caller's choice. A bad image is replaced by a ``log`` event."""
-        with self._lock:
-            return self._write_frame(t, image, encoding, frame_id, jpeg_quality)
-
-    def _write_frame(
-        self, t: float, image: np.ndarray, encoding: str, frame_id: str, jpeg_quality: int
-    ) -> bool:
-        t = self._time_of({"t": t})
+        Decimation is the caller's choice. A bad image is replaced by a ``log`` event.
+        Encoding a VGA frame takes several milliseconds: a real-time caller encodes elsewhere
+        (``encode_image``) and hands the bytes to ``write_encoded_frame``."""
         try:
-            encoded = _encode_image(image, encoding, jpeg_quality)
+            encoded = encode_image(image, encoding, jpeg_quality)
         except Exception as exc:
-            self.counts["replaced"] += 1
-            self._log_event(t, f"frame not logged: {exc}")
+            with self._lock:
+                self.counts["replaced"] += 1
+                self._log_event(self._time_of({"t": t}), f"frame not logged: {exc}")
             return False
+        return self.write_encoded_frame(t, encoded, encoding=encoding, frame_id=frame_id)
+
+    def write_encoded_frame(
+        self, t: float, data: bytes, *, encoding: str = "jpeg", frame_id: str = "camera"
+    ) -> bool:
+        """Log an already encoded camera image (``encoding``: jpeg or png)."""
+        with self._lock:
+            return self._write_frame(t, data, encoding, frame_id)
+
+    def _write_frame(self, t: float, encoded: bytes, encoding: str, frame_id: str) -> bool:
+        t = self._time_of({"t": t})
         if FRAME_TOPIC not in self._channels and not self._closed and self.error is None:
             try:
                 self._register(FRAME_TOPIC)
@@ -560,7 +567,9 @@ def _label(record: TickRecord | VisionRecord) -> str:
     return f"vision result {record.system} frame {record.seq}"
 
 
-def _encode_image(image: np.ndarray, encoding: str, jpeg_quality: int) -> bytes:
+def encode_image(image: np.ndarray, encoding: str = "jpeg", jpeg_quality: int = 90) -> bytes:
+    """``image`` (uint8 HxW or HxWx3 BGR) as JPEG or PNG bytes; ``ValueError`` or ``TypeError``
+    saying what is wrong with it."""
     if encoding not in ("jpeg", "png"):
         raise ValueError(f"encoding must be 'jpeg' or 'png'; got {encoding!r}")
     if not isinstance(image, np.ndarray):

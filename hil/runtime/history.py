@@ -117,3 +117,68 @@ class StateHistory:
         if X_BE is None or position is None:
             return None
         return self.geometry.X_CM(X_BE, position)
+
+
+class StateRing:
+    """``StateSample``s from the control process to the vision process through shared memory:
+    the control loop writes without a system call and can never be held up by a reader that
+    falls behind (a pipe would block the loop once its buffer filled).
+
+    A ring of ``capacity`` slots of 16 float64 (arm stamp, X_BE as 12 numbers, track stamp,
+    track position, spare) after a header holding the count of samples written. The writer
+    fills a slot, then bumps the count; a reader takes the slots between its own count and the
+    writer's (only the newest ``capacity`` if it fell further behind). One writer, any readers.
+    """
+
+    _FIELDS = 16
+
+    def __init__(self, name: str | None = None, capacity: int = 1024):
+        from multiprocessing import shared_memory
+
+        size = 8 * (1 + capacity * self._FIELDS)
+        if name is None:
+            self._shm = shared_memory.SharedMemory(create=True, size=size)
+            self._owner = True
+        else:
+            self._shm = shared_memory.SharedMemory(name=name)
+            self._owner = False
+        self.capacity = capacity
+        self._count = np.ndarray((1,), dtype=np.int64, buffer=self._shm.buf)
+        self._slots = np.ndarray(
+            (capacity, self._FIELDS), dtype=np.float64, buffer=self._shm.buf, offset=8
+        )
+        if self._owner:
+            self._count[0] = 0
+        self._read = 0
+
+    @property
+    def name(self) -> str:
+        return self._shm.name
+
+    def write(self, sample: StateSample) -> None:
+        count = int(self._count[0])
+        slot = self._slots[count % self.capacity]
+        slot[0] = sample.arm_stamp
+        slot[1:10] = sample.X_BE.R.reshape(-1)
+        slot[10:13] = sample.X_BE.p
+        slot[13] = sample.track_stamp
+        slot[14] = sample.track_position
+        self._count[0] = count + 1  # published only once the slot is complete
+
+    def read_new(self) -> list[StateSample]:
+        """The samples written since this reader's last call, oldest first."""
+        count = int(self._count[0])
+        start = max(self._read, count - self.capacity + 1)
+        samples = []
+        for i in range(start, count):
+            slot = self._slots[i % self.capacity].copy()
+            X_BE = Pose.unchecked(slot[1:10].reshape(3, 3), slot[10:13])
+            samples.append(StateSample(float(slot[0]), X_BE, float(slot[13]), float(slot[14])))
+        self._read = count
+        return samples
+
+    def close(self) -> None:
+        self._count = self._slots = None  # release the views before the mapping
+        self._shm.close()
+        if self._owner:
+            self._shm.unlink()

@@ -83,7 +83,7 @@ class TrialRecorder(Protocol):
 
     def write_vision(self, record: VisionRecord) -> bool: ...
 
-    def write_frame(self, t: float, image: np.ndarray, *, encoding: str = ...) -> bool: ...
+    def write_encoded_frame(self, t: float, data: bytes, *, encoding: str = ...) -> bool: ...
 
     def write_event(self, t: float, kind: str, message: str, /, **data: Any) -> bool: ...
 
@@ -95,7 +95,7 @@ class NullRecorder:
     def write_vision(self, record: VisionRecord) -> bool:
         return True
 
-    def write_frame(self, t: float, image: np.ndarray, *, encoding: str = "jpeg") -> bool:
+    def write_encoded_frame(self, t: float, data: bytes, *, encoding: str = "jpeg") -> bool:
         return True
 
     def write_event(self, t: float, kind: str, message: str, /, **data: Any) -> bool:
@@ -311,7 +311,7 @@ class ControlLoop:
     def _log_vision(self) -> None:
         for item in self.vision.drain():
             if isinstance(item, LoggedImage):
-                self.log.write_frame(item.stamp - self._t0, item.image, encoding="jpeg")
+                self.log.write_encoded_frame(item.stamp - self._t0, item.jpeg, encoding="jpeg")
             else:
                 self.log.write_vision(item)
 

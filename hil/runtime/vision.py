@@ -7,6 +7,10 @@ Data flow of one frame (docs/architecture.md):
 2. ``step``: every system whose worker is free takes the newest frame it has not processed yet,
    with fusion's prior *at the frame's capture stamp* and the camera-to-carriage pose of that
    instant — so the three systems run concurrently, each as fast as it can, on the newest data.
+   While fusion has no track yet, a system's own latest pose (in the carriage frame, so the
+   arm's and the track's motion since are accounted for) seeds its next search: a search
+   without a prior can take longer than ``max_frame_age_s``, and its result, too old to act on,
+   still tells the next search where to look.
 3. When a result comes back, fusion applies it at the frame's capture stamp with ``X_CM`` of that
    instant (``PoseFusion`` re-filters when results arrive out of capture order) — unless the
    frame is older than ``max_frame_age_s`` by then: a stale result is discarded, never acted on.
@@ -25,15 +29,19 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-import numpy as np
-
 from configuration.vision import VisionConfig
 from estimators.frame import Frame, frame_problem
 from estimators.fusion import FusionState, PoseFusion
+from estimators.geometry import Pose
 from estimators.measurement import Measurement
 from hil.logs.records import VisionOutcome, VisionRecord
+from hil.logs.triallog import encode_image
 from hil.runtime.history import StateHistory, StateSample
 from hil.runtime.workers import VisionJob, VisionResult, Workers
+
+#: How long a system's own pose may seed its next search (s): the mock-up sits still on its
+#: carriage, so its pose there holds for a while; a wrong seed only costs a search.
+SEED_MAX_AGE_S = 2.0
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -60,10 +68,11 @@ class VisionStatus:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class LoggedImage:
-    """A frame the trial log keeps (one every ``log_frames_every_s``)."""
+    """A frame the trial log keeps (one every ``log_frames_every_s``), already JPEG-encoded:
+    encoding a VGA frame takes milliseconds, which belong on the vision side, not in a tick."""
 
     stamp: float
-    image: np.ndarray
+    jpeg: bytes
 
 
 class VisionPipeline:
@@ -91,6 +100,8 @@ class VisionPipeline:
         self._newest: Frame | None = None
         self._newest_taken = False
         self._last_seq: dict[str, int] = {s: -1 for s in self.systems}
+        #: Per system: (capture stamp, X_MT) of its latest valid pose, to seed its next search.
+        self._seeds: dict[str, tuple[float, Pose]] = {}
         self._received = self._processed = self._dropped = self._stale = 0
         self._frame_problem: str | None = None
         self._faults = 0
@@ -124,7 +135,7 @@ class VisionPipeline:
         self._received += 1
         log_every = self.config.log_frames_every_s
         if log_every > 0 and frame.stamp - self._last_logged_image >= log_every:
-            self._records.append(LoggedImage(frame.stamp, frame.image))
+            self._records.append(LoggedImage(frame.stamp, encode_image(frame.image)))
             self._last_logged_image = frame.stamp
 
     def step(self, now: float) -> None:
@@ -135,14 +146,17 @@ class VisionPipeline:
         frame = self._newest
         if frame is None:
             return
+        X_CM = self.history.X_CM_at(frame.stamp)
+        fused_prior = None if X_CM is None else self.fusion.prior_X_CT(X_CM, frame.stamp)
         for system in self.workers.idle():
             if frame.seq <= self._last_seq[system]:
                 continue
-            # A frame that would be stale before the system is done with it is not worth taking.
-            if now - frame.stamp + self.config.processing_s(system) > self.config.max_frame_age_s:
+            prior = fused_prior if fused_prior is not None else self._seed(system, X_CM, frame)
+            # A frame that would be stale before the system is done with it is not worth taking
+            # (a search without any prior is: its pose seeds the next one).
+            duration = self.config.processing_s(system, acquiring=prior is None)
+            if prior is not None and now - frame.stamp + duration > self.config.max_frame_age_s:
                 continue
-            X_CM = self.history.X_CM_at(frame.stamp)
-            prior = self.fusion.prior_X_CT(X_CM, frame.stamp) if X_CM is not None else None
             self.workers.start(VisionJob(system, frame, prior, now))
             self._last_seq[system] = frame.seq
             if not self._newest_taken:
@@ -175,10 +189,21 @@ class VisionPipeline:
         self.workers.close()
 
     # --- internals ------------------------------------------------------------------------
+    def _seed(self, system: str, X_CM: Pose | None, frame: Frame) -> Pose | None:
+        """``system``'s own latest pose carried to ``frame``'s capture, if recent enough."""
+        seed = self._seeds.get(system)
+        if seed is None or X_CM is None or frame.stamp - seed[0] > SEED_MAX_AGE_S:
+            return None
+        return X_CM @ seed[1]
+
     def _ingest(self, result: VisionResult, now: float) -> None:
         self._status = None
         job, m = result.job, result.measurement
         capture = job.frame.stamp
+        if m.valid and m.prior is not None:
+            X_CM = self.history.X_CM_at(capture)
+            if X_CM is not None:
+                self._seeds[job.system] = (capture, X_CM.inverse() @ m.prior)
         if result.error is not None:
             self._faults += 1
             self._fault = result.error

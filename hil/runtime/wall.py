@@ -36,7 +36,7 @@ from estimators.fusion import FusionParams, PoseFusion
 from estimators.registry import build_estimator
 from estimators.target import TargetModel
 from hil.logs.records import VisionRecord
-from hil.runtime.history import StateHistory, StateSample
+from hil.runtime.history import StateHistory, StateRing, StateSample
 from hil.runtime.loop import ControlLoop
 from hil.runtime.processes import peak_rss_mib, stop_process
 from hil.runtime.rig import RigGeometry
@@ -67,6 +67,8 @@ class VisionSpec:
     fusion: FusionParams
     geometry: RigGeometry
     config: VisionConfig
+    #: The shared-memory ring the control process writes its ``StateSample``s into.
+    state_ring: str = ""
 
 
 def vision_main(spec: VisionSpec, control: Connection, frames: Connection) -> None:
@@ -86,10 +88,12 @@ def vision_main(spec: VisionSpec, control: Connection, frames: Connection) -> No
             workers=workers,
             config=spec.config,
         )
+        states = StateRing(spec.state_ring)
         try:
             control.send(("ready", None))
-            _serve(pipeline, workers, camera, control, frames)
+            _serve(pipeline, workers, camera, control, frames, states)
         finally:
+            states.close()
             with contextlib.suppress(OSError):
                 peaks = workers.peak_rss_mib() if isinstance(workers, ProcessWorkers) else {}
                 control.send(("peak_rss_mib", peaks | {"vision": peak_rss_mib()}))
@@ -110,18 +114,19 @@ def _serve(
     camera: RemoteCamera,
     control: Connection,
     frames: Connection,
+    states: StateRing,
 ) -> None:
     sent: VisionStatus | None = None
     while True:
         busy = workers.connections() if isinstance(workers, ProcessWorkers) else []
         wait([control, frames, *busy], timeout=0.01)
         now = time.monotonic()
+        for sample in states.read_new():
+            pipeline.publish_state(sample)
         try:
             while control.poll(0):
                 message = control.recv()
-                if message[0] == "state":
-                    pipeline.publish_state(message[1])
-                elif message[0] == "begin":
+                if message[0] == "begin":
                     pipeline.begin(message[1])
                 elif message[0] == "stop":
                     return
@@ -154,8 +159,11 @@ def start_vision(
     spec: VisionSpec, frames: Connection, context: Any = None
 ) -> tuple[mp.process.BaseProcess, VisionClient]:
     """Start the vision process on the reading end ``frames`` of a camera's pipe; returns it
-    and the control side's link once it is ready (its workers built)."""
+    and the control side's link once it is ready (its workers built). The caller closes the
+    link (``VisionClient.stop``), which also frees the shared state ring."""
     context = context or mp.get_context("spawn")
+    states = StateRing()
+    spec = replace(spec, state_ring=states.name)
     ours, theirs = context.Pipe()
     process = context.Process(
         target=vision_main, args=(spec, theirs, frames), name="satgrasp-vision"
@@ -166,16 +174,18 @@ def start_vision(
         _await_ready(ours, "vision", process)
     except BaseException:
         stop_process(process, timeout_s=0.0)
+        states.close()
         raise
-    return process, VisionClient(ours)
+    return process, VisionClient(ours, states)
 
 
 class VisionClient:
-    """The control loop's ``VisionLink`` to the vision process: sending never blocks on the
-    pipeline, reading takes whatever has arrived."""
+    """The control loop's ``VisionLink`` to the vision process: the state goes through shared
+    memory (never blocks), reading takes whatever has arrived on the pipe."""
 
-    def __init__(self, connection: Connection):
+    def __init__(self, connection: Connection, states: StateRing):
         self._connection = connection
+        self._states = states
         self._status = VisionStatus(fusion=None)
         self._items: list[VisionRecord | LoggedImage] = []
         self.peak_rss: dict[str, float] = {}
@@ -184,7 +194,7 @@ class VisionClient:
         self._connection.send(("begin", t0))
 
     def publish_state(self, sample: StateSample) -> None:
-        self._connection.send(("state", sample))
+        self._states.write(sample)
 
     def latest(self) -> VisionStatus:
         self._receive()
@@ -196,6 +206,8 @@ class VisionClient:
         return items
 
     def stop(self, timeout_s: float = 10.0) -> None:
+        if self._states is None:
+            return
         with contextlib.suppress(BrokenPipeError, OSError):
             self._connection.send(("stop",))
         deadline = time.monotonic() + timeout_s
@@ -203,6 +215,8 @@ class VisionClient:
             if not self._connection.poll(0.05):
                 continue
             self._receive()
+        self._states.close()
+        self._states = None
 
     def _receive(self) -> None:
         try:

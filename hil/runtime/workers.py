@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing as mp
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -92,14 +93,15 @@ def run_estimator(
 
 class InlineWorkers:
     """Estimators run in this process, one after the other. Each result is released
-    ``processing_s(system)`` after its job started on the caller's clock (``--clock sim``), or,
+    ``processing_s(system, acquiring=…)`` after its job started on the caller's clock
+    (``--clock sim``; acquiring: the job has no prior), or,
     with ``processing_s`` None, as soon as the estimator returns, on ``clock`` (on the wall
     clock: the serial pipeline that ``satgrasp bench loop`` compares with ``ProcessWorkers``)."""
 
     def __init__(
         self,
         estimators: Mapping[str, Estimator],
-        processing_s: Callable[[str], float] | None,
+        processing_s: Callable[..., float] | None,
         *,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
@@ -120,7 +122,7 @@ class InlineWorkers:
         if self._processing_s is None:
             result = VisionResult(job, m, self._clock(), time.perf_counter() - started, error)
         else:
-            duration = self._processing_s(job.system)
+            duration = self._processing_s(job.system, acquiring=job.prior_X_CT is None)
             result = VisionResult(job, m, job.started + duration, duration, error)
         self._busy[job.system] = result
 
@@ -138,6 +140,8 @@ class InlineWorkers:
 
 
 # --- one process per system ------------------------------------------------------------------
+
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def _worker_main(
@@ -185,6 +189,10 @@ class ProcessWorkers:
         self._busy: dict[str, VisionJob] = {}
         try:
             readies = {}
+            # One core per worker: the workers are the parallelism, and threaded BLAS on the
+            # small matrices of a pose fit only makes them contend (read when numpy loads).
+            saved = {name: os.environ.get(name) for name in _THREAD_VARIABLES}
+            os.environ.update(dict.fromkeys(_THREAD_VARIABLES, "1"))
             for system in systems:
                 ours, theirs = context.Pipe()
                 ready_ours, ready_theirs = context.Pipe(duplex=False)
@@ -199,6 +207,11 @@ class ProcessWorkers:
                 ready_theirs.close()
                 self._connections[system], self._processes[system] = ours, process
                 readies[system] = ready_ours
+            for name, value in saved.items():
+                if value is None:
+                    os.environ.pop(name, None)
+                else:
+                    os.environ[name] = value
             for system, ready in readies.items():
                 if not ready.poll(start_timeout_s):
                     raise RuntimeError(f"the {system} worker did not start in {start_timeout_s} s")

@@ -44,7 +44,7 @@ class RecordingLog:
         self.vision.append(record)
         return True
 
-    def write_frame(self, t, image, *, encoding="jpeg"):
+    def write_encoded_frame(self, t, data, *, encoding="jpeg"):
         self.frames.append(t)
         return True
 
@@ -198,7 +198,9 @@ def test_loop_keeps_going_when_one_system_is_blinded():
     outcome = bench.loop.run(max_duration_s=120)
     assert outcome.phase == "done", bench.log.events[-3:]
     outcomes = {r.outcome for r in bench.log.vision if r.system == "b"}
-    assert outcomes == {"not_measured"}
+    # Never fused: lost, or (its first searches, without a prior, take 150 ms on top of the
+    # camera's 120) too old to be acted on.
+    assert "not_measured" in outcomes and outcomes <= {"not_measured", "stale"}
 
 
 def test_loop_supervisor_sees_the_estimate_age_grow_behind_slow_vision():
@@ -213,7 +215,7 @@ def test_loop_supervisor_sees_the_estimate_age_grow_behind_slow_vision():
     def observer(record):
         if not slowed and record.phase == "approach" and record.t >= 3.0:
             slowed["t"] = record.t
-            bench.vision.workers._processing_s = lambda system: 0.3
+            bench.vision.workers._processing_s = lambda system, acquiring=False: 0.3
 
     loop.observers = [observer]
     loop.run(max_duration_s=8.0)
