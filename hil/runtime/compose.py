@@ -30,10 +30,10 @@ from configuration.simulation import SimulationConfig
 from estimators.fusion import PoseFusion
 from estimators.geometry import Pose
 from estimators.registry import build_estimator
-from hil.logs.records import TickRecord, TruthRecord
+from hil.logs.records import TickRecord
 from hil.logs.triallog import TrialLogWriter
 from hil.runtime.history import StateHistory
-from hil.runtime.judge import StandoffJudge
+from hil.runtime.judge import StandoffJudge, truth_record
 from hil.runtime.loop import ControlLoop, TrialOutcome
 from hil.runtime.rig import RigGeometry
 from hil.runtime.stepped import SteppedClock
@@ -147,6 +147,19 @@ class Trial:
         self.judge = StandoffJudge(self.config.approach.standoff.X_TC_goal(), self.log.write_event)
         return [self.judge] + ([self._on_tick] if self._on_tick is not None else [])
 
+    def rig_options(self) -> dict:
+        """How the simulated rig starts and judges a grasp (``SimRig``'s keyword arguments)."""
+        config = self.config
+        return {
+            "grasp_X_TC": grasp_pose(config),
+            "start_q": self.start.start_q,
+            "links": config.links,
+            "capture_position_m": config.grasp_capture_m,
+            "capture_angle_deg": config.grasp_capture_deg,
+            "object_width": config.grasp_object_width_m,
+            "timing": config.camera_timing,
+        }
+
     def _build_stepped(self) -> None:
         """``--clock sim``: world, pipeline and loop in this process, one simulated clock."""
         config, start = self.config, self.start
@@ -158,13 +171,7 @@ class Trial:
                 noise=config.noise,
                 render=config.render,
                 seed=self.seed,
-                grasp_X_TC=grasp_pose(config),
-                start_q=start.start_q,
-                links=config.links,
-                capture_position_m=config.grasp_capture_m,
-                capture_angle_deg=config.grasp_capture_deg,
-                object_width=config.grasp_object_width_m,
-                timing=config.camera_timing,
+                **self.rig_options(),
             )
         )
         world.start()
@@ -238,12 +245,6 @@ class Trial:
                     now - loop.t0, "abort", f"trial ended by {exc_type.__name__}: {exc}"
                 )
         self._stack.close()
-
-
-def truth_record(truth: dict[str, Pose]) -> TruthRecord:
-    """A tick's ground truth from a simulated world's ``X_WT`` and ``X_WC``."""
-    X_WT, X_WC = truth["X_WT"], truth["X_WC"]
-    return TruthRecord(X_CT=X_WC.inverse() @ X_WT, X_WT=X_WT, X_WC=X_WC)
 
 
 def run_trial(

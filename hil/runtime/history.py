@@ -12,13 +12,17 @@ target motion to fusion.
 from __future__ import annotations
 
 import bisect
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from estimators.geometry import Pose
 from hil.runtime.rig import RigGeometry
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -32,69 +36,49 @@ class StateSample:
     track_position: float
 
 
-class PoseHistory:
-    """Stamped poses over the last ``horizon_s`` seconds, interpolated at any stamp inside."""
+class StampedSeries(Generic[T]):
+    """Values with increasing stamps over the last ``horizon_s`` seconds, interpolated at any
+    stamp inside by ``interpolate(earlier, later, fraction)``."""
 
-    def __init__(self, horizon_s: float = 2.0):
+    def __init__(self, interpolate: Callable[[T, T, float], T], horizon_s: float = 2.0):
+        self._interpolate = interpolate
         self.horizon_s = horizon_s
         self._stamps: list[float] = []
-        self._poses: list[Pose] = []
+        self._values: list[T] = []
 
-    def add(self, stamp: float, pose: Pose) -> None:
-        if self._stamps and stamp <= self._stamps[-1]:
-            if stamp == self._stamps[-1]:
-                self._poses[-1] = pose
-                return
-            raise ValueError(f"PoseHistory stamps must increase ({stamp} after {self._stamps[-1]})")
-        self._stamps.append(stamp)
-        self._poses.append(pose)
-        old = bisect.bisect_left(self._stamps, stamp - self.horizon_s)
-        if old > 0:
-            del self._stamps[:old], self._poses[:old]
-
-    def at(self, stamp: float, *, extrapolate_s: float = 0.05) -> Pose | None:
-        """The pose at ``stamp``: interpolated inside the history, the newest one up to
-        ``extrapolate_s`` after it; None when older than the history or further ahead."""
-        if not self._stamps or stamp < self._stamps[0]:
-            return None
-        if stamp >= self._stamps[-1]:
-            return self._poses[-1] if stamp - self._stamps[-1] <= extrapolate_s else None
-        i = bisect.bisect_right(self._stamps, stamp)
-        t0, t1 = self._stamps[i - 1], self._stamps[i]
-        X0, X1 = self._poses[i - 1], self._poses[i]
-        s = (stamp - t0) / (t1 - t0)
-        R = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([X0.R, X1.R])))([s]).as_matrix()[0]
-        return Pose(R, (1.0 - s) * X0.p + s * X1.p)
-
-
-class ScalarHistory:
-    """Stamped values over the last ``horizon_s`` seconds, linearly interpolated."""
-
-    def __init__(self, horizon_s: float = 2.0):
-        self.horizon_s = horizon_s
-        self._stamps: list[float] = []
-        self._values: list[float] = []
-
-    def add(self, stamp: float, value: float) -> None:
+    def add(self, stamp: float, value: T) -> None:
         if self._stamps and stamp <= self._stamps[-1]:
             if stamp == self._stamps[-1]:
                 self._values[-1] = value
                 return
-            raise ValueError(
-                f"ScalarHistory stamps must increase ({stamp} after {self._stamps[-1]})"
-            )
+            raise ValueError(f"stamps must increase ({stamp} after {self._stamps[-1]})")
         self._stamps.append(stamp)
         self._values.append(value)
         old = bisect.bisect_left(self._stamps, stamp - self.horizon_s)
         if old > 0:
             del self._stamps[:old], self._values[:old]
 
-    def at(self, stamp: float, *, extrapolate_s: float = 0.05) -> float | None:
+    def at(self, stamp: float, *, extrapolate_s: float = 0.05) -> T | None:
+        """The value at ``stamp``: interpolated inside the history, the newest one up to
+        ``extrapolate_s`` after it; None when older than the history or further ahead."""
         if not self._stamps or stamp < self._stamps[0]:
             return None
         if stamp >= self._stamps[-1]:
             return self._values[-1] if stamp - self._stamps[-1] <= extrapolate_s else None
-        return float(np.interp(stamp, self._stamps, self._values))
+        i = bisect.bisect_right(self._stamps, stamp)
+        t0, t1 = self._stamps[i - 1], self._stamps[i]
+        return self._interpolate(self._values[i - 1], self._values[i], (stamp - t0) / (t1 - t0))
+
+
+def interpolate_pose(X0: Pose, X1: Pose, s: float) -> Pose:
+    """The pose a fraction ``s`` of the way from ``X0`` to ``X1``: position linear, rotation
+    slerped."""
+    R = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([X0.R, X1.R])))([s]).as_matrix()[0]
+    return Pose(R, (1.0 - s) * X0.p + s * X1.p)
+
+
+def interpolate_linear(x0: float, x1: float, s: float) -> float:
+    return (1.0 - s) * x0 + s * x1
 
 
 class StateHistory:
@@ -103,8 +87,8 @@ class StateHistory:
 
     def __init__(self, geometry: RigGeometry, horizon_s: float = 2.0):
         self.geometry = geometry
-        self._X_BE = PoseHistory(horizon_s)
-        self._track = ScalarHistory(horizon_s)
+        self._X_BE = StampedSeries(interpolate_pose, horizon_s)
+        self._track = StampedSeries(interpolate_linear, horizon_s)
 
     def add(self, sample: StateSample) -> None:
         self._X_BE.add(sample.arm_stamp, sample.X_BE)

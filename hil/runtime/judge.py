@@ -7,7 +7,7 @@ import math
 from collections.abc import Callable
 
 from estimators.geometry import Pose, rotation_error_geodesic, translation_error
-from hil.logs.records import TickRecord
+from hil.logs.records import TickRecord, TruthRecord
 
 
 class StandoffJudge:
@@ -44,3 +44,9 @@ class StandoffJudge:
             and self.error_rad is not None
             and self.error_rad <= angle_rad
         )
+
+
+def truth_record(truth: dict[str, Pose]) -> TruthRecord:
+    """A tick's ground truth from a simulated world's ``X_WT`` and ``X_WC``."""
+    X_WT, X_WC = truth["X_WT"], truth["X_WC"]
+    return TruthRecord(X_CT=X_WC.inverse() @ X_WT, X_WT=X_WT, X_WC=X_WC)

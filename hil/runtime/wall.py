@@ -37,6 +37,7 @@ from estimators.registry import build_estimator
 from estimators.target import TargetModel
 from hil.logs.records import VisionRecord
 from hil.runtime.history import StateHistory, StateRing, StateSample
+from hil.runtime.judge import truth_record
 from hil.runtime.loop import ControlLoop
 from hil.runtime.processes import peak_rss_mib, stop_process
 from hil.runtime.rig import RigGeometry
@@ -276,20 +277,8 @@ class RealtimePriority:
 def build_wall(trial: Trial) -> None:
     """Start the world, camera and vision processes for ``trial`` and build its loop on them."""
     config, start, stack = trial.config, trial.start, trial._stack
-    from hil.runtime.compose import grasp_pose
-
     context = mp.get_context("spawn")
-    build = functools.partial(
-        SimRig,
-        start.rig,
-        grasp_X_TC=grasp_pose(config),
-        start_q=start.start_q,
-        links=config.links,
-        capture_position_m=config.grasp_capture_m,
-        capture_angle_deg=config.grasp_capture_deg,
-        object_width=config.grasp_object_width_m,
-        timing=config.camera_timing,
-    )
+    build = functools.partial(SimRig, start.rig, **trial.rig_options())
     world_ours, world_theirs = context.Pipe()
     # Pipe(duplex=False) gives (reading end, writing end).
     requests_in, requests_out = context.Pipe(duplex=False)  # world → camera
@@ -349,8 +338,6 @@ def build_wall(trial: Trial) -> None:
         device.connect()
 
     def truth():
-        from hil.runtime.compose import truth_record
-
         newest = link.newest()
         return None if newest is None else truth_record({"X_WT": newest.X_WT, "X_WC": newest.X_WC})
 
