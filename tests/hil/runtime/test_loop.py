@@ -99,10 +99,16 @@ def make_loop(config=None, systems=("a", "b"), processing_ms=None, vision=None) 
     return Bench(loop, arm, track, world, estimators, pipeline, log)
 
 
-def test_loop_runs_a_full_approach_on_fakes():
+@pytest.fixture(scope="module")
+def full_run() -> tuple[Bench, object]:
+    """One full approach on the fakes, looked at by several tests."""
     bench = make_loop()
+    return bench, bench.loop.run(max_duration_s=120)
+
+
+def test_loop_runs_a_full_approach_on_fakes(full_run):
+    bench, outcome = full_run
     log = bench.log
-    outcome = bench.loop.run(max_duration_s=120)
     assert outcome.phase == "done", log.events[-5:]
     phases = list(dict.fromkeys(t.phase for t in log.ticks))
     assert phases == ["acquire", "approach", "standoff", "grasp", "retreat", "done"]
@@ -120,11 +126,10 @@ def test_loop_runs_a_full_approach_on_fakes():
     assert np.percentile(work, 99) < 8.0 and outcome.deadline_misses == 0
 
 
-def test_loop_acts_on_the_estimate_brought_forward_to_the_tick():
+def test_loop_acts_on_the_estimate_brought_forward_to_the_tick(full_run):
     """With 160 ms between exposure and fusion, the camera moves up to 4 cm in between; the
     estimate the loop acts on must still be where the target is *now*."""
-    bench = make_loop()
-    bench.loop.run(max_duration_s=120)
+    bench, _ = full_run
     approach = [t for t in bench.log.ticks if t.phase == "approach"]
     assert approach and all(t.estimate.X_MT is not None for t in approach)
     # The target sits still on the carriage (X_MT fixed): any motion of the camera or the track
