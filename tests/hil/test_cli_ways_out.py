@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -157,7 +158,11 @@ def test_approach_on_the_wall_clock_stopped_by_ctrl_c_leaves_no_process_behind(t
     stdout, stderr = process.communicate(timeout=60)
     assert process.returncode == 130, stderr
     assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr
-    assert "interrupted by SIGINT in phase approach; arm and track stopped" in stdout
+    # In phase approach, or acquire when a loaded machine made the supervisor stop and re-lock.
+    said = re.search(
+        r"^interrupted by SIGINT in phase (\w+); arm and track stopped; log ", stdout, re.M
+    )
+    assert said and said.group(1) in ("approach", "acquire"), stdout
     the_stop(log_path)
     deadline = time.monotonic() + 10.0
     while (alive := [p for p in children if Path(f"/proc/{p}").exists()]) and (
