@@ -55,11 +55,40 @@ def builtin_names(subdir: str = "") -> list[str]:
     return sorted(p.stem for p in folder.glob("*.yaml"))
 
 
+def looks_like_path(name_or_path: str | os.PathLike[str]) -> bool:
+    """Whether a configuration is named by a path (``my_mockup.yaml``, ``rigs/lab``) rather
+    than by a built-in name (``reference``)."""
+    text = str(name_or_path)
+    return text.endswith((".yaml", ".yml")) or os.sep in text or "/" in text
+
+
+def relative_to_file(path: Path, config_file: Path) -> Path:
+    """``path`` as named inside ``config_file``: a relative one is taken from the directory of
+    that file, not from the working directory, so a configuration reads the same from
+    anywhere."""
+    path = path.expanduser()
+    return path if path.is_absolute() else (config_file.parent / path).resolve()
+
+
+def named_in_file(name_or_path: str, config_file: Path, field: str) -> str:
+    """A configuration that ``config_file`` names in ``field``: a built-in name as it is, a
+    path taken relative to ``config_file`` (``relative_to_file``). A path to no file raises
+    ``ConfigError`` naming ``config_file``, the field and where it looked."""
+    if not looks_like_path(name_or_path):
+        return name_or_path
+    path = relative_to_file(Path(name_or_path), config_file)
+    if not path.is_file():
+        raise ConfigError(
+            str(config_file),
+            [f"{field}: file not found: {path} (a relative path is taken from this file's folder)"],
+        )
+    return str(path)
+
+
 def resolve_config_path(name_or_path: str | os.PathLike[str], subdir: str = "") -> Path:
     """A built-in name (``reference``) or a path to a YAML file → an existing file path."""
     text = str(name_or_path)
-    looks_like_path = text.endswith((".yaml", ".yml")) or os.sep in text or "/" in text
-    if looks_like_path:
+    if looks_like_path(text):
         path = Path(text).expanduser()
         if not path.is_file():
             raise ConfigError(text, ["file not found"])

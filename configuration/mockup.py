@@ -18,7 +18,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from configuration.base import RGB, XY, PositiveM, Strict
-from configuration.files import load_config, resolve_config_path
+from configuration.files import load_config, relative_to_file, resolve_config_path
 from estimators.geometry import Pose
 from estimators.target import Circle3D, PointFeature, TargetModel
 
@@ -265,6 +265,6 @@ def load_mockup(name_or_path: str | Path) -> MockupConfig:
     mockup = load_config(path, MockupConfig)
     model = mockup.model_file
     if model is not None and not model.path.is_absolute():
-        model = model.model_copy(update={"path": (path.parent / model.path).resolve()})
+        model = model.model_copy(update={"path": relative_to_file(model.path, path)})
         mockup = mockup.model_copy(update={"model_file": model})
     return mockup

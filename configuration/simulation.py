@@ -15,7 +15,7 @@ from pydantic import Field, ValidationError, field_serializer, model_validator
 
 from configuration.approach import ApproachConfig
 from configuration.base import PositiveM, Strict
-from configuration.files import load_config
+from configuration.files import load_config, named_in_file, resolve_config_path
 from configuration.render import NoiseConfig, RenderConfig
 from configuration.vision import CameraTiming, VisionConfig
 from estimators.fusion import FusionParams
@@ -33,9 +33,16 @@ class StartConfig(Strict):
     mount_misalignment_deg: Annotated[float, Field(ge=0.0, le=10.0)] = 1.0
 
 
+#: How a trial's time passes (``SimulationConfig.clock``).
+ClockKind = Literal["sim", "wall"]
+#: How the track and gripper drivers reach their simulated devices (``SimulationConfig.links``).
+LinkKind = Literal["direct", "tcp"]
+
+
 class SimulationConfig(Strict):
     """Everything a simulated trial needs (``configs/sim.yaml``). ``mockup``, ``camera`` and
-    ``rig`` name built-in configurations or YAML files."""
+    ``rig`` name built-in configurations or YAML files (a relative path is taken from the
+    directory of the file that names it: ``load_simulation``)."""
 
     name: str
     mockup: str = "default"
@@ -49,12 +56,12 @@ class SimulationConfig(Strict):
     #: charges vision its modelled time (deterministic: CI, campaigns, the demo); ``wall`` runs
     #: the simulated world in real time in processes of its own, reached only through the device
     #: protocols, exactly as a rig would be.
-    clock: Literal["sim", "wall"] = "sim"
+    clock: ClockKind = "sim"
     camera_timing: CameraTiming = CameraTiming()
     vision: VisionConfig = VisionConfig()
     #: How the track and gripper drivers reach their simulated devices: in-process register
     #: access ("direct") or a real pymodbus server on 127.0.0.1 ("tcp").
-    links: Literal["direct", "tcp"] = "direct"
+    links: LinkKind = "direct"
     fusion: FusionParams = Field(default_factory=FusionParams)
     approach: ApproachConfig = ApproachConfig()
     start: StartConfig = StartConfig()
@@ -87,17 +94,30 @@ class SimulationConfig(Strict):
         return self
 
 
+#: The fields of a simulation configuration that name other configuration files.
+FILE_FIELDS = ("mockup", "camera", "rig")
+
+
 def load_simulation(name_or_path: str | Path = "sim") -> SimulationConfig:
-    """Load a simulated-trial configuration (``sim`` is ``configs/sim.yaml``)."""
-    return load_config(name_or_path, SimulationConfig)
+    """Load a simulated-trial configuration (``sim`` is ``configs/sim.yaml``). The mock-up,
+    camera and rig it names by a relative path are found beside it (whatever the working
+    directory), and held as absolute paths from then on."""
+    path = resolve_config_path(name_or_path)
+    config = load_config(path, SimulationConfig)
+    files = {field: named_in_file(getattr(config, field), path, field) for field in FILE_FIELDS}
+    return config.model_copy(update=files)
 
 
 def with_overrides(config: SimulationConfig, **changes: object) -> SimulationConfig:
     """``config`` with top-level fields replaced (None leaves a field as it is), validated
-    again — e.g. ``systems`` or ``noise`` from command-line options."""
+    again — e.g. ``systems`` or ``noise`` from command-line options. Raises ``ValueError``
+    naming each field that does not validate, on one line."""
     data = config.model_dump(mode="json")
     data.update({k: v for k, v in changes.items() if v is not None})
-    return SimulationConfig.model_validate(data)
+    try:
+        return SimulationConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ValueError(_one_line(exc)) from None
 
 
 def with_settings(config: SimulationConfig, settings: list[str]) -> SimulationConfig:
@@ -126,5 +146,14 @@ def with_settings(config: SimulationConfig, settings: list[str]) -> SimulationCo
     try:
         return SimulationConfig.model_validate(data)
     except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        raise ValueError(f"--set {' '.join(settings)}: {problems}") from None
+        raise ValueError(f"--set {' '.join(settings)}: {_one_line(exc)}") from None
+
+
+def _one_line(error: ValidationError) -> str:
+    """``systems: unknown estimator 'x' (…); links: Input should be 'direct' or 'tcp'``."""
+    problems = []
+    for e in error.errors():
+        field = ".".join(map(str, e["loc"]))
+        message = e["msg"].removeprefix("Value error, ")
+        problems.append(f"{field}: {message}" if field else message)
+    return "; ".join(problems)

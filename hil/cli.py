@@ -1,23 +1,60 @@
 """The ``satgrasp`` command line. Command functions are thin: they parse options, call the
-library and print; errors in user input exit with status 2 and a one-line reason."""
+library and print; errors in user input exit with status 2 and a one-line reason — the same
+line whether the command's own checks or the option parser found the problem."""
 
 from __future__ import annotations
 
+import contextlib
+import enum
 import json
+import os
 import sys
+from collections.abc import Iterator
 from importlib.metadata import version
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any, get_args
 
 import cv2
 import numpy as np
 import typer
 from rich.console import Console
+from rich.markup import escape
+from typer.core import TyperGroup
 
 from configuration.files import ConfigError
+from configuration.render import NoiseConfig
+from configuration.simulation import ClockKind, LinkKind
 from hil.cli_emulate import emulate_app
 
+#: The option parser's error type (click's, vendored by recent typer releases).
+_ParserError = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+
+
+class _OneLineErrors(TyperGroup):
+    """The option parser's errors (a value not among an option's choices, not a number, an
+    unknown option) as one line, like every error the commands report themselves, instead of
+    a usage line and a framed panel."""
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            code = super().main(*args, standalone_mode=False, **kwargs)
+        except _ParserError as exc:
+            if type(exc).__name__ != "NoArgsIsHelpError":  # that one has printed the help
+                context = getattr(exc, "ctx", None)
+                hint = f" (see {context.command_path} --help)" if context else ""
+                message = exc.format_message().replace("Value error, ", "")
+                console.print(f"[bold red]error:[/] {escape(message)}{hint}")
+            sys.exit(exc.exit_code)
+        except typer.Abort:
+            console.print("aborted")
+            sys.exit(1)
+        sys.exit(code if isinstance(code, int) else 0)
+
+
 app = typer.Typer(
+    cls=_OneLineErrors,
     help="satgrasp: vision-guided approach and grasp of a satellite mock-up with a UR arm.",
     no_args_is_help=True,
     add_completion=False,
@@ -30,19 +67,67 @@ app.add_typer(emulate_app, name="emulate")
 console = Console(stderr=True, soft_wrap=True)  # never split a path across lines
 out = Console(soft_wrap=True)
 
+
+def _choices(name: str, values: tuple[str, ...]) -> Any:
+    """An option type taking one of ``values`` (a configuration's ``Literal``, so the names
+    live in one place): ``--help`` lists them and any other value gets the parser's one-line
+    error. The command reads the chosen name as ``.value``."""
+    return enum.Enum(name, {value: value for value in values}, type=str)
+
+
+Noise = _choices("Noise", get_args(NoiseConfig.model_fields["preset"].annotation))
+Clock = _choices("Clock", get_args(ClockKind))
+Links = _choices("Links", get_args(LinkKind))
+#: ``satgrasp record``'s codecs (``hil.evaluation.recording.CODECS``, which loads the renderer:
+#: too slow to import for every command; a test keeps the two the same).
+CODEC_NAMES = ("ffv1", "mjpg")
+Codec = _choices("Codec", CODEC_NAMES)
+
 CameraOpt = Annotated[
     str, typer.Option(help="Camera profile: a built-in name (reference, oak_d_rgb) or a YAML path.")
 ]
 MockupOpt = Annotated[str, typer.Option(help="Mock-up: 'default' or a YAML path.")]
 NoiseOpt = Annotated[
-    str,
-    typer.Option(help="Image noise: none | low | high (reference variances 0/0.05/0.1) | sensor."),
+    Noise,
+    typer.Option(help="Image noise: reference variances 0 / 0.05 / 0.1, or the sensor model."),
 ]
 
 
-def _fail(message: str) -> typer.Exit:
-    console.print(f"[bold red]error:[/] {message}")
-    return typer.Exit(code=2)
+def _fail(message: str, code: int = 2) -> typer.Exit:
+    console.print(f"[bold red]error:[/] {escape(message)}")
+    return typer.Exit(code=code)
+
+
+def _output_dir(path: Path, option: str, what: str = "") -> Path:
+    """The directory a command will write into, created now, before any work: a path that
+    cannot be one is refused in one line naming the option."""
+    what = what or f"{option} {path}"
+    if path.exists() and not path.is_dir():
+        raise _fail(f"{what}: {path} is a file, not a directory")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise _fail(f"{what}: cannot create the directory {path} ({exc.strerror or exc})") from None
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise _fail(f"{what}: the directory {path} is not writable")
+    return path
+
+
+def _output_file(path: Path, option: str) -> Path:
+    """A file a command will write: not a directory, its directory created now."""
+    if path.is_dir():
+        raise _fail(f"{option} {path}: is a directory; give a file name")
+    _output_dir(path.parent, option, what=f"{option} {path}")
+    return path
+
+
+@contextlib.contextmanager
+def _writing(path: Path, option: str) -> Iterator[None]:
+    """Writing ``path``: an OS error (disk full, permissions) becomes one line naming it."""
+    try:
+        yield
+    except OSError as exc:
+        raise _fail(f"{option} {path}: cannot write ({exc.strerror or exc})") from None
 
 
 def _version_callback(value: bool) -> None:
@@ -63,12 +148,20 @@ def _main(
     """Vision-guided approach and grasp of a satellite mock-up."""
 
 
-def _noise_config(noise: str):
-    from configuration.render import NoiseConfig
+def _not_a_choice(option: str, value: str, choices: Any) -> typer.BadParameter:
+    """The option parser's own error for a value outside ``choices`` (for options that take a
+    comma-separated list, which the parser cannot check)."""
+    listed = ", ".join(repr(c.value) for c in choices)
+    return typer.BadParameter(f"{value!r} is not one of {listed}.", param_hint=f"'{option}'")
 
-    if noise not in ("none", "low", "high", "sensor"):
-        raise _fail(f"--noise must be none, low, high or sensor; got {noise!r}")
-    return NoiseConfig(preset=noise)
+
+def _noise_levels(text: str) -> list[str]:
+    """``--noise low,high`` → the levels, each one checked."""
+    levels = text.split(",")
+    for level in levels:
+        if level not in Noise.__members__:
+            raise _not_a_choice("--noise", level, Noise)
+    return levels
 
 
 @app.command()
@@ -85,7 +178,7 @@ def render(
     roll_deg: Annotated[float, typer.Option(help="Target rotation about its x (deg).")] = 0.0,
     pitch_deg: Annotated[float, typer.Option(help="Target rotation about its y (deg).")] = 0.0,
     yaw_deg: Annotated[float, typer.Option(help="Target rotation about its z (deg).")] = 0.0,
-    noise: NoiseOpt = "none",
+    noise: NoiseOpt = Noise.none,
     seed: Annotated[int, typer.Option(help="Noise seed: same seed, identical frame.")] = 0,
     supersample: Annotated[int, typer.Option(min=1, max=4, help="Anti-aliasing factor.")] = 1,
     shadows: Annotated[
@@ -108,7 +201,7 @@ def render(
     from sim_backends.renderer import PybulletRenderer
     from sim_backends.scene import MockupScene
 
-    noise_config = _noise_config(noise)
+    noise_config = NoiseConfig(preset=noise.value)
     if distance <= 0:
         raise _fail(f"--distance must be positive; got {distance}")
     try:
@@ -120,6 +213,9 @@ def render(
     X_WC, X_CT = camera_pose_for(distance, offset)
     if X_CT.p[2] <= 0:
         raise _fail("the target is behind the camera; reduce --dz or increase --distance")
+    _output_file(out_path, "--out")
+    if truth is not None:
+        _output_file(truth, "--truth")
     info = camera_config.camera_info()
     config = RenderConfig(supersample=supersample, lighting=Lighting(shadows=shadows))
     with MockupScene(mockup_config) as scene:
@@ -130,22 +226,25 @@ def render(
         sim_camera.activate()
         frame = sim_camera.read()
         sim_camera.close()
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out_path), frame.image):
-        raise _fail(f"could not write {out_path}")
+    with _writing(out_path, "--out"):
+        if not cv2.imwrite(str(out_path), frame.image):
+            raise _fail(
+                f"--out {out_path}: OpenCV could not write it (is the suffix an image type?)"
+            )
     record = {
         "image": str(out_path),
         "camera": info.to_dict(),
         "mockup": mockup_config.name,
-        "noise": noise,
+        "noise": noise.value,
         "seed": seed,
         "X_CT": X_CT.to_list(),
     }
     if truth is not None:
-        truth.parent.mkdir(parents=True, exist_ok=True)
-        truth.write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
+        with _writing(truth, "--truth"):
+            truth.write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
     out.print(
-        f"wrote {out_path} ({info.width}x{info.height}, {info.model}, noise {noise}, seed {seed})"
+        f"wrote {out_path} ({info.width}x{info.height}, {info.model}, noise {noise.value}, "
+        f"seed {seed})"
     )
     out.print("X_CT (target in camera, m):")
     out.print(np.array2string(X_CT.matrix, precision=6, suppress_small=True))
@@ -213,7 +312,7 @@ def estimate(
         raise _fail(str(exc)) from None
     tracker = Tracker(estimator)
     if overlay is not None:
-        overlay.mkdir(parents=True, exist_ok=True)
+        _output_dir(overlay, "--overlay")
     flag = cv2.IMREAD_GRAYSCALE if info.channels == 1 else cv2.IMREAD_COLOR
     for seq, path in enumerate(images):
         image = cv2.imread(str(path), flag)
@@ -226,9 +325,10 @@ def estimate(
             m = tracker.update(Frame(image, float(seq), info, seq))
         print(json.dumps({"image": str(path), **m.to_dict()}), flush=True)
         if overlay is not None and image is not None:
-            cv2.imwrite(
-                str(overlay / f"{path.stem}_{system}.png"), draw_measurement(image, m, info, target)
-            )
+            drawn = overlay / f"{path.stem}_{system}.png"
+            with _writing(drawn, "--overlay"):
+                if not cv2.imwrite(str(drawn), draw_measurement(image, m, info, target)):
+                    raise _fail(f"--overlay {overlay}: OpenCV could not write {drawn}")
 
 
 @app.command()
@@ -272,7 +372,7 @@ def matrix(
             maneuvers=tuple(m.name for m in MANEUVERS)
             if maneuver == "all"
             else tuple(maneuver.split(",")),
-            noises=tuple(noise.split(",")),
+            noises=tuple(_noise_levels(noise)),
             frames=frames,
             seed=seed,
             supersample=supersample,
@@ -283,8 +383,10 @@ def matrix(
         )
     except ValueError as exc:
         raise _fail(f"bad --distance or --blank: {exc}") from None
-    for level in spec.noises:
-        _noise_config(level)
+    if out_path is not None:
+        _output_file(out_path, "--out")
+    if results is not None:
+        _output_file(results, "--results")
     try:
         rows = run_matrix(spec, jobs=jobs, progress=lambda text: console.print(text))
     except (ValueError, NotImplementedError, ConfigError) as exc:
@@ -292,11 +394,10 @@ def matrix(
     table = markdown_table(summarize(rows))
     out.print(table, markup=False, highlight=False, soft_wrap=True)
     if out_path is not None:
-        out_path.parent.mkdir(parents=True, exist_ok=True)
-        out_path.write_text(table, encoding="utf-8")
+        with _writing(out_path, "--out"):
+            out_path.write_text(table, encoding="utf-8")
     if results is not None:
-        results.parent.mkdir(parents=True, exist_ok=True)
-        with results.open("w", encoding="utf-8") as f:
+        with _writing(results, "--results"), results.open("w", encoding="utf-8") as f:
             for row in rows:
                 f.write(json.dumps(asdict(row), allow_nan=True) + "\n")
 
@@ -305,7 +406,7 @@ def matrix(
 def approach_path(
     system: Annotated[str, typer.Option(help="Estimator: corners | lines | ellipses.")],
     frames: Annotated[int, typer.Option(min=2, help="Frames from 2.5 m to 0.5 m.")] = 120,
-    noise: NoiseOpt = "low",
+    noise: NoiseOpt = Noise.low,
     camera: CameraOpt = "reference",
     mockup: MockupOpt = "default",
     seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
@@ -318,10 +419,11 @@ def approach_path(
     fraction of the ring in view. (The closed loop is `satgrasp approach`.)"""
     from hil.evaluation.approach_path import markdown_approach, markdown_visible, run_approach
 
-    _noise_config(noise)
+    if out_path is not None:
+        _output_file(out_path, "--out")
     try:
         results = run_approach(
-            system, frames=frames, noise=noise, camera=camera, mockup=mockup, seed=seed
+            system, frames=frames, noise=noise.value, camera=camera, mockup=mockup, seed=seed
         )
     except (ConfigError, ValueError, NotImplementedError) as exc:
         raise _fail(str(exc)) from None
@@ -341,19 +443,21 @@ def approach_path(
     )
     out.print(text, markup=False, highlight=False)
     if out_path is not None:
-        out_path.parent.mkdir(parents=True, exist_ok=True)
-        out_path.write_text(text, encoding="utf-8")
+        with _writing(out_path, "--out"):
+            out_path.write_text(text, encoding="utf-8")
 
 
 @app.command()
 def record(
     out_dir: Annotated[Path, typer.Option("--out", help="Directory for the recording.")],
     frames: Annotated[int, typer.Option(min=2, help="Frames from 2.5 m to 0.5 m.")] = 120,
-    noise: NoiseOpt = "low",
+    noise: NoiseOpt = Noise.low,
     camera: CameraOpt = "reference",
     mockup: MockupOpt = "default",
     seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
-    codec: Annotated[str, typer.Option(help="Video codec: ffv1 (lossless) | mjpg.")] = "ffv1",
+    codec: Annotated[
+        Codec, typer.Option(help="Video codec: ffv1 (lossless) or mjpg.")
+    ] = Codec.ffv1,
     jpeg_quality: Annotated[int, typer.Option(min=1, max=100, help="MJPG quality.")] = 100,
     check: Annotated[
         bool, typer.Option(help="Replay it through the OAK driver and compare the poses.")
@@ -366,8 +470,15 @@ def record(
     from drivers.base import DeviceError
     from hil.evaluation import recording as rec
 
-    _noise_config(noise)
-    options = dict(frames=frames, noise=noise, camera=camera, mockup=mockup, seed=seed, codec=codec)
+    _output_dir(out_dir, "--out")
+    options = dict(
+        frames=frames,
+        noise=noise.value,
+        camera=camera,
+        mockup=mockup,
+        seed=seed,
+        codec=codec.value,
+    )
     options["jpeg_quality"] = jpeg_quality
     try:
         if check:
@@ -387,7 +498,7 @@ def bench_estimate(
     system: Annotated[list[str], typer.Option(help="Estimator(s); repeat for several.")],
     camera: CameraOpt = "reference",
     frames: Annotated[int, typer.Option(min=2, help="Frames per distance.")] = 20,
-    noise: NoiseOpt = "low",
+    noise: NoiseOpt = Noise.low,
 ) -> None:
     """Median and p95 time per frame of each estimator (one thread), tracking and acquisition
     separately, at 3, 2 and 1.2 m."""
@@ -395,14 +506,13 @@ def bench_estimate(
 
     from hil.analysis.bench import estimator_timings
 
-    _noise_config(noise)
     try:
         rows = estimator_timings(
-            tuple(system), camera=camera, frames=frames, noise=noise, progress=console
+            tuple(system), camera=camera, frames=frames, noise=noise.value, progress=console
         )
     except (ConfigError, ValueError, NotImplementedError) as exc:
         raise _fail(str(exc)) from None
-    table = Table(title=f"estimator time per frame ({camera}, noise {noise}, one thread)")
+    table = Table(title=f"estimator time per frame ({camera}, noise {noise.value}, one thread)")
     for column in ("system", "mode", "distance (m)", "median (ms)", "p95 (ms)", "valid"):
         table.add_column(column, justify="right")
     for r in rows:
@@ -531,26 +641,22 @@ SetOpt = Annotated[
 
 def _simulation(
     config: str,
-    noise: str | None,
+    noise: Any,
     systems: str | None,
-    links: str | None,
-    clock: str | None = None,
+    links: Any,
+    clock: Any = None,
     settings: list[str] | None = None,
 ):
     from configuration.simulation import load_simulation, with_overrides, with_settings
 
-    if noise is not None:
-        _noise_config(noise)
-    if clock is not None and clock not in ("sim", "wall"):
-        raise _fail(f"--clock must be sim or wall; got {clock!r}")
     try:
         sim = with_settings(load_simulation(config), settings or [])
         return with_overrides(
             sim,
-            noise={"preset": noise} if noise else None,
+            noise={"preset": noise.value} if noise is not None else None,
             systems=systems.split(",") if systems else None,
-            links=links,
-            clock=clock,
+            links=None if links is None else links.value,
+            clock=None if clock is None else clock.value,
         )
     except ValueError as exc:  # ConfigError or a validation error of an override
         raise _fail(str(exc)) from None
@@ -559,18 +665,17 @@ def _simulation(
 @app.command()
 def approach(
     config: SimOpt = "sim",
-    noise: Annotated[
-        str | None, typer.Option(help="Override the noise: none | low | high | sensor.")
-    ] = None,
+    noise: Annotated[Noise | None, typer.Option(help="Override the image noise.")] = None,
     seed: Annotated[int, typer.Option(help="Seed of the random start and the image noise.")] = 1,
     systems: Annotated[
         str | None, typer.Option(help="Comma-separated estimators, e.g. corners,lines,ellipses.")
     ] = None,
     links: Annotated[
-        str | None, typer.Option(help="direct | tcp (track and gripper over pymodbus).")
+        Links | None,
+        typer.Option(help="Track and gripper reached directly, or over pymodbus (tcp)."),
     ] = None,
     clock: Annotated[
-        str | None,
+        Clock | None,
         typer.Option(
             help="sim: stepped as fast as possible with vision time charged (deterministic); "
             "wall: the simulated world runs in real time in its own processes, like a rig. "
@@ -584,22 +689,47 @@ def approach(
     ] = True,
 ) -> None:
     """Run one simulated approach (2.5 m → 0.5 m stand-off, grasp, retreat) with a live
-    progress line; write its trial log (MCAP) and, by default, its report."""
+    progress line; write its trial log (MCAP) and, by default, its report.
+
+    Ctrl-C (SIGINT) or SIGTERM stops the arm and the track within one control period, ends
+    the trial with that reason, closes the log and writes the report. Exit status: 0 success;
+    1 the approach failed or was aborted; 2 bad input; 3 the trial was ended by an error (a
+    device, the software, a log that cannot be written; the arm and the track are stopped and
+    the reason is printed and logged); 130 / 143 interrupted by SIGINT / SIGTERM."""
     import time
 
-    from rich.live import Live
-
-    from hil.progress import tick_line
-    from hil.runtime.compose import run_trial
+    from hil.runtime.signals import Interrupted, StopSignals
 
     sim = _simulation(config, noise, systems, links, clock, settings)
+    _output_dir(log_dir, "--log-dir")
     stamp = time.strftime("%Y%m%d-%H%M%S")
     log_path = log_dir / f"approach_{sim.noise.preset}_seed{seed}_{stamp}.mcap"
     out.print(
         f"simulated approach: systems {', '.join(sim.systems)}, noise {sim.noise.preset}, "
         f"seed {seed}, clock {sim.clock}"
     )
+    with StopSignals() as signals:
+        try:
+            code = _approach(sim, seed, log_path, signals)
+            if report_too and log_path.exists():
+                code = _approach_report(log_path, code)
+        except Interrupted as exc:  # during start-up: the loop had not begun, nothing moved
+            logged = f"log {log_path}" if log_path.exists() else "no log written"
+            out.print(f"{exc} during start-up; nothing moved; {logged}")
+            code = exc.exit_code
+    raise typer.Exit(code=code)
+
+
+def _approach(sim: Any, seed: int, log_path: Path, signals: Any) -> int:
+    """Run the trial with a live progress line, print how it ended; the exit status."""
+    from rich.live import Live
+
+    from hil.progress import tick_line
+    from hil.runtime.compose import Trial
+    from hil.runtime.loop import describe_exception
+
     last_shown = [-1.0]
+    result = error = None
     with Live("", console=console, refresh_per_second=8, transient=False) as live:
 
         def on_tick(record) -> None:
@@ -607,11 +737,43 @@ def approach(
                 last_shown[0] = record.t
                 live.update(tick_line(record))
 
+        running = False
         try:
-            result = run_trial(sim, seed=seed, log_path=log_path, on_tick=on_tick)
-        except (ValueError, NotImplementedError) as exc:
-            raise _fail(str(exc)) from None
+            trial = Trial(sim, seed=seed, log_path=log_path, on_tick=on_tick, signals=signals)
+            with trial:
+                running = True
+                result = trial.run()
+        except Exception as exc:
+            if not running:  # a configuration, a log path, a process that would not start
+                user = isinstance(exc, ValueError | NotImplementedError)
+                message = str(exc) if user else describe_exception(exc)
+                raise _fail(message, 2 if user else 3) from None
+            error = exc
     console.print()  # end the live line
+    loop = trial.loop
+    log_error = trial.log.error
+    logged = f"log {log_path}" + (" (incomplete)" if log_error else "")
+    if error is not None:
+        ending = loop.ending or f"trial ended by {describe_exception(error)}; arm and track stopped"
+        out.print(f"[bold red]ERROR[/]: {escape(ending)}; {escape(logged)}")
+        code = 3
+    elif signals.received is not None and loop.ending and loop.ending.startswith("interrupted"):
+        out.print(f"{escape(loop.ending)}; {escape(logged)}")
+        code = signals.exit_code
+    else:
+        code = _print_outcome(result, sim, log_path)
+        if signals.received is not None:  # after the loop had ended by itself
+            code = signals.exit_code
+    if log_error:
+        out.print(
+            f"[bold red]trial log incomplete[/]: writing failed at t = {trial.log.error_t:.2f} s "
+            f"({escape(log_error)}); the log holds what was flushed before"
+        )
+        code = 3 if code < 128 else code  # a signal's status stands
+    return code
+
+
+def _print_outcome(result: Any, sim: Any, log_path: Path) -> int:
     o = result.outcome
     verdict = "[bold green]SUCCESS[/]" if result.success else "[bold red]FAILURE[/]"
     kind = "simulated" if result.clock == "sim" else "on the wall clock"
@@ -620,7 +782,7 @@ def approach(
         f"{o.deadline_misses} deadline misses)"
     )
     if o.abort_reason:
-        out.print(f"abort reason: {o.abort_reason}")
+        out.print(f"abort reason: {escape(o.abort_reason)}")
     if result.standoff_error_m is not None:
         import math
 
@@ -631,12 +793,27 @@ def approach(
             f"{sim.approach.standoff.success_angle_deg}°)"
         )
     out.print(f"trial log: {log_path}")
-    if report_too:
-        from hil.analysis.report import make_report
+    return 0 if result.success else 1
 
-        index = make_report(log_path, log_path.with_name(log_path.stem + "_report"))
-        out.print(f"report: {index}")
-    raise typer.Exit(code=0 if result.success else 1)
+
+def _approach_report(log_path: Path, code: int) -> int:
+    """Write the trial's report beside its log; a report that cannot be written is one line
+    (the trial's exit status stands), a second signal skips it."""
+    from hil.analysis.report import make_report
+    from hil.logs.triallog import TrialLogError
+    from hil.runtime.signals import Interrupted
+
+    target = log_path.with_name(log_path.stem + "_report")
+    try:
+        index = make_report(log_path, target)
+    except (OSError, TrialLogError) as exc:
+        console.print(f"[yellow]report not written[/] to {target}: {escape(str(exc))}")
+        return code
+    except Interrupted as exc:
+        console.print(f"report not written: {exc}")
+        return exc.exit_code
+    out.print(f"report: {index}")
+    return code
 
 
 @app.command()
@@ -665,10 +842,9 @@ def campaign(
     centre, ±10° rotated) and summarise success and errors from their logs."""
     from hil.analysis.campaign import campaign_markdown, run_campaign
 
-    levels = noise.split(",")
-    for level in levels:
-        _noise_config(level)
+    levels = _noise_levels(noise)
     sim = _simulation(config, None, systems, None, None, settings)
+    _output_dir(out_dir, "--out-dir")
 
     def progress(row, done, total) -> None:
         verdict = "ok  " if row.success else "FAIL"
@@ -681,7 +857,8 @@ def campaign(
         sim, range(first_seed, first_seed + seeds), levels, out_dir, jobs=jobs, progress=progress
     )
     table = campaign_markdown(rows)
-    (out_dir / "summary.md").write_text(table, encoding="utf-8")
+    with _writing(out_dir / "summary.md", "--out-dir"):
+        (out_dir / "summary.md").write_text(table, encoding="utf-8")
     out.print(table, markup=False, highlight=False)
     out.print(f"summary: {out_dir / 'summary.md'}")
 
@@ -705,6 +882,8 @@ def calibrate(
     from hil.analysis.trial_analysis import target_from_header
     from hil.logs.triallog import TrialLog, TrialLogError
 
+    if out_path is not None:
+        _output_file(out_path, "--out")
     samples, target = [], None
     for path in logs:
         try:
@@ -736,7 +915,8 @@ def calibrate(
     text = yaml.safe_dump(settings, sort_keys=False)
     out.print(text, markup=False, highlight=False)
     if out_path is not None:
-        out_path.write_text(text, encoding="utf-8")
+        with _writing(out_path, "--out"):
+            out_path.write_text(text, encoding="utf-8")
 
 
 @app.command()
@@ -747,9 +927,10 @@ def demo(
 ) -> None:
     """The simulated demo on the embedded default configuration (configs/sim.yaml): one full
     approach with low noise — 2.5 m start, stand-off, grasp, retreat — its trial log and report."""
+    _output_dir(out_dir, "--out-dir")
     approach(
         config="sim",
-        noise="low",
+        noise=Noise.low,
         seed=1,
         systems=None,
         links=None,
@@ -764,5 +945,9 @@ def main() -> None:
     try:
         app()
     except ConfigError as exc:  # a configuration named deeper than a command's own checks
-        console.print(f"[bold red]error:[/] {exc}")
+        console.print(f"[bold red]error:[/] {escape(str(exc))}")
+        sys.exit(2)
+    except OSError as exc:  # a file met deeper than a command's own checks: still one line
+        where = f"{exc.filename}: " if exc.filename else ""
+        console.print(f"[bold red]error:[/] {escape(where + (exc.strerror or str(exc)))}")
         sys.exit(2)

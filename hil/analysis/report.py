@@ -294,6 +294,7 @@ def report_json(analysis: TrialAnalysis) -> dict[str, Any]:
     return {
         "log": analysis.path,
         "complete": analysis.complete,
+        "corrupt": analysis.corrupt,
         "incomplete": analysis.incomplete,
         "success": analysis.success,
         "outcome": analysis.outcome,
@@ -353,6 +354,17 @@ def _table(rows: list[list[str]], header: list[str] | None = None) -> str:
     return "\n".join(out)
 
 
+def _log_state(analysis: TrialAnalysis) -> str:
+    state = (
+        "recovered: no footer (writer killed, or could not write)"
+        if analysis.recovered
+        else "complete"
+        if analysis.complete
+        else "not closed by its writer"
+    )
+    return f"corrupt, {state}" if analysis.corrupt else state
+
+
 def summary_rows(analysis: TrialAnalysis) -> list[list[str]]:
     """The trial summary as (label, value) rows."""
     h = analysis.header
@@ -363,14 +375,7 @@ def summary_rows(analysis: TrialAnalysis) -> list[list[str]]:
         ["abort reason", analysis.abort_reason or "–"],
         ["duration", f"{analysis.duration_s:.2f} s"],
         ["ticks", str(len(analysis.t))],
-        [
-            "log",
-            "recovered (writer killed)"
-            if analysis.recovered
-            else "complete"
-            if analysis.complete
-            else "not closed by its writer",
-        ],
+        ["log", _log_state(analysis)],
         ["clock", str(figures["clock"] or "–")],
         ["satgrasp", str(h.get("satgrasp_version", "?"))],
         ["started (UTC)", str(h.get("start_time_utc", "?"))],

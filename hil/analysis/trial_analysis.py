@@ -167,6 +167,8 @@ class TrialAnalysis:
     header: dict[str, Any]
     recovered: bool
     complete: bool
+    #: Parts of the file do not read (the rest was read): ``incomplete`` says which.
+    corrupt: bool
     #: Why the log does not hold the whole trial (None when its writer closed it).
     incomplete: str | None
     # over ticks
@@ -305,11 +307,7 @@ def analyse(log: TrialLog) -> TrialAnalysis:
             f"{len(log.problems)} records skipped: they do not read back as records "
             f"(first: {log.problems[0]})."
         )
-    incomplete = None
-    if log.recovered:
-        incomplete = f"The log has no footer (its writer was killed): read up to the last flush; {log.stopped}."
-    elif not log.complete:
-        incomplete = "The log was not closed by its writer (a recovered copy)."
+    incomplete = _incompleteness(log, ticks)
     if incomplete:
         notes.append(incomplete)
 
@@ -335,6 +333,7 @@ def analyse(log: TrialLog) -> TrialAnalysis:
         header=log.header,
         recovered=log.recovered,
         complete=log.complete,
+        corrupt=log.corrupt,
         incomplete=incomplete,
         t=t,
         tick=np.array([tick.tick for tick in ticks], dtype=float),
@@ -374,6 +373,24 @@ def analyse(log: TrialLog) -> TrialAnalysis:
         vision=_vision(ticks, results),
         notes=notes,
     )
+
+
+def _incompleteness(log: TrialLog, ticks: list[TickRecord]) -> str | None:
+    """Why the log does not hold the whole trial, and how much of it was read: a corrupt file
+    (parts that do not read, the rest read) is told apart from a writer that was killed or
+    could not write (a cut-off tail); None for a log its writer closed."""
+    said = []
+    if log.corrupt:
+        said.append(f"The log is corrupt: {log.damage()}.")
+    if log.recovered:
+        last = f"t = {ticks[-1].t:.2f} s" if ticks else "no tick"
+        said.append(
+            "The log has no footer (its writer was killed, or could not write: a full disk): "
+            f"read up to the last flush ({last}, {len(ticks)} ticks); {log.stopped}."
+        )
+    elif not log.complete and not log.corrupt:
+        said.append("The log was not closed by its writer (a recovered copy).")
+    return " ".join(said) or None
 
 
 def _nan_if_none(value: float | None) -> float:

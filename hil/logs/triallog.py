@@ -27,6 +27,7 @@ import contextlib
 import dataclasses
 import datetime as dt
 import enum
+import io
 import json
 import logging
 import math
@@ -46,9 +47,19 @@ from typing import Any, BinaryIO
 
 import cv2
 import numpy as np
-from mcap.exceptions import EndOfFile, McapError
-from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import (
+    Channel,
+    Chunk,
+    Footer,
+    Header,
+    Message,
+    MessageIndex,
+    Metadata,
+    Schema,
+)
+from mcap.stream_reader import CRCValidationError, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from estimators.geometry import Pose
@@ -295,6 +306,8 @@ class TrialLogWriter:
         self._lock = threading.RLock()
         self._closed = False
         self.error: str | None = None
+        #: Trial time (s) of the last record handed to the writer when ``error`` happened.
+        self.error_t: float | None = None
         self.counts = {
             "ticks": 0,
             "vision": 0,
@@ -557,6 +570,7 @@ class TrialLogWriter:
     def _fail(self, exc: BaseException) -> None:
         if self.error is None:
             self.error = f"{type(exc).__name__}: {exc}"
+            self.error_t = self._last_t
             log.error("%s: trial log writing failed, nothing more is written: %s", self.path, exc)
 
 
@@ -590,23 +604,24 @@ def encode_image(image: np.ndarray, encoding: str = "jpeg", jpeg_quality: int = 
 # --- reader ---------------------------------------------------------------------------------
 
 
-class _WholeReads:
-    """A file wrapper whose short reads raise ``EndOfFile``: a record cut off by a crash ends
-    the scan instead of being parsed from partial bytes."""
+@dataclass(frozen=True, slots=True)
+class Unreadable:
+    """A stretch of a log file that could not be read: ``what`` (a chunk, a metadata record,
+    …) at byte ``offset``, ``length`` bytes, and why; for a chunk the log times (ns) of the
+    messages it held, and how many per channel id its message indexes list."""
 
-    def __init__(self, file: BinaryIO):
-        self._file = file
-
-    def read(self, size: int) -> bytes:
-        data = self._file.read(size)
-        if len(data) < size:
-            raise EndOfFile()
-        return data
+    what: str
+    offset: int
+    length: int
+    reason: str
+    start_ns: int | None = None
+    end_ns: int | None = None
+    lost: dict[int, int] = dataclasses.field(default_factory=dict)
 
 
 @dataclass
 class _Scan:
-    """Everything found reading a (possibly truncated) MCAP file from the start."""
+    """Everything found reading a (possibly truncated or corrupt) MCAP file from the start."""
 
     header: Header | None = None
     schemas: dict[int, Schema] = dataclasses.field(default_factory=dict)
@@ -614,8 +629,12 @@ class _Scan:
     messages: list[Message] = dataclasses.field(default_factory=list)
     counts: dict[int, int] = dataclasses.field(default_factory=dict)  # messages per channel
     metadata: dict[str, dict[str, str]] = dataclasses.field(default_factory=dict)
+    #: The MCAP footer was reached: the writer finished the file.
     complete: bool = False
+    #: Why the scan ended before a footer ("" when it reached one).
     stopped: str = ""
+    #: Records inside the file that could not be read (the file is corrupt), in file order.
+    unreadable: list[Unreadable] = dataclasses.field(default_factory=list)
 
 
 def _check_file(path: Path) -> None:
@@ -632,35 +651,149 @@ def _check_file(path: Path) -> None:
         raise TrialLogError(f"{path} is not an MCAP file (its first bytes are not MCAP's magic)")
 
 
+_RECORD_READERS: dict[int, Callable[[ReadDataStream, int], Any]] = {
+    Opcode.HEADER: lambda stream, _: Header.read(stream),
+    Opcode.FOOTER: lambda stream, _: Footer.read(stream),
+    Opcode.SCHEMA: lambda stream, _: Schema.read(stream),
+    Opcode.CHANNEL: lambda stream, _: Channel.read(stream),
+    Opcode.MESSAGE: Message.read,
+    Opcode.CHUNK: lambda stream, _: Chunk.read(stream),
+    Opcode.MESSAGE_INDEX: lambda stream, _: MessageIndex.read(stream),
+    Opcode.METADATA: lambda stream, _: Metadata.read(stream),
+}
+#: Records a reader of trial logs passes over (indexes and summaries it does not need).
+_SKIPPED = {
+    Opcode.ATTACHMENT,
+    Opcode.ATTACHMENT_INDEX,
+    Opcode.CHUNK_INDEX,
+    Opcode.DATA_END,
+    Opcode.METADATA_INDEX,
+    Opcode.STATISTICS,
+    Opcode.SUMMARY_OFFSET,
+}
+
+
 def _scan(path: Path, keep: Callable[[Channel], bool]) -> _Scan:
-    """Read records in file order until the footer, or until the file ends or turns bad (a
-    crash): then ``complete`` is False and ``stopped`` says why."""
+    """Read records in file order until the MCAP footer.
+
+    MCAP frames every record with its opcode and length, so a record that does not read — a
+    chunk whose CRC or compressed data is wrong, say — is passed over and the scan goes on
+    (``unreadable``: the file is corrupt). The scan ends early, ``stopped`` saying why, when
+    the file ends before the footer (a writer killed, or one that could not write: the records
+    it had flushed are all there), or when the framing itself is lost (a corrupt length or
+    opcode: nothing after it can be found)."""
     scan = _Scan()
+    size = path.stat().st_size
+    after_bad_chunk: Unreadable | None = None
     with path.open("rb") as f:
-        reader = StreamReader(_WholeReads(f), validate_crcs=True)  # type: ignore[arg-type]
-        try:
-            for record in reader.records:
-                if isinstance(record, Message):
-                    scan.counts[record.channel_id] = scan.counts.get(record.channel_id, 0) + 1
-                    channel = scan.channels.get(record.channel_id)
-                    if channel is not None and keep(channel):
-                        scan.messages.append(record)
-                elif isinstance(record, Channel):
-                    scan.channels[record.id] = record
-                elif isinstance(record, Schema):
-                    scan.schemas[record.id] = record
-                elif isinstance(record, Metadata):
-                    scan.metadata[record.name] = dict(record.metadata)
-                elif isinstance(record, Header):
-                    scan.header = record
-                elif isinstance(record, Footer):
-                    scan.complete = True
-        except EndOfFile:
-            scan.stopped = "the file ends without a footer"
-        except (McapError, ValueError, struct.error, UnicodeDecodeError, MemoryError) as exc:
-            # zstd errors are ValueErrors, CRC mismatches too: a torn last chunk
-            scan.stopped = f"unreadable data after the last complete record ({exc})"
+        f.seek(len(MCAP_MAGIC))  # checked by _check_file
+        while not scan.complete:
+            offset = f.tell()
+            head = f.read(9)
+            if len(head) < 9:
+                scan.stopped = "the file ends without a footer" + (
+                    "" if not head else " (within a record's start)"
+                )
+                break
+            opcode, length = struct.unpack("<BQ", head)
+            if opcode not in _RECORD_READERS and opcode not in _SKIPPED and opcode < 0x80:
+                scan.stopped = _lost_framing(scan, offset, size, f"no MCAP record type {opcode}")
+                break
+            if offset + 9 + length > size:
+                if _ends_with_magic(f, size):  # a finished file: the length is corrupt
+                    scan.stopped = _lost_framing(scan, offset, size, f"a length of {length} B")
+                else:
+                    scan.stopped = (
+                        f"the file ends without a footer, within a record of {length} bytes "
+                        f"that starts at byte {offset}"
+                    )
+                break
+            payload = f.read(length)
+            if opcode not in _RECORD_READERS:
+                continue
+            record = None
+            try:
+                record = _RECORD_READERS[opcode](ReadDataStream(io.BytesIO(payload)), length)
+                records = [record]
+                if opcode == Opcode.CHUNK:
+                    records = breakup_chunk(record, validate_crc=True)
+            except Exception as exc:  # CRC, zstd, struct, UTF-8: this record is corrupt
+                bad = Unreadable(
+                    _RECORD_NAMES.get(opcode, "record"),
+                    offset,
+                    9 + length,
+                    _reason(exc),
+                    getattr(record, "message_start_time", None),
+                    getattr(record, "message_end_time", None),
+                )
+                scan.unreadable.append(bad)
+                after_bad_chunk = bad if opcode == Opcode.CHUNK else after_bad_chunk
+                continue
+            if opcode == Opcode.CHUNK:
+                after_bad_chunk = None
+            elif opcode == Opcode.MESSAGE_INDEX and after_bad_chunk is not None:
+                index = record  # what the chunk before held, per channel
+                lost = after_bad_chunk.lost
+                lost[index.channel_id] = lost.get(index.channel_id, 0) + len(index.records)
+            for item in records:
+                _take(scan, item, keep)
     return scan
+
+
+def _take(scan: _Scan, record: Any, keep: Callable[[Channel], bool]) -> None:
+    if isinstance(record, Message):
+        scan.counts[record.channel_id] = scan.counts.get(record.channel_id, 0) + 1
+        channel = scan.channels.get(record.channel_id)
+        if channel is not None and keep(channel):
+            scan.messages.append(record)
+    elif isinstance(record, Channel):
+        scan.channels[record.id] = record
+    elif isinstance(record, Schema):
+        scan.schemas[record.id] = record
+    elif isinstance(record, Metadata):
+        scan.metadata[record.name] = dict(record.metadata)
+    elif isinstance(record, Header):
+        scan.header = record
+    elif isinstance(record, Footer):
+        scan.complete = True
+
+
+_RECORD_NAMES = {
+    Opcode.HEADER: "header record",
+    Opcode.FOOTER: "footer record",
+    Opcode.SCHEMA: "schema record",
+    Opcode.CHANNEL: "channel record",
+    Opcode.MESSAGE: "message record",
+    Opcode.CHUNK: "chunk",
+    Opcode.MESSAGE_INDEX: "message index",
+    Opcode.METADATA: "metadata record",
+}
+
+
+def _reason(exc: BaseException) -> str:
+    text = str(exc)
+    if isinstance(exc, CRCValidationError):
+        text = "its CRC does not match its data"
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def _ends_with_magic(f: BinaryIO, size: int) -> bool:
+    """Whether the file ends with MCAP's magic (its writer finished it)."""
+    if size < 2 * len(MCAP_MAGIC):
+        return False
+    position = f.tell()
+    f.seek(size - len(MCAP_MAGIC))
+    magic = f.read(len(MCAP_MAGIC))
+    f.seek(position)
+    return magic == MCAP_MAGIC
+
+
+def _lost_framing(scan: _Scan, offset: int, size: int, found: str) -> str:
+    """The record boundaries are lost at ``offset`` (a corrupt length or type): the rest of
+    the file is unreadable."""
+    reason = f"corrupt record framing ({found})"
+    scan.unreadable.append(Unreadable("data", offset, size - offset, reason))
+    return f"{reason} at byte {offset}: the {size - offset} bytes after it could not be read"
 
 
 @dataclass(frozen=True, slots=True)
@@ -684,9 +817,11 @@ class TrialLog:
     """A trial log opened for reading: ``header``, ``ticks()``, ``vision()``, ``events()``,
     ``frames()``.
 
-    ``recovered`` is True when the file has no MCAP footer (its writer was killed) and the
-    records were read from the complete chunks; ``complete`` is True when the writer closed
-    the log normally (its ``satgrasp.footer`` is present). ``problems`` lists the records that
+    ``recovered`` is True when the file has no MCAP footer (its writer was killed, or could not
+    write) and the records were read from the complete chunks; ``complete`` is True when the
+    writer closed the log normally (its ``satgrasp.footer`` is present). ``unreadable`` lists
+    the parts of the file that do not read (a corrupt file: ``damage()`` says what they held);
+    the rest was read all the same. ``problems`` lists the records that
     ``ticks()`` and ``vision()`` skipped because they do not read back as records (each
     naming the record and the field), filled in as they are read. Open with ``TrialLog.open``.
     """
@@ -699,7 +834,9 @@ class TrialLog:
         self.footer: dict[str, str] | None = scan.metadata.get(FOOTER_METADATA)
         self.complete = self.footer is not None
         self.recovery: dict[str, str] | None = scan.metadata.get(RECOVERY_METADATA)
+        self.unreadable: list[Unreadable] = scan.unreadable
         topics = {channel.id: channel.topic for channel in scan.channels.values()}
+        self._topics = topics
         by_topic: dict[str, list[Message]] = {}
         for message in scan.messages:
             by_topic.setdefault(topics[message.channel_id], []).append(message)
@@ -740,6 +877,43 @@ class TrialLog:
         topics = (HEADER_TOPIC, TICK_TOPIC, VISION_TOPIC, EVENT_TOPIC)
         scan = _scan(path, keep=lambda c: c.topic in topics)
         return cls(path, scan)
+
+    @property
+    def corrupt(self) -> bool:
+        """Some part of the file does not read (a flipped byte, a damaged disk): not a killed
+        writer, which leaves only a cut-off tail."""
+        return bool(self.unreadable)
+
+    def damage(self) -> str | None:
+        """What the unreadable parts of a corrupt log held, in one sentence (None when it has
+        none): where they are, why they do not read, their time span and the records lost."""
+        if not self.unreadable:
+            return None
+        parts, lost = [], {}
+        for bad in self.unreadable:
+            span = ""
+            if bad.start_ns is not None and bad.end_ns is not None:
+                first, last = ((ns - self._start_ns) / 1e9 for ns in (bad.start_ns, bad.end_ns))
+                span = f", t {first:.2f}–{last:.2f} s"
+            parts.append(
+                f"{bad.what} at bytes {bad.offset}–{bad.offset + bad.length}{span} ({bad.reason})"
+            )
+            for channel_id, count in bad.lost.items():
+                topic = self._topics.get(channel_id, f"channel {channel_id}")
+                lost[topic] = lost.get(topic, 0) + count
+        names = {TICK_TOPIC: "ticks", VISION_TOPIC: "vision results", EVENT_TOPIC: "events"}
+        kept = {TICK_TOPIC: self.tick_count, VISION_TOPIC: self.vision_count}
+        held = [
+            f"{count} {names.get(topic, topic)}"
+            + (f" of {count + kept[topic]}" if topic in kept else "")
+            for topic, count in sorted(lost.items())
+        ]
+        framing_lost = self.unreadable[-1].what == "data"
+        return (
+            f"{len(parts)} unreadable part{'s' if len(parts) > 1 else ''}: {'; '.join(parts)}"
+            + (f"; lost with them: {', '.join(held)}" if held else "")
+            + ("" if framing_lost else "; every other record was read")
+        )
 
     @property
     def tick_count(self) -> int:

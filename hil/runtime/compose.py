@@ -20,22 +20,24 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import get_args
 
 import numpy as np
 
 from configuration.camera import CameraConfig, load_camera
 from configuration.mockup import MockupConfig, load_mockup
 from configuration.rig import load_rig
-from configuration.simulation import SimulationConfig
+from configuration.simulation import ClockKind, SimulationConfig
 from estimators.fusion import PoseFusion
 from estimators.geometry import Pose
 from estimators.registry import build_estimator
 from hil.logs.records import TickRecord
-from hil.logs.triallog import TrialLogWriter
+from hil.logs.triallog import TrialLogError, TrialLogWriter
 from hil.runtime.history import StateHistory
 from hil.runtime.judge import StandoffJudge, truth_record
-from hil.runtime.loop import ControlLoop, TrialOutcome
+from hil.runtime.loop import ControlLoop, TrialOutcome, describe_exception
 from hil.runtime.rig import RigGeometry
+from hil.runtime.signals import StopSignals
 from hil.runtime.stepped import SteppedClock
 from hil.runtime.vision import VisionPipeline
 from hil.runtime.workers import InlineWorkers
@@ -46,7 +48,8 @@ from sim_backends.world import SimWorld
 @dataclass(frozen=True, slots=True)
 class TrialResult:
     """How a trial ended. ``standoff_error_*``: the true camera pose error when the stand-off was
-    declared reached (simulation only; None on a rig or if it was never reached)."""
+    declared reached (simulation only; None on a rig or if it was never reached).
+    ``log_error``: why the log stopped being written (None when it holds the whole trial)."""
 
     outcome: TrialOutcome
     success: bool
@@ -55,6 +58,7 @@ class TrialResult:
     log_path: Path
     start: TrialStart
     clock: str
+    log_error: str | None = None
 
 
 def grasp_pose(config: SimulationConfig) -> Pose:
@@ -94,7 +98,10 @@ class Trial:
     faults; ``run()`` runs it to the end and records the outcome in the log.
 
     Whatever ends the trial — its own end, an exception, Ctrl-C — ``__exit__`` stops the arm and
-    the track, writes why into the log and closes it.
+    the track, writes why into the log and closes it. With ``signals`` (``StopSignals``, entered
+    by the caller), SIGINT and SIGTERM are routed to the loop's ``request_stop`` from the moment
+    the loop exists until the trial is torn down: the loop stops the devices itself and the log
+    gets its footer; during start-up they raise ``Interrupted`` as before.
     """
 
     def __init__(
@@ -106,10 +113,12 @@ class Trial:
         on_tick: Callable[[TickRecord], None] | None = None,
         mockup: MockupConfig | None = None,
         clock: str | None = None,
+        signals: StopSignals | None = None,
     ):
         self.config, self.seed, self.log_path = config, seed, Path(log_path)
+        self._signals = signals
         self.clock_kind = clock or config.clock
-        if self.clock_kind not in ("sim", "wall"):
+        if self.clock_kind not in get_args(ClockKind):
             raise ValueError(f"clock must be 'sim' or 'wall'; got {self.clock_kind!r}")
         self._on_tick = on_tick
         self.mockup = mockup or load_mockup(config.mockup)
@@ -121,7 +130,12 @@ class Trial:
         self.resources: Callable[[], dict] | None = None
 
     def __enter__(self) -> Trial:
-        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise TrialLogError(
+                f"cannot create the log directory {self.log_path.parent}: {exc.strerror}"
+            ) from None
         try:
             self.log = self._stack.enter_context(
                 TrialLogWriter(
@@ -138,9 +152,16 @@ class Trial:
                 from hil.runtime.wall import build_wall
 
                 build_wall(self)
-        except BaseException:
+        except BaseException as exc:
+            log = getattr(self, "log", None)
+            if log is not None:
+                log.write_event(
+                    0.0, "abort", f"trial ended during start-up by {describe_exception(exc)}"
+                )
             self._stack.close()
             raise
+        if self._signals is not None:
+            self._signals.route_to = self.loop.request_stop
         return self
 
     def _observers(self) -> list[Callable[[TickRecord], None]]:
@@ -233,18 +254,25 @@ class Trial:
             self.log_path,
             self.start,
             self.clock_kind,
+            self.log.error,
         )
 
     def __exit__(self, exc_type, exc, traceback) -> None:
-        loop = getattr(self, "loop", None)
-        if loop is not None:
-            now = loop.clock.now()
-            loop.stop_devices(now)
-            if exc_type is not None:
-                self.log.write_event(
-                    now - loop.t0, "abort", f"trial ended by {exc_type.__name__}: {exc}"
-                )
-        self._stack.close()
+        try:
+            loop = getattr(self, "loop", None)
+            if loop is not None:
+                now = loop.clock.now()
+                loop.stop_devices(now)
+                if exc_type is not None and exc is not loop.ended_by:  # else the loop said it
+                    self.log.write_event(
+                        now - loop.t0, "abort", f"trial ended by {exc_type.__name__}: {exc}"
+                    )
+        finally:
+            try:
+                self._stack.close()
+            finally:
+                if self._signals is not None:
+                    self._signals.route_to = None
 
 
 def run_trial(
@@ -255,9 +283,16 @@ def run_trial(
     on_tick: Callable[[TickRecord], None] | None = None,
     mockup: MockupConfig | None = None,
     clock: str | None = None,
+    signals: StopSignals | None = None,
 ) -> TrialResult:
     """Run one approach and write its trial log to ``log_path``."""
     with Trial(
-        config, seed=seed, log_path=log_path, on_tick=on_tick, mockup=mockup, clock=clock
+        config,
+        seed=seed,
+        log_path=log_path,
+        on_tick=on_tick,
+        mockup=mockup,
+        clock=clock,
+        signals=signals,
     ) as trial:
         return trial.run()

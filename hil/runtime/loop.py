@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import math
+import traceback
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -77,7 +78,10 @@ class VisionLink(Protocol):
 
 
 class TrialRecorder(Protocol):
-    """Where the loop's records go (``hil.logs.triallog.TrialLogWriter``)."""
+    """Where the loop's records go (``hil.logs.triallog.TrialLogWriter``). ``error``: why
+    nothing more can be written (None while it can); the loop ends the trial when it is set."""
+
+    error: str | None
 
     def write_tick(self, record: TickRecord) -> bool: ...
 
@@ -89,6 +93,8 @@ class TrialRecorder(Protocol):
 
 
 class NullRecorder:
+    error: str | None = None
+
     def write_tick(self, record: TickRecord) -> bool:
         return True
 
@@ -113,6 +119,8 @@ class TrialOutcome:
     duration_s: float
     ticks: int
     deadline_misses: int
+    #: Devices whose final stop command failed, each with why (empty: arm and track stopped).
+    stop_failures: tuple[str, ...] = ()
 
 
 @contextlib.contextmanager
@@ -167,19 +175,39 @@ class ControlLoop:
         self._last_work_s = 0.0
         self._deadline_misses = 0
         self._faults_seen = 0
+        #: (reason, clock time it was asked) of a pending ``request_stop``.
+        self._stop_request: tuple[str, float] | None = None
+        self._stop_failures: tuple[str, ...] = ()
+        #: The exception that ended ``run``, once it is in the log (so no one logs it twice).
+        self.ended_by: BaseException | None = None
+        #: Why the loop ended before the sequencer did, and whether the stop worked: "interrupted
+        #: by SIGINT in phase approach; arm and track stopped" (None when it ran to its end).
+        self.ending: str | None = None
 
     # --- helpers ------------------------------------------------------------------------
     def _event(self, t: float, kind: str, message: str, **data: Any) -> None:
         self.log.write_event(t - self._t0, kind, message, **data)
 
-    def stop_devices(self, t: float) -> None:
-        """Stop the arm and the track (each attempted even if the other fails)."""
+    def stop_devices(self, t: float) -> tuple[str, ...]:
+        """Stop the arm and the track, each attempted whatever the other did (any exception,
+        not only a ``DeviceError``); returns the failures, each naming its device."""
         decel = self.config.supervisor.stop_deceleration
+        failures = []
         for name, action in (("arm", lambda: self.arm.stop(decel)), ("track", self.track.stop)):
             try:
                 action()
-            except DeviceError as exc:
-                self._event(t, "fault", f"{name} stop failed: {exc}")
+            except Exception as exc:
+                failures.append(f"{name} stop failed: {describe_exception(exc)}")
+                self._event(t, "fault", failures[-1])
+        self._stop_failures = tuple(failures)
+        return self._stop_failures
+
+    def request_stop(self, reason: str) -> None:
+        """Ask the loop to stop the arm and the track and end the trial with ``reason`` (e.g.
+        "interrupted by SIGINT"). Safe from a signal handler or another thread: it only records
+        the request; ``run`` acts on it before its next tick, within one control period."""
+        if self._stop_request is None:
+            self._stop_request = (reason, self.clock.now())
 
     # --- one tick -----------------------------------------------------------------------
     def tick(self, late_s: float = 0.0) -> TickRecord:
@@ -409,10 +437,19 @@ class ControlLoop:
         self._event(self._t0, "phase", "trial started")
 
     def run(self, max_duration_s: float = 180.0) -> TrialOutcome:
-        """Tick at the control rate until the sequencer ends (or the time limit), then one more
-        tick that records the final state and makes sure everything is stopped."""
+        """Tick at the control rate until the sequencer ends (or the time limit, a stop request,
+        a log that cannot be written), then one more tick that records the final state and
+        makes sure everything is stopped.
+
+        Any exception — in a tick, a driver call, an observer — stops the arm and the track
+        before it leaves: the abort is logged with the exception and its traceback, then the
+        exception propagates."""
         with young_collections_only():
-            return self._run(max_duration_s)
+            try:
+                return self._run(max_duration_s)
+            except BaseException as exc:
+                self._end_by_exception(exc)
+                raise
 
     def _run(self, max_duration_s: float) -> TrialOutcome:
         period = self.period_s
@@ -420,10 +457,7 @@ class ControlLoop:
         deadline = self._t0
         while self.sequencer.phase not in TERMINAL:
             now = self.clock.now()
-            if now - self._t0 > max_duration_s:
-                self.stop_devices(now)
-                self.sequencer.abort(now, f"trial exceeded {max_duration_s:.0f} s")
-                self._event(now, "abort", self.sequencer.abort_reason)
+            if self._must_end(now, max_duration_s):
                 break
             late = max(0.0, now - deadline)
             if late >= period:  # a whole period lost: re-phase rather than burst to catch up
@@ -431,7 +465,8 @@ class ControlLoop:
             self.tick(late)
             collect_young()
             deadline += period
-            self.clock.sleep_until(deadline)
+            if self._stop_request is None and self._log_error() is None:
+                self.clock.sleep_until(deadline)  # else act on it now, not a period later
         self.tick()
         return TrialOutcome(
             phase=str(self.sequencer.phase),
@@ -440,8 +475,60 @@ class ControlLoop:
             duration_s=self.clock.now() - self._t0,
             ticks=self._tick,
             deadline_misses=self._deadline_misses,
+            stop_failures=self._stop_failures,
         )
+
+    def _must_end(self, now: float, max_duration_s: float) -> bool:
+        """End the trial here, for a stop request, a log that can no longer be written (a trial
+        that cannot be recorded must not go on moving) or the time limit: stop the arm and the
+        track now, abort the sequencer, and say why (the final tick records the stop)."""
+        phase, data = str(self.sequencer.phase), {}
+        if self._stop_request is not None:
+            reason, asked = self._stop_request
+            reason = f"{reason} in phase {phase}"
+            data = {"asked_t": asked - self._t0, "reaction_s": now - asked}
+        elif (error := self._log_error()) is not None:
+            reason = f"trial log cannot be written ({error}) in phase {phase}"
+        elif now - self._t0 > max_duration_s:
+            reason = f"trial exceeded {max_duration_s:.0f} s"
+        else:
+            return False
+        failures = self.stop_devices(now)
+        self.sequencer.abort(now, reason)
+        self.ending = f"{reason}; {_stopped(failures)}"
+        self._event(now, "stop", self.ending, stop_failures=list(failures), **data)
+        return True
+
+    def _log_error(self) -> str | None:
+        return getattr(self.log, "error", None)
+
+    def _end_by_exception(self, exc: BaseException) -> None:
+        now = self.clock.now()
+        failures = self.stop_devices(now)
+        self.ending = (
+            f"trial ended by {describe_exception(exc)} in phase {self.sequencer.phase}; "
+            f"{_stopped(failures)}"
+        )
+        self._event(
+            now,
+            "abort",
+            self.ending,
+            exception=type(exc).__name__,
+            traceback="".join(traceback.format_exception(exc)),
+            stop_failures=list(failures),
+        )
+        self.ended_by = exc
 
     @property
     def t0(self) -> float:
         return self._t0
+
+
+def describe_exception(exc: BaseException) -> str:
+    """``ValueError: what it says`` (just the type when it says nothing)."""
+    text = str(exc)
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def _stopped(failures: Sequence[str]) -> str:
+    return "; ".join(failures) if failures else "arm and track stopped"

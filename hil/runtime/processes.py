@@ -1,8 +1,12 @@
-"""Small helpers for the processes of a wall-clock trial: their peak memory and a bounded stop."""
+"""Small helpers for the processes of a wall-clock trial: their peak memory, a bounded stop, and
+keeping a terminal's Ctrl-C away from them."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
+from collections.abc import Iterator
 from multiprocessing.process import BaseProcess
 
 
@@ -28,3 +32,17 @@ def stop_process(process: BaseProcess, timeout_s: float = 10.0) -> None:
     if process.is_alive():
         process.kill()
         process.join(timeout=2.0)
+
+
+@contextlib.contextmanager
+def sigint_blocked_in_children() -> Iterator[None]:
+    """Processes started inside (and theirs) never see SIGINT: a Ctrl-C in a terminal reaches
+    the whole process group, and the simulated world must keep running until the control
+    process has stopped the arm and the track; the control process then ends each one. SIGINT
+    is blocked, not ignored, while they start: the mask is inherited, and a Ctrl-C that comes
+    meanwhile is delivered to this process when it is unblocked, not lost."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)

@@ -39,7 +39,7 @@ from hil.logs.records import VisionRecord
 from hil.runtime.history import StateHistory, StateRing, StateSample
 from hil.runtime.judge import truth_record
 from hil.runtime.loop import ControlLoop
-from hil.runtime.processes import peak_rss_mib, stop_process
+from hil.runtime.processes import peak_rss_mib, sigint_blocked_in_children, stop_process
 from hil.runtime.rig import RigGeometry
 from hil.runtime.vision import LoggedImage, VisionPipeline, VisionStatus
 from hil.runtime.workers import InlineWorkers, ProcessWorkers
@@ -169,7 +169,8 @@ def start_vision(
     process = context.Process(
         target=vision_main, args=(spec, theirs, frames), name="satgrasp-vision"
     )
-    process.start()
+    with sigint_blocked_in_children():
+        process.start()
     theirs.close()
     try:
         _await_ready(ours, "vision", process)
@@ -309,8 +310,9 @@ def build_wall(trial: Trial) -> None:
     processes["world"] = context.Process(
         target=world_main, args=(build, world_theirs, requests_out), name="satgrasp-world"
     )
-    for process in processes.values():
-        process.start()
+    with sigint_blocked_in_children():
+        for process in processes.values():
+            process.start()
     for connection in (world_theirs, requests_out, requests_in, frames_out, camera_ready_out):
         connection.close()
     spec = VisionSpec(

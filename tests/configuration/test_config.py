@@ -1,9 +1,11 @@
 import numpy as np
 import pytest
+import yaml
 
 from configuration.camera import CameraConfig, load_camera
 from configuration.files import ConfigError, builtin_names, load_config, parse_yaml_text
 from configuration.mockup import MockupConfig, load_mockup
+from configuration.simulation import load_simulation
 
 
 def test_builtin_configs_load_from_any_directory(tmp_path, monkeypatch):
@@ -136,3 +138,35 @@ def test_model_file_path_is_relative_to_the_yaml(tmp_path):
 def test_load_config_with_explicit_model(tmp_path):
     path = _write(tmp_path, "name: m\n" + BOLTS)
     assert isinstance(load_config(path, MockupConfig), MockupConfig)
+
+
+def test_simulation_names_its_files_relative_to_itself_from_any_directory(tmp_path, monkeypatch):
+    folder = tmp_path / "study"
+    (folder / "cameras").mkdir(parents=True)
+    (folder / "cameras" / "small.yaml").write_text(
+        "name: s\nwidth: 160\nheight: 120\nhfov_deg: 70\n"
+    )
+    mockup = load_mockup("default")
+    (folder / "my_mockup.yaml").write_text(yaml.safe_dump(mockup.model_dump(mode="json")))
+    (folder / "sim.yaml").write_text(
+        "name: s\nmockup: my_mockup.yaml\ncamera: cameras/small.yaml\nrig: rig\n"
+    )
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    sim = load_simulation(folder / "sim.yaml")
+    assert sim.mockup == str((folder / "my_mockup.yaml").resolve())
+    assert sim.camera == str((folder / "cameras" / "small.yaml").resolve())
+    assert sim.rig == "rig"  # a built-in name stays one
+    assert load_mockup(sim.mockup) == mockup and load_camera(sim.camera).width == 160
+
+
+def test_simulation_naming_a_missing_file_says_where_it_looked(tmp_path):
+    (tmp_path / "sim.yaml").write_text("name: s\nmockup: my_mockup.yaml\n")
+    with pytest.raises(ConfigError) as raised:
+        load_simulation(tmp_path / "sim.yaml")
+    assert raised.value.source == str(tmp_path / "sim.yaml")
+    assert raised.value.problems == [
+        f"mockup: file not found: {(tmp_path / 'my_mockup.yaml').resolve()} "
+        "(a relative path is taken from this file's folder)"
+    ]

@@ -73,7 +73,7 @@ def test_render_colour_camera_with_distortion(tmp_path):
     ("args", "message"),
     [
         (["--camera", "nikon"], "no built-in configuration named 'nikon'"),
-        (["--noise", "medium"], "--noise must be"),
+        (["--noise", "medium"], "Invalid value for '--noise': 'medium' is not one of"),
         (["--distance", "-1"], "--distance must be positive"),
         (["--distance", "0.3", "--dz", "0.5"], "behind the camera"),
     ],

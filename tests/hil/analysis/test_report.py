@@ -15,6 +15,8 @@ from hil.logs.triallog import TrialLog, TrialLogError
 from tests.hil.logs.synthetic_log import (
     STANDOFF_ERROR,
     SYSTEMS,
+    chunk_spans,
+    flip_a_byte,
     make_trial,
     write_format1_log,
     write_trial,
@@ -26,6 +28,7 @@ runner = CliRunner()
 JSON_KEYS = {
     "log",
     "complete",
+    "corrupt",
     "incomplete",
     "success",
     "outcome",
@@ -163,7 +166,7 @@ def test_make_report_without_truth_skips_error_plots_and_says_so(real_log, tmp_p
 
 def test_make_report_on_a_log_cut_off_by_a_crash(cut_log, tmp_path):
     text = _text(make_report(cut_log, tmp_path / "out").read_text())
-    assert "writer was killed" in text and "recovered (writer killed)" in text
+    assert "writer was killed" in text and "recovered: no footer (writer killed" in text
     assert re.search(
         r"outcome cut off in phase approach \(the writer did not close the log\)", text
     )
@@ -233,12 +236,32 @@ def test_cli_report_json_on_a_log_cut_off_by_a_crash_says_it_is_incomplete(cut_l
     figures = _json(result)
     assert set(figures) == JSON_KEYS
     assert figures["complete"] is False and figures["success"] is False
-    assert figures["incomplete"].startswith("The log has no footer (its writer was killed)")
+    assert figures["corrupt"] is False  # a cut-off tail is a killed writer, not a corrupt file
+    assert figures["incomplete"].startswith("The log has no footer (its writer was killed")
     assert figures["outcome"].startswith("cut off in phase approach")
     assert figures["ticks"] > 100 and figures["frames"]["received"] > 10
     assert figures["vision_latency_ms"]["p50"] > 100.0 and figures["standoff_error_mm"] is None
     warning = " ".join(result.stderr.split())
     assert f"warning: {cut_log} is incomplete: The log has no footer" in warning
+
+
+def test_cli_report_tells_a_corrupt_log_from_a_killed_writer(tmp_path):
+    """One flipped byte in a chunk of a complete log: the report says the file is corrupt and
+    what it lost, and reads the rest (before, every record after the bad chunk was dropped
+    and the log taken for one whose writer was killed)."""
+    path = write_trial(tmp_path / "whole.mcap", make_trial(seed=23), trial_clock=True).path
+    offset, length = chunk_spans(path)[3]
+    bad = flip_a_byte(path, tmp_path / "bad.mcap", offset + length // 3)
+    result = runner.invoke(app, ["report", str(bad), "--json", "--out", str(tmp_path / "page")])
+    figures = _json(result)
+    assert figures["corrupt"] is True and figures["complete"] is True
+    assert figures["incomplete"].startswith("The log is corrupt: 1 unreadable part: chunk at")
+    assert "writer was killed" not in figures["incomplete"]
+    assert figures["outcome"] == "completed"  # the end of the trial was read
+    whole = len(list(TrialLog.open(path).ticks()))
+    assert 0 < whole - figures["ticks"] < whole // 4
+    page = _text((tmp_path / "page" / "index.html").read_text())
+    assert "log corrupt, complete" in page and "The log is corrupt" in page
 
 
 def test_cli_report_rejects_bad_files_naming_them(tmp_path):

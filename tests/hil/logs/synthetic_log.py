@@ -552,3 +552,20 @@ def write_format1_log(path: str | Path) -> Path:
             writer.add_message(channel, 0, json.dumps(message).encode(), 0, sequence)
         writer.finish()
     return path
+
+
+def chunk_spans(path: str | Path) -> list[tuple[int, int]]:
+    """(byte offset, byte length) of each chunk record of a complete MCAP file, from its index."""
+    from mcap.reader import make_reader
+
+    with Path(path).open("rb") as f:
+        summary = make_reader(f).get_summary()
+    return [(c.chunk_start_offset, c.chunk_length) for c in summary.chunk_indexes]
+
+
+def flip_a_byte(path: str | Path, out: str | Path, offset: int) -> Path:
+    """A copy of ``path`` with one bit of the byte at ``offset`` flipped (a bad sector)."""
+    data = bytearray(Path(path).read_bytes())
+    data[offset] ^= 0x10
+    Path(out).write_bytes(bytes(data))
+    return Path(out)

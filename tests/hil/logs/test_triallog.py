@@ -29,7 +29,9 @@ from hil.logs.triallog import (
     to_jsonable,
 )
 from tests.hil.logs.synthetic_log import (
+    chunk_spans,
     distance_at,
+    flip_a_byte,
     make_trial,
     synthetic_frame,
     write_format1_log,
@@ -362,6 +364,7 @@ def test_truncated_logs_open_as_recovered_prefixes_and_recover_to_valid_files(tm
         cut_path.write_bytes(data[:cut])
         log = TrialLog.open(cut_path)
         assert log.recovered and not log.complete and log.stopped
+        assert not log.corrupt and log.damage() is None  # a cut-off tail is not corruption
         ticks = [t.tick for t in log.ticks()]
         on_disk = max(n for size, n in flushed_at_size if size <= cut)
         assert ticks == list(range(len(ticks))) and len(ticks) >= on_disk
@@ -377,6 +380,38 @@ def test_truncated_logs_open_as_recovered_prefixes_and_recover_to_valid_files(tm
         assert reopened.header == log.header
     with pytest.raises(ValueError, match="not over"):
         recover(path, path)
+
+
+def test_a_corrupt_chunk_is_passed_over_and_named_and_every_other_record_read(tmp_path, trial):
+    path = write_trial(tmp_path / "whole.mcap", trial, trial_clock=True).path  # a chunk a second
+    whole = [t.tick for t in TrialLog.open(path).ticks()]
+    spans = chunk_spans(path)
+    assert len(spans) >= 5
+    offset, length = spans[len(spans) // 2]
+    log = TrialLog.open(flip_a_byte(path, tmp_path / "bad.mcap", offset + length // 2))
+    assert log.corrupt and log.complete and not log.recovered  # the writer did finish it
+    ticks = [t.tick for t in log.ticks()]
+    lost = sorted(set(whole) - set(ticks))
+    assert lost and ticks[-1] == whole[-1]  # the chunks after the bad one were read
+    assert lost == list(range(lost[0], lost[-1] + 1))  # one chunk: a run of ticks
+    damage = log.damage()
+    assert damage.startswith(f"1 unreadable part: chunk at bytes {offset}–{offset + length}, t ")
+    assert f"lost with them: {len(lost)} ticks of {len(whole)}" in damage
+    assert damage.endswith("; every other record was read")
+
+
+def test_a_corrupt_record_length_ends_the_read_and_says_how_much_is_left(tmp_path, trial):
+    path = write_trial(tmp_path / "whole.mcap", trial, trial_clock=True).path
+    offset, _ = chunk_spans(path)[2]
+    log = TrialLog.open(flip_a_byte(path, tmp_path / "bad.mcap", offset + 8))  # length's top
+    assert log.corrupt and log.recovered
+    size = path.stat().st_size
+    assert log.stopped.startswith("corrupt record framing (a length of ")
+    assert log.stopped.endswith(
+        f"at byte {offset}: the {size - offset} bytes after it could not be read"
+    )
+    assert 0 < log.tick_count < len(trial.ticks)
+    assert not log.damage().endswith("every other record was read")
 
 
 CHILD = """

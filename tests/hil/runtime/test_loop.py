@@ -35,6 +35,8 @@ FUSION = FusionParams(coast_timeout_s=0.4, lost_timeout_s=2.0)
 class RecordingLog:
     def __init__(self):
         self.ticks, self.events, self.vision, self.frames = [], [], [], []
+        self.event_data = []  # each event's data, beside ``events``
+        self.error = None  # set by a test: the log can no longer be written
 
     def write_tick(self, record):
         self.ticks.append(record)
@@ -50,7 +52,13 @@ class RecordingLog:
 
     def write_event(self, t, kind, message, /, **data):
         self.events.append((t, kind, message))
+        self.event_data.append(data)
         return True
+
+    def event(self, kind):
+        """(t, message, data) of the first event of ``kind``."""
+        i = next(i for i, e in enumerate(self.events) if e[1] == kind)
+        return self.events[i][0], self.events[i][2], self.event_data[i]
 
 
 @dataclass
@@ -241,3 +249,94 @@ def test_loop_times_out_a_trial():
     outcome = make_loop().loop.run(max_duration_s=5.0)
     assert outcome.phase == "abort" and "exceeded" in outcome.abort_reason
     assert not outcome.completed
+
+
+def _in_the_approach_after(seconds, action):
+    """An observer that runs ``action`` once, at the first approach tick after ``seconds``;
+    ``done`` gets that tick's time and number."""
+    done = []
+
+    def observer(record):
+        if not done and record.phase == "approach" and record.t >= seconds:
+            done.extend((record.t, record.tick))
+            action()
+
+    return observer, done
+
+
+def test_loop_stops_arm_and_track_on_a_stop_request_within_one_period():
+    bench = make_loop()
+    loop, log = bench.loop, bench.log
+    observer, asked = _in_the_approach_after(2.0, lambda: loop.request_stop("interrupted by X"))
+    loop.observers = [observer]
+    outcome = loop.run(max_duration_s=60)
+    assert asked, log.events[-4:]
+    assert outcome.phase == "abort" and not outcome.completed
+    assert outcome.abort_reason == "interrupted by X in phase approach"
+    assert outcome.stop_failures == ()
+    t, message, data = log.event("stop")
+    assert message == "interrupted by X in phase approach; arm and track stopped"
+    assert loop.ending == message
+    # Asked during the tick at asked[0]: the loop does not sleep, it stops in that period.
+    assert 0.0 <= data["reaction_s"] <= loop.period_s and t - data["asked_t"] <= loop.period_s
+    assert bench.arm.stops and bench.arm.stops[0] - loop.t0 - data["asked_t"] <= loop.period_s
+    assert bench.track.velocity == 0.0 and not np.any(bench.arm.V_BE)
+    after = [tick for tick in log.ticks if tick.tick > asked[1]]
+    assert after and all(tick.command.stop and tick.command.track_velocity == 0 for tick in after)
+    assert after[0].t - asked[0] <= loop.period_s
+
+
+def test_loop_stops_both_devices_when_a_driver_call_raises_and_logs_why():
+    """The track driver's ValueError above the speed it read from the device (not a
+    DeviceError): the exception leaves ``run``, but only after the arm and the track have been
+    stopped and the abort written with the exception's traceback."""
+    bench = make_loop()
+    loop, log, track = bench.loop, bench.log, bench.track
+    real_move = track.move_velocity
+
+    def device_limit(velocity):
+        if abs(velocity) > 0.05:
+            raise ValueError(f"track velocity {velocity} m/s is outside ±0.05 m/s (max_speed)")
+        real_move(velocity)
+
+    track.move_velocity = device_limit
+    with pytest.raises(ValueError, match=r"outside ±0\.05 m/s") as raised:
+        loop.run(max_duration_s=60)
+    assert loop.ended_by is raised.value
+    assert track.velocity == 0.0 and not np.any(bench.arm.V_BE) and bench.arm.stops
+    t, message, data = log.event("abort")
+    assert message.startswith("trial ended by ValueError: track velocity")
+    assert message.endswith("in phase approach; arm and track stopped")
+    assert data["exception"] == "ValueError" and "device_limit" in data["traceback"]
+    assert t == pytest.approx(bench.arm.stops[0] - loop.t0)
+
+
+def test_loop_ends_the_trial_when_its_log_cannot_be_written():
+    bench = make_loop()
+    loop, log = bench.loop, bench.log
+    error = "OSError: [Errno 28] No space left on device"
+    observer, failed = _in_the_approach_after(2.0, lambda: setattr(log, "error", error))
+    loop.observers = [observer]
+    outcome = loop.run(max_duration_s=60)
+    assert failed and outcome.phase == "abort"
+    assert outcome.abort_reason == f"trial log cannot be written ({error}) in phase approach"
+    # Stopped in the period the failure was seen in: a trial not recorded must not move on.
+    assert bench.arm.stops[0] - loop.t0 - failed[0] <= 1e-9
+    after = [tick for tick in log.ticks if tick.tick > failed[1]]
+    assert after and all(tick.command.stop for tick in after)
+
+
+def test_loop_stop_devices_stops_the_track_when_the_arm_stop_raises():
+    bench = make_loop()
+
+    def broken_stop(deceleration=2.0):
+        raise RuntimeError("controller gone")
+
+    bench.arm.stop = broken_stop
+    bench.track.velocity = 0.2
+    failures = bench.loop.stop_devices(0.0)
+    assert failures == ("arm stop failed: RuntimeError: controller gone",)
+    assert bench.track.velocity == 0.0
+    assert ("fault", "arm stop failed: RuntimeError: controller gone") in [
+        e[1:] for e in bench.log.events
+    ]
