@@ -35,13 +35,13 @@ import numpy as np
 
 from configuration.rig import ArmConfig
 from drivers.base import ArmState, DeviceError, DeviceFault, DeviceTimeout, ServoCommand
-from estimators.geometry import Pose
-from sim_backends.ur_kinematics import (
+from drivers.ur_kinematics import (
     damped_least_squares,
     jacobian_from_frames,
     joint_frames,
     ur_model,
 )
+from estimators.geometry import Pose
 
 
 class SimArm:
