@@ -30,11 +30,11 @@ from drivers.base import GripperState
 from estimators.geometry import Pose
 from hil.runtime.servo import (
     PoseError,
-    limit_acceleration,
+    limit_command,
     pbvs_twist,
     pose_error,
     saturate,
-    scheduled_speed,
+    speed_limit,
     split_along_track,
 )
 from hil.runtime.supervisor import Violation
@@ -222,17 +222,7 @@ class ApproachSequencer:
         X_TC = inputs.X_TC_est
         assert X_TC is not None
         range_m = float(X_TC.p[2])
-        max_speed = (
-            speed
-            if speed is not None
-            else scheduled_speed(
-                range_m,
-                near_m=servo.near_range_m,
-                far_m=servo.far_range_m,
-                slow=servo.slow_speed,
-                fast=servo.max_speed,
-            )
-        )
+        max_speed = speed if speed is not None else speed_limit(range_m, servo)
         twist = saturate(
             pbvs_twist(X_TC, goal, servo.gain), max_speed, math.radians(servo.max_angular_speed_deg)
         )
@@ -280,18 +270,11 @@ class ApproachSequencer:
 
     def _limit(self, twist: np.ndarray, track: float, dt: float) -> tuple[np.ndarray, float]:
         """Acceleration limits on what is actually commanded (also when stopping)."""
-        servo = self.config.servo
         if self.phase in TERMINAL:
             self._previous_twist, self._previous_track = np.zeros(6), 0.0
             return np.zeros(6), 0.0
-        limited = limit_acceleration(
-            twist,
-            self._previous_twist,
-            dt,
-            servo.max_acceleration,
-            math.radians(servo.max_angular_acceleration_deg),
+        limited, track = limit_command(
+            twist, track, self._previous_twist, self._previous_track, dt, self.config.servo
         )
-        step = servo.max_acceleration * dt
-        track = float(np.clip(track, self._previous_track - step, self._previous_track + step))
         self._previous_twist, self._previous_track = limited, track
         return limited, track
