@@ -102,6 +102,8 @@ class ApproachSequencer:
     _previous_track: float = 0.0
     _grasp: _GraspState = field(default_factory=_GraspState)
     _events: list[tuple[str, str]] = field(default_factory=list)
+    #: The kinds of recoverable violation holding the acquisition (logged once, not per tick).
+    _holding: frozenset[str] = frozenset()
 
     @property
     def X_TC_goal(self) -> Pose:
@@ -120,6 +122,8 @@ class ApproachSequencer:
         self.phase = phase
         self._phase_since = stamp
         self._within_since = None
+        if phase != Phase.ACQUIRE:
+            self._holding = frozenset()
         if phase == Phase.GRASP:
             self._grasp = _GraspState(since=stamp)
 
@@ -144,7 +148,10 @@ class ApproachSequencer:
         recoverable = all(v.recoverable for v in violations)
         can_reacquire = self.phase in (Phase.APPROACH, Phase.STANDOFF, Phase.ACQUIRE)
         if recoverable and self.config.supervisor.reacquire and can_reacquire:
-            self._events.append(("fault", text))
+            kinds = frozenset(v.kind for v in violations)
+            if self.phase != Phase.ACQUIRE or kinds != self._holding:
+                self._events.append(("fault", text))
+            self._holding = kinds
             self._healthy_since = None
             self._enter(Phase.ACQUIRE, stamp, f"stopped: {text}")
         else:
