@@ -208,6 +208,8 @@ class ControlLoop:
         )
         if status.frame_problem is not None:
             problems.append(Violation("frames", status.frame_problem, True))
+        if status.camera_fault is not None:
+            problems.append(Violation("camera", status.camera_fault, False))
         if status.estimator_faults > self._faults_seen:
             self._faults_seen = status.estimator_faults
             problems.append(Violation("estimator", status.estimator_fault or "malfunction", False))

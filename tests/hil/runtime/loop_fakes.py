@@ -174,13 +174,17 @@ class FakeGripper:
 
 
 class FakeStillCamera:
-    """Draws a blank frame carrying the truth of the moment (what ``StreamingSimCamera`` wraps)."""
+    """Draws a blank frame carrying the truth of the moment (what ``StreamingSimCamera`` wraps);
+    its frame number is written into the first pixels, as a live sensor's noise makes every
+    frame differ. ``frozen``: the image stops changing (a stuck driver), stamps go on."""
 
     def __init__(self, world: FakeWorld):
         self.world = world
         self.seq = 0
         self.streaming = False
         self.corrupt_next = False
+        self.frozen = False
+        self._last_image: np.ndarray | None = None
 
     @property
     def info(self) -> CameraInfo:
@@ -202,6 +206,10 @@ class FakeStillCamera:
         truth = self.world.truth()
         X_CT = truth["X_WC"].inverse() @ truth["X_WT"]
         image = np.zeros((48, 64), np.uint8)
+        image[0, :4] = np.frombuffer(np.uint32(self.seq).tobytes(), np.uint8)
+        if self.frozen and self._last_image is not None:
+            image = self._last_image
+        self._last_image = image
         if self.corrupt_next:
             self.corrupt_next = False
             image = np.zeros((10, 10), np.uint8)

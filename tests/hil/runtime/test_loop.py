@@ -145,6 +145,7 @@ def test_loop_acts_on_the_estimate_brought_forward_to_the_tick(full_run):
     [
         ("frames stop", lambda b: setattr(b.world, "frames_stopped", True), "frames", "abort"),
         ("corrupt frame", lambda b: setattr(b.world.still, "corrupt_next", True), "frames", None),
+        ("frozen camera", lambda b: setattr(b.world.still, "frozen", True), "camera", "abort"),
         (
             "estimator raises",
             lambda b: setattr(b.estimators["a"], "raise_error", True),
