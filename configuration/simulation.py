@@ -62,6 +62,11 @@ class SimulationConfig(Strict):
     grasp_capture_m: PositiveM = 0.01
     grasp_capture_deg: Annotated[float, Field(gt=0.0, le=20.0)] = 3.0
     grasp_object_width_m: PositiveM = 0.05
+    #: Contact in simulation: the fingertips reach this far ahead of the camera along its
+    #: optical axis (1 cm short of the ring's face at the default grasp pose, 0.35 m), and the
+    #: mock-up's mount pushes back on them with this stiffness (N/m) once they pass its face.
+    tool_reach_m: PositiveM = 0.34
+    contact_stiffness: PositiveM = 2000.0
     max_duration_s: PositiveM = 150.0
 
     @field_serializer("fusion")

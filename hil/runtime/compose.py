@@ -157,6 +157,8 @@ class Trial:
             "capture_position_m": config.grasp_capture_m,
             "capture_angle_deg": config.grasp_capture_deg,
             "object_width": config.grasp_object_width_m,
+            "tool_reach_m": config.tool_reach_m,
+            "contact_stiffness": config.contact_stiffness,
             "timing": config.camera_timing,
         }
 
