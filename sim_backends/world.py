@@ -148,6 +148,15 @@ class SimRig:
         )
         return track, gripper
 
+    def silence_track(self) -> None:
+        """Fault injection: the track's Modbus device stops answering (in-process: every
+        request times out; over TCP: its server goes away). Its own watchdog then stops it."""
+        link = self.track.link
+        if isinstance(link, DirectLink):
+            link.drop()
+        else:
+            self._servers[0].stop()
+
     # --- what the camera sees -------------------------------------------------------------
     def viewpoint(self) -> Viewpoint:
         """The camera's pose and its twist relative to the target (for motion blur), now."""
