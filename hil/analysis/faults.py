@@ -13,7 +13,8 @@ process, so a trial whose log fails is judged too) and its log:
   rate first exceeds ``max_target_rate_deg_s``; a full disk at the next write;
 * the *stop*: the first tick after the injection that commanded a stop;
 * the *reaction*: whole control periods from the first tick that could see the effect to that
-  stop (0: the very same tick). A row passes when the reaction is at most one period, the log
+  stop (0: the very same tick; negative: another rule had stopped the arm before, e.g. fusion
+  losing a target that turns away from its model). A row passes when the reaction is at most one period, the log
   opens, and the reason is named (in the log; for a full disk, which cannot take it, in the
   trial's outcome).
 """
@@ -126,7 +127,7 @@ def judge(
     log, readable = _open(result.log_path, len(ticks))
     if injected_t is None:
         return FaultRow(
-            kind, None, None, None, None, _final(result), readable, "not injected", False,
+            kind, None, None, None, None, _final(result, ticks), readable, "not injected", False,
             result.log_path,
         )  # fmt: skip
     effect_t = _effect(kind, config, ticks, log, injected_t, faulty_arrivals)
@@ -136,7 +137,7 @@ def judge(
     if stop is not None and effect_t is not None:
         seeing = next((t for t in after if t.t >= effect_t - 1e-9), None)
         if seeing is not None:
-            reaction = max(0, round((stop.t - seeing.t) / period))
+            reaction = round((stop.t - seeing.t) / period)
     reason = _reason(kind, log, injected_t, result)
     passed = (
         reaction is not None
@@ -145,7 +146,7 @@ def judge(
         and not reason.startswith("no")
     )
     return FaultRow(
-        kind, injected_t, effect_t, None if stop is None else stop.t, reaction, _final(result),
+        kind, injected_t, effect_t, None if stop is None else stop.t, reaction, _final(result, ticks),
         readable, reason, passed, result.log_path,
     )  # fmt: skip
 
@@ -206,10 +207,10 @@ def _reason(kind: str, log: TrialLog | None, injected_t: float, result: TrialRes
     return f"no (outcome: {outcome or result.outcome.phase})"
 
 
-def _final(result: TrialResult) -> str:
+def _final(result: TrialResult, ticks: Sequence[TickRecord]) -> str:
     o = result.outcome
-    if o.abort_reason.startswith("trial exceeded"):
-        return f"running at the {TRIAL_S:.0f} s limit (recovered)"
+    if o.abort_reason.startswith("trial exceeded") and len(ticks) > 1:
+        return f"{ticks[-2].phase} at the {TRIAL_S:.0f} s limit"
     return f"{o.phase}" + (f": {o.abort_reason}" if o.abort_reason else "")
 
 
@@ -253,6 +254,7 @@ def table(rows: Sequence[FaultRow], period_s: float) -> str:
     lines.append("")
     lines.append(
         f"Reaction: whole control periods ({1000 * period_s:.0f} ms) from the first tick that "
-        "could see the fault's effect to the first stop; 0 = the same tick."
+        "could see the fault's effect to the first stop; 0 = the same tick, negative = "
+        "stopped before by another rule."
     )
     return "\n".join(lines)

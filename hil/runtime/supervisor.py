@@ -183,10 +183,11 @@ def _command(
     if abs(u) > max_u:
         fail("speed", f"commanded track speed {u:.3f} m/s, limit ±{max_u:.3f} m/s")
 
-    # Accelerations against what was sent one period before.
+    # Accelerations against what was sent one period before (without the arm's state the
+    # loop has no twist to send: the arm rule stops it).
     dt = snap.period_s
     max_a = servo.max_acceleration * config.acceleration_margin
-    if snap.previous_V_BE is not None:
+    if snap.previous_V_BE is not None and snap.arm is not None:
         dV = (V - np.asarray(snap.previous_V_BE, dtype=float)) / dt
         a, alpha = float(np.linalg.norm(dV[:3])), float(np.linalg.norm(dV[3:]))
         if a > max_a:

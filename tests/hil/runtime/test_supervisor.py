@@ -232,6 +232,13 @@ def test_supervisor_commanded_track_acceleration_both_ways(sign):
         assert ("acceleration" in kind_names(snap)) is flagged, (sign, scale)
 
 
+def test_supervisor_commanded_twist_acceleration_needs_the_arm_state():
+    jump = dict(commanded_V_BE=np.zeros(6), previous_V_BE=np.array([0.2, 0, 0, 0, 0, 0.1]))
+    assert "acceleration" in kind_names(snapshot(**jump))
+    lost = kinds(snapshot(**jump, arm=None, arm_error="arm state unavailable"))
+    assert lost == {("arm_link", False)}
+
+
 def test_supervisor_commanded_acceleration_is_over_the_control_period():
     # The same change is allowed over a longer period (a slower controller).
     step = np.array([SERVO.max_acceleration * SUP.acceleration_margin * DT * 1.5, 0, 0, 0, 0, 0])
