@@ -667,6 +667,8 @@ def test_rate_exceeded_since_keeps_the_onset_until_the_rate_falls():
     assert rate_exceeded_since(2.0, under, 2.6, SUP) is None
     assert rate_exceeded_since(2.0, None, 2.6, SUP) is None
     assert rate_exceeded_since(None, under, 2.6, SUP) is None
+    at_limit = rate(SUP.max_target_rate_deg_s)
+    assert rate_exceeded_since(2.0, at_limit, 2.6, SUP) is None  # the limit itself is allowed
 
 
 # --- configuration ------------------------------------------------------------------------------
