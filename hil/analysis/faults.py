@@ -11,7 +11,8 @@ process, so a trial whose log fails is judged too) and its log:
   the first such result comes back; a camera that stopped when its newest frame grows older
   than ``max_frame_age_s`` (that rule's threshold); a tumbling mock-up when the fused estimate's
   rate first exceeds ``max_target_rate_deg_s``; a full disk at the next write;
-* the *stop*: the first tick after the injection that commanded a stop;
+* the *stop*: the first tick after the injection that commanded a stop, or the loop stopping
+  the devices outside a tick (the way a trial ends when its log cannot be written);
 * the *reaction*: whole control periods from the first tick that could see the effect to that
   stop (0: the very same tick; negative: another rule had stopped the arm before, e.g. fusion
   losing a target that turns away from its model). A row passes when the reaction is at most one period, the log
@@ -103,6 +104,7 @@ def run_fault(base: SimulationConfig, kind: str, *, seed: int, out_dir: Path) ->
     log_path = out_dir / f"fault_{kind}_seed{seed}_{time.strftime('%Y%m%d-%H%M%S')}.mcap"
     ticks: list[TickRecord] = []
     with Trial(config, seed=seed, log_path=log_path, on_tick=ticks.append) as trial:
+        stops = _record_stops(trial)
         result = trial.run()
         assert trial.injector is not None
         injected = trial.injector.injected
@@ -111,8 +113,22 @@ def run_fault(base: SimulationConfig, kind: str, *, seed: int, out_dir: Path) ->
         ]
         period = trial.loop.period_s
     return judge(
-        kind, config, ticks, result, injected[0].t if injected else None, faulty_frames, period
-    )
+        kind, config, ticks, result, injected[0].t if injected else None, faulty_frames, period,
+        stops,
+    )  # fmt: skip
+
+
+def _record_stops(trial: Trial) -> list[float]:
+    """Times (s since the start) at which the loop stops the devices itself."""
+    stops: list[float] = []
+    loop, stop_devices = trial.loop, trial.loop.stop_devices
+
+    def recorded(t: float, *args, **kwargs):
+        stops.append(t - loop.t0)
+        return stop_devices(t, *args, **kwargs)
+
+    loop.stop_devices = recorded  # type: ignore[method-assign]
+    return stops
 
 
 def judge(
@@ -123,6 +139,7 @@ def judge(
     injected_t: float | None,
     faulty_arrivals: Sequence[float],
     period: float,
+    device_stops: Sequence[float] = (),
 ) -> FaultRow:
     log, readable = _open(result.log_path, len(ticks))
     if injected_t is None:
@@ -132,12 +149,20 @@ def judge(
         )  # fmt: skip
     effect_t = _effect(kind, config, ticks, log, injected_t, faulty_arrivals)
     after = [t for t in ticks if t.t > injected_t + 1e-9]
-    stop = next((t for t in after if t.command.stop), None)
+    stop_times = [t.t for t in after if t.command.stop]
+    # The loop may also stop the devices at once, between ticks (the injection's own instant).
+    stop_times += [s for s in device_stops if s >= injected_t - 1e-9]
+    stop_t = min(stop_times) if stop_times else None
     reaction = None
-    if stop is not None and effect_t is not None:
-        seeing = next((t for t in after if t.t >= effect_t - 1e-9), None)
-        if seeing is not None:
-            reaction = round((stop.t - seeing.t) / period)
+    if stop_t is not None and effect_t is not None:
+        # The first tick that could see it (or, after the last tick, the next one's time).
+        seeing = next((t.t for t in after if t.t >= effect_t - 1e-9), None)
+        if seeing is None:
+            seeing = ticks[-1].t + period if ticks else None
+        if seeing is not None and stop_t < effect_t - 1e-9:  # stopped before, by another rule
+            reaction = -round((seeing - stop_t) / period)
+        elif seeing is not None:
+            reaction = max(0, round((stop_t - seeing) / period))
     reason = _reason(kind, log, injected_t, result)
     passed = (
         reaction is not None
@@ -146,8 +171,8 @@ def judge(
         and not reason.startswith("no")
     )
     return FaultRow(
-        kind, injected_t, effect_t, None if stop is None else stop.t, reaction, _final(result, ticks),
-        readable, reason, passed, result.log_path,
+        kind, injected_t, effect_t, stop_t, reaction, _final(result, ticks), readable, reason,
+        passed, result.log_path,
     )  # fmt: skip
 
 
@@ -172,7 +197,7 @@ def _effect(
 ) -> float | None:
     """The first instant the loop could observe the fault (s since the start)."""
     if kind in _AT_NEXT_TICK:
-        return injected_t + 1e-6
+        return injected_t
     if kind in ("frozen_camera", "corrupt_frame"):
         return faulty_arrivals[0] if faulty_arrivals else None
     if kind == "camera_dropout":
