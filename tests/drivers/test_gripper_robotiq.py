@@ -240,3 +240,12 @@ def test_robotiq_gripper_over_tcp_builds_its_link():
     assert (link.host, link.port, link.device_id, link.timeout_s) == ("127.0.0.9", 5999, 9, 0.7)
     other = RobotiqGripper.over_tcp("127.0.0.9", 5999, 4)
     assert other.link.device_id == 4 and other.link.timeout_s == 0.5
+
+
+def test_robotiq_gripper_over_tcp_passes_speed_force_and_clock():
+    gripper = RobotiqGripper.over_tcp("127.0.0.9", 5999, speed=0.2, force=0.4, clock=lambda: 3.5)
+    link = RecordingLink({2000: status_word(3, 3)})
+    gripper._link = link  # the same driver on a recording link: what it would send
+    gripper.grip()
+    assert link.writes[-1][1][2] == (round(255 * 0.2) << 8) | round(255 * 0.4)
+    assert gripper.state().stamp == 3.5

@@ -287,9 +287,12 @@ def test_modbus_track_move_to_limits_inclusive():
 
 def test_modbus_track_refuses_motion_until_active_but_always_stops():
     link, track = recording_track(active=False)
-    for call in (lambda: track.move_velocity(0.1), lambda: track.move_to(1.0, 0.1)):
+    for name, call in (
+        ("move_velocity", lambda: track.move_velocity(0.1)),
+        ("move_to", lambda: track.move_to(1.0, 0.1)),
+    ):
         with pytest.raises(
-            DeviceError, match=r"recording link: .* refused: the track is not active"
+            DeviceError, match=f"recording link: {name} refused: the track is not active"
         ):
             call()
     track.stop()
