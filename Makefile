@@ -49,8 +49,9 @@ bench: $(STAMP_RUN)
 mutation: $(STAMP_MUTATION)
 	rm -rf mutants
 	nice -n 10 $(BIN)/mutmut run --max-children 2 || true
-	$(BIN)/mutmut results --all true > mutation-results.txt || $(BIN)/mutmut results > mutation-results.txt
-	$(BIN)/python -m hil.analysis.mutation_score mutants
+	$(BIN)/mutmut export-cicd-stats
+	@cat mutants/mutmut-cicd-stats.json
+	$(BIN)/mutmut results | tee mutation-results.txt
 
 clean:
 	rm -rf $(VENV) build *.egg-info $(RUNS) mutants mutation-results.txt
