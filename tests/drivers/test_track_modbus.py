@@ -292,7 +292,8 @@ def test_modbus_track_refuses_motion_until_active_but_always_stops():
         ("move_to", lambda: track.move_to(1.0, 0.1)),
     ):
         with pytest.raises(
-            DeviceError, match=f"recording link: {name} refused: the track is not active"
+            DeviceError,
+            match=rf"recording link: {name} refused: the track is not active \(call activate\(\)\)",
         ):
             call()
     track.stop()
@@ -358,3 +359,27 @@ def test_modbus_track_over_tcp_builds_its_link():
     assert (link.host, link.port, link.device_id, link.timeout_s) == ("127.0.0.9", 5998, 3, 0.7)
     default = ModbusTrack.over_tcp("127.0.0.9", 5998)
     assert default.link.device_id == 1 and default.link.timeout_s == 0.5
+
+
+def test_modbus_track_before_connect_checks_only_the_register_range():
+    """Limits are the device's: before ``connect`` has read them the driver refuses nothing
+    but what its registers cannot hold (µm and µm/s in 32 bits: ±2147 m)."""
+    link = RecordingLink()
+    track = ModbusTrack(link)
+    track.activate()
+    track.move_velocity(-3.0)
+    track.move_to(-5.0, 4.0)
+    assert [w[1][1] for w in link.writes] == [R.MODE_STOP, R.MODE_VELOCITY, R.MODE_POSITION]
+    for call, name in (
+        (lambda: track.move_velocity(3000.0), "velocity"),
+        (lambda: track.move_to(-3000.0, 1.0), "position"),
+        (lambda: track.move_to(1.0, 3000.0), "speed"),
+    ):
+        with pytest.raises(ValueError, match=f"^{name} = .* is out of the register range"):
+            call()
+
+
+def test_modbus_track_over_tcp_passes_its_clock():
+    track = ModbusTrack.over_tcp("127.0.0.9", 5998, clock=lambda: 4.5)
+    track._link = RecordingLink(status_image())  # the same driver on a recording link
+    assert track.state().stamp == 4.5
