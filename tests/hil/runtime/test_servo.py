@@ -131,7 +131,7 @@ def test_speed_limit_is_the_range_schedule_of_the_servo_config():
 def test_scheduled_speed_boundaries_and_refusal():
     kwargs = dict(near_m=0.5, far_m=2.0, slow=0.02, fast=0.2)
     assert scheduled_speed(0.5, **kwargs) == 0.02 and scheduled_speed(2.0, **kwargs) == 0.2
-    with pytest.raises(ValueError, match="far_m > near_m"):
+    with pytest.raises(ValueError, match=r"^scheduled_speed needs far_m > near_m$"):
         scheduled_speed(1.0, near_m=1.0, far_m=1.0, slow=0.1, fast=0.2)
 
 

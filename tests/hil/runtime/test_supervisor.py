@@ -156,6 +156,7 @@ def test_supervisor_refuses_a_non_finite_command(bad):
     twist[4] = bad
     assert ("command", False) in kinds(snapshot(commanded_V_BE=twist))
     assert ("command", False) in kinds(snapshot(commanded_track_velocity=bad))
+    assert message(snapshot(commanded_track_velocity=bad), "command") == "non-finite command"
 
 
 @pytest.mark.parametrize("phase", ["idle", "acquire", "done", "abort"])
@@ -320,6 +321,31 @@ def test_supervisor_camera_speed_falls_with_range(range_m, axis, sign):
             previous_track_velocity=0.0,
         )
         assert ("range_speed" in kind_names(snap)) is flagged, (range_m, axis, sign, scale)
+
+
+def test_supervisor_speed_limits_themselves_are_allowed():
+    """A limit is the largest value allowed: exactly at it passes (and just over fails above)."""
+    limit = SERVO.max_speed * SUP.speed_margin
+    at = np.array([limit, 0, 0, 0, 0, 0])
+    assert "speed" not in kind_names(snapshot(commanded_V_BE=at, previous_V_BE=at))
+    track_limit = RIG.max_track_speed * SUP.speed_margin
+    far = dict(X_TC_est=at_range(2.4), track=None)
+    u = dict(commanded_track_velocity=-track_limit, previous_track_velocity=-track_limit)
+    assert "speed" not in kind_names(snapshot(**far, **u))
+    range_limit = speed_limit(0.5, SERVO) * SUP.speed_margin
+    camera = np.array([range_limit, 0, 0, 0, 0, 0])
+    near = dict(
+        X_TC_est=at_range(0.5),
+        commanded_V_BE=camera,
+        previous_V_BE=camera,
+        commanded_track_velocity=0.0,
+        previous_track_velocity=0.0,
+        track=None,
+    )
+    assert "range_speed" not in kind_names(snapshot(**near))
+    near.update(commanded_V_BE=np.zeros(6), previous_V_BE=np.zeros(6))
+    near.update(commanded_track_velocity=-range_limit, previous_track_velocity=-range_limit)
+    assert "range_speed" not in kind_names(snapshot(**near))
 
 
 def test_supervisor_slow_speed_inside_the_slow_down_distance():
