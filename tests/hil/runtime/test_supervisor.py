@@ -603,23 +603,38 @@ def test_supervisor_contact_force_and_torque_both_ways(axis, sign):
 
 
 @pytest.mark.parametrize(
-    ("changes", "expected"),
+    ("changes", "expected", "says"),
     [
-        ({"frame_age_s": 1.01 * SUP.max_frame_age_s}, ("frames", True)),
-        ({"estimate_health": "coasting"}, ("estimate", True)),
-        ({"estimate_health": "lost"}, ("estimate", True)),
-        ({"estimate_age_s": 1.01 * SUP.max_estimate_age_s}, ("estimate", True)),
-        ({"X_TC_est": None}, ("estimate", True)),
-        ({"X_TC_est": Pose.unchecked(FACING.R, np.array([np.nan, 0, 1]))}, ("estimate", True)),
-        ({"X_TC_est": Pose(FACING.R, np.array([0.9, 0.0, 1.0]))}, ("cone", False)),
-        ({"X_TC_est": Pose(FACING.R, np.array([0.0, 0.0, -0.5]))}, ("cone", False)),
-        ({"X_TC_est": at_range(0.99 * SUP.min_range_m)}, ("too_close", False)),
+        ({"frame_age_s": 0.5}, ("frames", True), "no usable frame for 0.50 s, limit 0.4 s"),
+        ({"estimate_health": "coasting"}, ("estimate", True), "estimate is coasting"),
+        ({"estimate_health": "lost"}, ("estimate", True), "estimate is lost"),
+        ({"estimate_age_s": 0.5}, ("estimate", True), "estimate is 0.50 s old, limit 0.4 s"),
+        ({"X_TC_est": None}, ("estimate", True), "no finite pose estimate"),
+        (
+            {"X_TC_est": Pose.unchecked(FACING.R, np.array([np.nan, 0, 1]))},
+            ("estimate", True),
+            "no finite pose estimate",
+        ),
+        (
+            {"X_TC_est": Pose(FACING.R, np.array([0.9, 0.0, 1.0]))},
+            ("cone", False),
+            "camera 42.0° off the ring axis, limit 30.0°",
+        ),
+        ({"X_TC_est": Pose(FACING.R, np.array([0.0, 0.0, -0.5]))}, ("cone", False), "off the"),
+        ({"X_TC_est": Pose(FACING.R, np.zeros(3))}, ("cone", False), "off the ring axis"),
+        (
+            {"X_TC_est": at_range(0.2)},
+            ("too_close", False),
+            "camera 0.200 m from the ring face, limit 0.25 m",
+        ),
     ],
 )
 @pytest.mark.parametrize("phase", sorted(MOVING_PHASES))
-def test_supervisor_needs_a_fresh_estimate_in_every_moving_phase(changes, expected, phase):
+def test_supervisor_needs_a_fresh_estimate_in_every_moving_phase(changes, expected, says, phase):
     still = dict(commanded_V_BE=np.zeros(6), previous_V_BE=np.zeros(6))
-    assert expected in kinds(snapshot(phase=phase, **still, **changes))
+    snap = snapshot(phase=phase, **still, **changes)
+    assert expected in kinds(snap)
+    assert any(says in v.message for v in violations(snap) if v.kind == expected[0])
     assert expected[0] not in kind_names(snapshot(phase="idle", **still, **changes))
 
 
@@ -631,6 +646,19 @@ def test_supervisor_estimate_limits_in_both_directions():
         assert kind not in kind_names(snapshot(**{field: 0.99 * limit}))
         assert kind in kind_names(snapshot(**{field: 1.01 * limit}))
     assert "too_close" not in kind_names(snapshot(X_TC_est=at_range(1.01 * SUP.min_range_m)))
+    # the limits themselves are allowed
+    assert kinds(snapshot(frame_age_s=SUP.max_frame_age_s)) == set()
+    assert kinds(snapshot(estimate_age_s=SUP.max_estimate_age_s)) == set()
+    assert "too_close" not in kind_names(snapshot(X_TC_est=at_range(SUP.min_range_m)))
+
+
+@pytest.mark.parametrize("range_m", [0.5, 1.0, 2.0])
+def test_approach_cone_at_every_range_and_its_edge(range_m):
+    wide = SUP.model_copy(update={"approach_cone_deg": 45.0})  # atan2(r, r) is exactly 45°
+    edge = Pose(FACING.R, np.array([range_m, 0.0, range_m]))
+    beyond = Pose(FACING.R, np.array([1.01 * range_m, 0.0, range_m]))
+    assert "cone" not in kind_names(snapshot(X_TC_est=edge), config=wide)
+    assert "cone" in kind_names(snapshot(X_TC_est=beyond), config=wide)
 
 
 @pytest.mark.parametrize("sign", [1.0, -1.0])
