@@ -206,6 +206,17 @@ def test_supervisor_commanded_track_speed_both_ways(sign):
     )
 
 
+def test_supervisor_speed_messages_name_value_and_limit():
+    fast = np.array([0.4, 0, 0, 0, 0, 0])
+    assert "commanded flange speed 0.400 m/s, limit 0.300 m/s" in message(
+        snapshot(commanded_V_BE=fast, previous_V_BE=fast), "speed"
+    )
+    spin = np.array([0, 0, 0, 0, 0, math.radians(20.0)])
+    assert "commanded angular speed 20.0°/s, limit 18.0°/s" in message(
+        snapshot(commanded_V_BE=spin, previous_V_BE=spin), "speed"
+    )
+
+
 @pytest.mark.parametrize(("axis", "sign"), AXES_AND_SIGNS)
 def test_supervisor_commanded_flange_acceleration_both_ways(axis, sign):
     limit = SERVO.max_acceleration * SUP.acceleration_margin
@@ -328,6 +339,11 @@ def test_supervisor_speed_limits_themselves_are_allowed():
     limit = SERVO.max_speed * SUP.speed_margin
     at = np.array([limit, 0, 0, 0, 0, 0])
     assert "speed" not in kind_names(snapshot(commanded_V_BE=at, previous_V_BE=at))
+    angular = math.radians(SERVO.max_angular_speed_deg) * SUP.speed_margin
+    turn = np.array([0, 0, 0, 0, 0, angular])
+    assert "speed" not in kind_names(
+        snapshot(commanded_V_BE=turn, previous_V_BE=turn, phase="standoff")
+    )
     track_limit = RIG.max_track_speed * SUP.speed_margin
     far = dict(X_TC_est=at_range(2.4), track=None)
     u = dict(commanded_track_velocity=-track_limit, previous_track_velocity=-track_limit)
@@ -453,6 +469,7 @@ def test_stopping_position_brakes_on_both_signs():
     assert stop_at(1.0, 0.2) == pytest.approx(1.0 + 0.2 * DT + 0.04)
     assert stop_at(1.0, -0.2) == pytest.approx(1.0 - 0.2 * DT - 0.04)
     assert stop_at(1.0, 0.0) == 1.0
+    assert stopping_position(1.0, 0.2, 0.25, 0.0) == pytest.approx(1.08)  # v²/2a, a = 0.25
 
 
 @pytest.mark.parametrize("source", ["measured", "commanded"])
@@ -477,11 +494,21 @@ def test_supervisor_track_stops_before_its_soft_limit(source, sign):
         )
         assert ("track_travel" in kind_names(snap)) is flagged, (source, sign, offset)
     assert f"{source} {v:+.3f} m/s" in message(snap, "track_travel")
+    limit = RIG.travel_max if sign > 0 else RIG.travel_min
+    assert f"beyond its soft limit {limit:.3f} m less 0.005 m" in message(snap, "track_travel")
+    assert len([v for v in violations(snap) if v.kind == "track_travel"]) == 1
 
 
 def test_supervisor_track_may_leave_its_soft_limit():
     # Moving away from a limit it stands close to (or beyond) is the way back.
-    for position, v in ((RIG.travel_max, -0.1), (RIG.travel_min, 0.1), (RIG.travel_max + 0.01, 0)):
+    for position, v in (
+        (RIG.travel_max, -0.1),
+        (RIG.travel_min, 0.1),
+        (RIG.travel_max + 0.01, 0),
+        (RIG.travel_min - 0.01, 0),
+        (RIG.travel_min - 0.01, 0.05),  # beyond the lower limit, on the way back
+        (RIG.travel_max + 0.01, -0.05),
+    ):
         snap = snapshot(
             track=track(position, v),
             previous_track=track(position, v, stamp=1.0 - DT),
@@ -489,6 +516,30 @@ def test_supervisor_track_may_leave_its_soft_limit():
             previous_track_velocity=v,
         )
         assert "track_travel" not in kind_names(snap), (position, v)
+
+
+def test_supervisor_track_travel_and_track_acceleration_together():
+    jumping = dict(
+        track=track(2.04, 0.2), previous_track=track(2.04, 0.0, stamp=1.0 - DT), X_TC_est=None
+    )
+    assert {"track_travel", "acceleration"} <= kind_names(snapshot(**jumping))
+
+
+def test_supervisor_track_acceleration_at_its_edges():
+    """Exact binary stamps: dt of half a period still counts, the limit itself is allowed."""
+    limit = RIG.max_track_acceleration * SUP.acceleration_margin  # 0.75 m/s²
+    half = dict(period_s=0.25, track=track(1.0, 0.05 + limit * 0.125 * 2))
+    snap = snapshot(**half, previous_track=track(1.0, 0.05, stamp=0.875))
+    assert "measured track acceleration 1.50 m/s², limit 0.75 m/s²" in message(snap, "acceleration")
+    at = snapshot(
+        period_s=0.25,
+        track=track(1.0, 0.25),
+        previous_track=track(1.0, 0.0625, stamp=0.75),
+        commanded_track_velocity=0.0625,
+        previous_track_velocity=0.0625,
+    )
+    assert limit == (0.25 - 0.0625) / 0.25  # exactly, in binary
+    assert "acceleration" not in kind_names(at)
 
 
 def test_supervisor_track_travel_needs_the_track_limits():
@@ -705,6 +756,16 @@ def test_supervisor_holds_for_a_turning_target_then_aborts(phase):
     assert ("target_rate", False) in kinds(too_long)
     assert (
         message(too_long, "target_rate") == "target rotating at 3.0°/s, limit 1.0°/s (held 3.0 s)"
+    )
+
+
+def test_supervisor_target_rate_limit_itself_and_a_missing_onset():
+    assert "target_rate" not in kind_names(snapshot(target_rate=rate(SUP.max_target_rate_deg_s)))
+    quick = SUP.model_copy(update={"target_rate_abort_s": 0.5})
+    fresh = snapshot(target_rate=rate(3.0), target_rate_since=None)
+    assert ("target_rate", True) in kinds(fresh, config=quick)  # just began: hold
+    assert ("target_rate", False) in kinds(
+        snapshot(target_rate=rate(3.0), target_rate_since=0.5), config=quick
     )
 
 
