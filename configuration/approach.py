@@ -78,8 +78,45 @@ class SupervisorConfig(Strict):
     workspace_max_B: XYZ = (1.4, 1.4, 1.6)
     approach_cone_deg: Annotated[float, Field(gt=0.0, lt=90.0)] = 30.0
     min_range_m: PositiveM = 0.25
+    #: Margin on speed limits: the commanded flange and track speeds against the servo's and
+    #: the track's maxima, and the camera's speed against the range schedule
+    #: (``hil.runtime.servo.speed_limit``); the flange moves faster than the camera when turning.
     speed_margin: Annotated[float, Field(ge=1.0, le=3.0)] = 1.2
+    #: Margin on the commanded accelerations (against the previous command, over one period)
+    #: over the servo's limits: the limits hold for the camera twist in C, and the flange's twist
+    #: in B also changes as the camera turns (ω × v, ≈ 0.07 m/s² at 15°/s and 0.25 m/s).
+    acceleration_margin: Annotated[float, Field(ge=1.0, le=5.0)] = 1.5
+    #: Measured accelerations (between successive states): above what a stop brakes at
+    #: (``stop_deceleration``: 2 m/s² and 2 rad/s² = 115°/s²), below a collision or a runaway.
+    max_measured_acceleration: PositiveM = 2.5
+    max_measured_angular_acceleration_deg: Annotated[float, Field(gt=0.0)] = 150.0
     stop_deceleration: PositiveM = 2.0
+    #: The track must be able to stop, braking at its maximum acceleration, this far inside its
+    #: soft limits — checked on the measured and on the commanded velocity, one period ahead.
+    track_limit_margin_m: Annotated[float, Field(ge=0.0)] = 0.005
+    #: The flange may turn this far about each of its start axes (the components of the rotation
+    #: vector of R_E0ᵀ·R_E, E0 the flange at the trial's start). The rig allows ±10° about its
+    #: nominal pose; a random start turns the camera by up to 10° about each axis and the mount
+    #: is off by up to 1°, so undoing it takes up to 10.7° about one axis (200 sampled starts).
+    max_flange_rotation_deg: Annotated[float, Field(gt=0.0, le=90.0)] = 12.0
+    #: Stop this far inside each joint's range (the simulated arm brakes at the rig's
+    #: ``joint_limit_margin_deg``, 5°: the supervisor acts first).
+    joint_margin_deg: Annotated[float, Field(ge=0.0, le=60.0)] = 10.0
+    #: Stop when the smallest singular value of the arm's Jacobian falls below this (the rig's
+    #: approach keeps it ≥ 0.26; the simulated arm's damping starts at 0.05).
+    min_singular_value: Annotated[float, Field(ge=0.0)] = 0.1
+    #: The fused estimate's angular rate of the target: above this the arm and the track hold
+    #: still; still above it after ``target_rate_abort_s`` the trial aborts. A mock-up on its
+    #: mount shows ≈ 0.2°/s of estimate noise; a tumbling one is never chased.
+    max_target_rate_deg_s: Annotated[float, Field(gt=0.0)] = 1.0
+    target_rate_abort_s: Annotated[float, Field(ge=0.0)] = 3.0
+    #: Contact: the wrench the arm reports at the TCP (N, N·m), where it reports one.
+    max_contact_force: PositiveM = 30.0
+    max_contact_torque: PositiveM = 5.0
+    #: The arm's own base is never part of the workspace: the flange stays out of this vertical
+    #: cylinder about the base's z axis (radius, and height above the base).
+    base_keepout_radius_m: Annotated[float, Field(ge=0.0)] = 0.3
+    base_keepout_height_m: Annotated[float, Field(ge=0.0)] = 0.6
     reacquire: bool = True
     acquire_timeout_s: PositiveM = 15.0
     #: The estimate must stay healthy this long before the approach starts.
@@ -91,6 +128,19 @@ class ApproachConfig(Strict):
     servo: ServoConfig = ServoConfig()
     grasp: GraspConfig = GraspConfig()
     supervisor: SupervisorConfig = SupervisorConfig()
+
+    @model_validator(mode="after")
+    def _grasp_within_the_slow_speed(self) -> ApproachConfig:
+        # The guarded advance runs inside the slow-down distance when the stand-off is inside
+        # it; the supervisor holds the camera to the range schedule there.
+        servo = self.servo
+        near = self.standoff.distance_m <= servo.near_range_m
+        if near and self.grasp.speed > servo.slow_speed:
+            raise ValueError(
+                f"grasp.speed {self.grasp.speed} m/s exceeds servo.slow_speed "
+                f"{servo.slow_speed} m/s, the limit inside the slow-down distance"
+            )
+        return self
 
     @model_validator(mode="after")
     def _grasp_stays_outside_the_keep_out(self) -> ApproachConfig:

@@ -14,7 +14,7 @@ import yaml
 from pydantic import Field, ValidationError, field_serializer, model_validator
 
 from configuration.approach import ApproachConfig
-from configuration.base import PositiveM, Strict
+from configuration.base import PositiveM, Strict, Vec3
 from configuration.files import load_config, named_in_file, resolve_config_path
 from configuration.render import NoiseConfig, RenderConfig
 from configuration.vision import CameraTiming, VisionConfig
@@ -37,6 +37,48 @@ class StartConfig(Strict):
 ClockKind = Literal["sim", "wall"]
 #: How the track and gripper drivers reach their simulated devices (``SimulationConfig.links``).
 LinkKind = Literal["direct", "tcp"]
+
+
+#: The faults a simulated trial can be given (docs/faults.md).
+FaultKind = Literal[
+    "camera_dropout",
+    "frozen_camera",
+    "corrupt_frame",
+    "nan_estimate",
+    "protective_stop",
+    "emergency_stop",
+    "link_drop",
+    "modbus_silent",
+    "track_fault",
+    "tumbling_target",
+    "disk_full",
+]
+FAULT_KINDS: tuple[str, ...] = FaultKind.__args__  # type: ignore[attr-defined]
+
+
+class FaultConfig(Strict):
+    """A fault injected into a simulated trial: ``kind`` at ``at_s`` seconds after the start,
+    or ``after_s`` seconds after the trial first enters ``phase``. ``rate_deg_s``: how a
+    ``tumbling_target`` turns about its own axes.
+
+    camera_dropout: no more frames; frozen_camera: the last image again and again with new
+    stamps; corrupt_frame: one truncated image; nan_estimate: every estimator returns NaN from
+    then on; protective_stop / emergency_stop: the arm's controller halts; link_drop: the arm
+    stops answering; modbus_silent: the track's Modbus device stops answering; track_fault: the
+    track's drive faults; tumbling_target: the mock-up starts turning; disk_full: the trial
+    log's writes fail (an injected ENOSPC)."""
+
+    kind: FaultKind
+    at_s: Annotated[float, Field(ge=0.0)] | None = None
+    phase: Literal["acquire", "approach", "standoff", "grasp", "retreat"] | None = None
+    after_s: Annotated[float, Field(ge=0.0)] = 0.0
+    rate_deg_s: Vec3 = (0.0, 3.0, 0.0)
+
+    @model_validator(mode="after")
+    def _when(self) -> FaultConfig:
+        if (self.at_s is None) == (self.phase is None):
+            raise ValueError(f"fault {self.kind}: give either at_s or phase (with after_s)")
+        return self
 
 
 class SimulationConfig(Strict):
@@ -69,7 +111,14 @@ class SimulationConfig(Strict):
     grasp_capture_m: PositiveM = 0.01
     grasp_capture_deg: Annotated[float, Field(gt=0.0, le=20.0)] = 3.0
     grasp_object_width_m: PositiveM = 0.05
+    #: Contact in simulation: the fingertips reach this far ahead of the camera along its
+    #: optical axis (1 cm short of the ring's face at the default grasp pose, 0.35 m), and the
+    #: mock-up's mount pushes back on them with this stiffness (N/m) once they pass its face.
+    tool_reach_m: PositiveM = 0.34
+    contact_stiffness: PositiveM = 2000.0
     max_duration_s: PositiveM = 150.0
+    #: Faults injected into the simulated devices, the vision side or the log (``--clock sim``).
+    faults: list[FaultConfig] = Field(default_factory=list)
 
     @field_serializer("fusion")
     def _fusion_as_dict(self, fusion: FusionParams) -> dict:
@@ -91,6 +140,8 @@ class SimulationConfig(Strict):
             )
         if len(set(self.systems)) != len(self.systems):
             raise ValueError("systems: each estimator at most once")
+        if self.faults and self.clock != "sim":
+            raise ValueError("faults: injected faults need clock: sim")
         return self
 
 

@@ -42,6 +42,10 @@ class VisionConfig(Strict):
     of its own (pybullet and the estimators hold the GIL); ``inline`` runs them in the vision
     process one after the other (for comparison in ``satgrasp bench loop``).
     ``log_frames_every_s``: frames kept in the trial log (0 keeps none).
+    ``repeat_motion_m`` / ``repeat_motion_deg``: a camera whose image stays byte for byte the
+    same while the camera moved this far relative to the carriage (or turned this much) since
+    the image first appeared is frozen (a live sensor's noise alone changes every frame; a
+    noiseless simulated view of a still scene does not, hence the motion).
     """
 
     fuse_at: Literal["capture", "arrival"] = "capture"
@@ -54,6 +58,8 @@ class VisionConfig(Strict):
     )
     workers: Literal["process", "inline"] = "process"
     log_frames_every_s: Annotated[float, Field(ge=0.0)] = 1.0
+    repeat_motion_m: Annotated[float, Field(gt=0.0)] = 0.005
+    repeat_motion_deg: Annotated[float, Field(gt=0.0)] = 0.5
 
     def processing_s(self, system: str, *, acquiring: bool = False) -> float:
         """Modelled time (s) ``system`` takes over a frame, with a prior or searching without."""

@@ -25,6 +25,7 @@ from configuration.files import ConfigError
 from configuration.render import NoiseConfig
 from configuration.simulation import ClockKind, LinkKind
 from hil.cli_emulate import emulate_app
+from hil.cli_faults import faults_command
 
 #: The option parser's error type (click's, vendored by recent typer releases).
 _ParserError = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
@@ -63,6 +64,7 @@ app = typer.Typer(
 bench_app = typer.Typer(help="Benchmarks (timings on this machine).", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 app.add_typer(emulate_app, name="emulate")
+app.command("faults")(faults_command)
 
 console = Console(stderr=True, soft_wrap=True)  # never split a path across lines
 out = Console(soft_wrap=True)

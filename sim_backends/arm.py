@@ -24,6 +24,10 @@ either state); a protective stop (``inject_protective_stop``), an emergency stop
 the joints at the next control period and refuses motion (``DeviceFault``) until unlocked or
 reset; a dropped link (``drop_link``) makes every call raise ``DeviceTimeout`` while the arm
 keeps executing its last command (until its watchdog stops it).
+
+The wrench at the TCP (``ArmState.wrench_B``, UR's ``getActualTCPForce``) is what the world
+says touches the tool (``set_contact_wrench``; zero in free space): the arm stays kinematic,
+as if the mock-up's mount yielded.
 """
 
 from __future__ import annotations
@@ -35,13 +39,13 @@ import numpy as np
 
 from configuration.rig import ArmConfig
 from drivers.base import ArmState, DeviceError, DeviceFault, DeviceTimeout, ServoCommand
-from estimators.geometry import Pose
-from sim_backends.ur_kinematics import (
+from drivers.ur_kinematics import (
     damped_least_squares,
     jacobian_from_frames,
     joint_frames,
     ur_model,
 )
+from estimators.geometry import Pose
 
 
 class SimArm:
@@ -91,6 +95,7 @@ class SimArm:
         self._last_servo = 0.0
         self._limited_by: tuple[str, ...] = ()
         self._sigma_min = math.nan
+        self._wrench_B = np.zeros(6)
         self._update_kinematics()
 
     # --- Arm protocol ---------------------------------------------------------------------
@@ -125,6 +130,7 @@ class SimArm:
             protective_stop=self._protective_stop,
             emergency_stop=self._emergency_stop,
             fault=self._fault,
+            wrench_B=self._wrench_B,
         )
 
     def servo(self, command: ServoCommand) -> None:
@@ -237,6 +243,13 @@ class SimArm:
         self._V_ref = np.zeros(6)
         self._mode = "idle"
         self._update_kinematics()
+
+    def set_contact_wrench(self, wrench_B: np.ndarray) -> None:
+        """The wrench [f (N), τ (N·m)] in B that contact exerts at the TCP (the flange)."""
+        wrench = np.array(wrench_B, dtype=float)
+        if wrench.shape != (6,) or not np.all(np.isfinite(wrench)):
+            raise ValueError(f"a wrench is 6 finite values [f (N), τ (N·m)]; got {wrench_B}")
+        self._wrench_B = wrench
 
     # --- fault injection ------------------------------------------------------------------
     def inject_protective_stop(self) -> None:

@@ -113,7 +113,11 @@ class StreamingSimCamera:
     renders the scene as it is at that instant; the frame arrives ``latency_s`` ± ``jitter_s``
     (uniform, seeded) later on ``clock``. ``read`` returns the newest arrived frame not read
     before, or raises ``DeviceTimeout`` — it cannot block: simulated time only moves between
-    reads."""
+    reads.
+
+    Fault injection (``inject_*``): the camera stops delivering (dropout), keeps delivering the
+    last image with new stamps (a frozen driver), or delivers one truncated image (corrupt).
+    """
 
     def __init__(
         self,
@@ -135,6 +139,12 @@ class StreamingSimCamera:
         self._in_flight: list[Frame] = []
         self._last_read_seq = -1
         self.frames_dropped = 0
+        self._dropout = False
+        self._frozen_image: np.ndarray | None = None
+        self._freeze = False
+        self._corrupt_next = False
+        #: (seq, capture stamp, arrival stamp) of the frames a fault affected, in order.
+        self.faulty_frames: list[tuple[int, float, float]] = []
 
     @property
     def info(self) -> CameraInfo:
@@ -156,12 +166,33 @@ class StreamingSimCamera:
 
     def capture(self) -> None:
         """Expose a frame now; it reaches the host after the latency."""
-        if not self._camera.streaming:
+        if not self._camera.streaming or self._dropout:
             return
         frame = self._camera.render_frame()
         jitter = self._rng.uniform(-self._jitter_s, self._jitter_s) if self._jitter_s else 0.0
         arrival = frame.stamp + self._latency_s + jitter
+        faulty = self._freeze and self._frozen_image is not None
+        if faulty:
+            frame = dataclasses.replace(frame, image=self._frozen_image)
+        self._frozen_image = frame.image
+        if self._corrupt_next:
+            self._corrupt_next, faulty = False, True
+            frame = dataclasses.replace(frame, image=frame.image[:10, :10])
+        if faulty:
+            self.faulty_frames.append((frame.seq, frame.stamp, arrival))
         self._in_flight.append(dataclasses.replace(frame, arrival_stamp=arrival))
+
+    def inject_dropout(self) -> None:
+        """No frame is captured from now on (frames already in flight still arrive)."""
+        self._dropout = True
+
+    def inject_freeze(self) -> None:
+        """Every frame from now on repeats the last captured image, with new stamps."""
+        self._freeze = True
+
+    def inject_corrupt_frame(self) -> None:
+        """The next frame's image is truncated (10×10 pixels)."""
+        self._corrupt_next = True
 
     def read(self, timeout_s: float = 1.0) -> Frame:
         if not self._camera.streaming:

@@ -29,8 +29,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from configuration.rig import ArmConfig, RigConfig, TrackConfig, load_rig
-from estimators.geometry import Pose
-from sim_backends.ur_kinematics import (
+from drivers.ur_kinematics import (
     forward_kinematics,
     jacobian_from_frames,
     joint_frames,
@@ -38,6 +37,7 @@ from sim_backends.ur_kinematics import (
     solve_ik,
     ur_model,
 )
+from estimators.geometry import Pose
 
 
 def carriage_pose_W(track: TrackConfig, position: float) -> Pose:

@@ -10,9 +10,9 @@ from scipy.spatial.transform import Rotation
 
 from configuration.rig import PoseConfig, RigConfig
 from configuration.simulation import StartConfig
+from drivers.ur_kinematics import solve_ik, ur_model
 from estimators.geometry import Pose
 from estimators.target import facing_camera
-from sim_backends.ur_kinematics import solve_ik, ur_model
 
 
 def _pose_config(pose: Pose) -> PoseConfig:

@@ -46,6 +46,8 @@ class TrackModel:
         self._X_MT0 = config.X_MT.pose
         self._drift_v_M = np.array(config.drift_velocity_M, dtype=float)
         self._drift_w_T = np.radians(config.drift_rate_deg_s)
+        self._turned_T = np.zeros(3)  # the turn accumulated before the rate last changed
+        self._rate_since = 0.0
         self._x = float(config.start_position)
         self._v = 0.0
         self._time = 0.0
@@ -93,6 +95,14 @@ class TrackModel:
         with self._lock:
             self._latch(R.FAULT_DRIVE)
 
+    def start_tumble(self, rate_deg_s: np.ndarray) -> None:
+        """Fault injection: from now on the mock-up turns at ``rate_deg_s`` about its own axes
+        (continuing from where it is)."""
+        t = self.time
+        self._turned_T = self._turned_T + self._drift_w_T * (t - self._rate_since)
+        self._drift_w_T = np.radians(np.asarray(rate_deg_s, dtype=float))
+        self._rate_since = t
+
     def X_WM(self) -> Pose:
         """Carriage pose in W at the current position."""
         with self._lock:
@@ -101,11 +111,12 @@ class TrackModel:
 
     def X_MT(self) -> Pose:
         """The mock-up (target frame T) on the carriage, drift included."""
-        if not (self._drift_v_M.any() or self._drift_w_T.any()):
+        if not (self._drift_v_M.any() or self._drift_w_T.any() or self._turned_T.any()):
             return self._X_MT0  # on its mount, still: the common case, asked every step
         t = self.time
         translate = Pose.unchecked(np.eye(3), self._drift_v_M * t)
-        turn = Pose.from_rotvec(self._drift_w_T * t, np.zeros(3))
+        turned = self._turned_T + self._drift_w_T * (t - self._rate_since)
+        turn = Pose.from_rotvec(turned, np.zeros(3))
         return translate @ self._X_MT0 @ turn
 
     def X_WT(self) -> Pose:

@@ -44,7 +44,10 @@ class SimRig:
 
     ``grasp_X_TC``: where the camera is when the fingers straddle the ring lip; within
     ``capture_position_m`` / ``capture_angle_deg`` of it (a compliant gripper's capture range)
-    the world puts an object of ``object_width`` between the fingers. ``on_capture(stamp)`` is
+    the world puts an object of ``object_width`` between the fingers. Contact: the fingertips
+    reach ``tool_reach_m`` ahead of the camera along its optical axis; pushed past the ring's
+    face plane (z_T = 0) by δ they feel ``contact_stiffness``·δ along the face normal, which the
+    arm reports as its TCP wrench (None: no contact model). ``on_capture(stamp)`` is
     called at every frame instant once ``start`` has run (``SimWorld`` renders there; the
     wall-clock world process asks its camera process to).
     """
@@ -61,6 +64,8 @@ class SimRig:
         object_width: float = 0.05,
         timing: CameraTiming | None = None,
         start_time: float = 0.0,
+        tool_reach_m: float | None = None,
+        contact_stiffness: float = 2000.0,
     ):
         self.clock = SimClock(start_time)
         self.timing = timing or CameraTiming()
@@ -70,6 +75,8 @@ class SimRig:
         self._capture_m = capture_position_m
         self._capture_rad = math.radians(capture_angle_deg)
         self._object_width = object_width
+        self._tool_reach_m = tool_reach_m
+        self._contact_stiffness = contact_stiffness
         self._servers: list[ModbusDeviceServer] = []
         try:
             self.arm = SimArm(rig.arm, clock=self.clock.now)
@@ -141,6 +148,15 @@ class SimRig:
         )
         return track, gripper
 
+    def silence_track(self) -> None:
+        """Fault injection: the track's Modbus device stops answering (in-process: every
+        request times out; over TCP: its server goes away). Its own watchdog then stops it."""
+        link = self.track.link
+        if isinstance(link, DirectLink):
+            link.drop()
+        else:
+            self._servers[0].stop()
+
     # --- what the camera sees -------------------------------------------------------------
     def viewpoint(self) -> Viewpoint:
         """The camera's pose and its twist relative to the target (for motion blur), now."""
@@ -193,13 +209,29 @@ class SimRig:
         self.track_model.step(dt)
         self.gripper_model.step(dt)
         self.clock.advance(dt)
-        X_TC = self.track_model.X_WT().inverse() @ self.arm.camera_pose_W()
+        X_WT = self.track_model.X_WT()
+        X_TC = X_WT.inverse() @ self.arm.camera_pose_W()
         # Position first: the rotation's angle costs more and matters only at the ring.
         captured = (
             translation_error(X_TC, self._grasp_X_TC) <= self._capture_m
             and rotation_error_geodesic(X_TC, self._grasp_X_TC) <= self._capture_rad
         )
         self.gripper_model.set_object(self._object_width if captured else None)
+        if self._tool_reach_m is not None:
+            self.arm.set_contact_wrench(self.contact_wrench_B(X_WT, X_TC))
+
+    def contact_wrench_B(self, X_WT: Pose, X_TC: Pose) -> np.ndarray:
+        """The wrench at the flange, in B, of the fingertips pressed into the face plane: a
+        spring k·δ along +z_T at the tip, and its moment about the flange."""
+        assert self._tool_reach_m is not None
+        tip_T = X_TC.apply(np.array([0.0, 0.0, self._tool_reach_m]))
+        depth = -float(tip_T[2])
+        if depth <= 0.0:
+            return np.zeros(6)
+        X_BT = self.arm.X_WB.inverse() @ X_WT
+        force_B = X_BT.R @ np.array([0.0, 0.0, self._contact_stiffness * depth])
+        lever_B = X_BT.apply(tip_T) - self.arm.T_BE[:3, 3]
+        return np.concatenate([force_B, np.cross(lever_B, force_B)])
 
     def truth(self) -> Mapping[str, Pose]:
         return {"X_WT": self.track_model.X_WT(), "X_WC": self.arm.camera_pose_W()}

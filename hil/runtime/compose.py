@@ -33,6 +33,7 @@ from estimators.geometry import Pose
 from estimators.registry import build_estimator
 from hil.logs.records import TickRecord
 from hil.logs.triallog import TrialLogError, TrialLogWriter
+from hil.runtime.faults import FaultInjector
 from hil.runtime.history import StateHistory
 from hil.runtime.judge import StandoffJudge, truth_record
 from hil.runtime.loop import ControlLoop, TrialOutcome, describe_exception
@@ -128,6 +129,8 @@ class Trial:
         self._stack = contextlib.ExitStack()
         #: What the trial's processes used (wall clock), reported with the outcome.
         self.resources: Callable[[], dict] | None = None
+        #: The configured faults' injector (``--clock sim`` with ``faults:``), an observer.
+        self.injector: FaultInjector | None = None
 
     def __enter__(self) -> Trial:
         try:
@@ -166,7 +169,8 @@ class Trial:
 
     def _observers(self) -> list[Callable[[TickRecord], None]]:
         self.judge = StandoffJudge(self.config.approach.standoff.X_TC_goal(), self.log.write_event)
-        return [self.judge] + ([self._on_tick] if self._on_tick is not None else [])
+        injector = [self.injector] if self.injector is not None else []
+        return [self.judge, *injector] + ([self._on_tick] if self._on_tick is not None else [])
 
     def rig_options(self) -> dict:
         """How the simulated rig starts and judges a grasp (``SimRig``'s keyword arguments)."""
@@ -178,6 +182,8 @@ class Trial:
             "capture_position_m": config.grasp_capture_m,
             "capture_angle_deg": config.grasp_capture_deg,
             "object_width": config.grasp_object_width_m,
+            "tool_reach_m": config.tool_reach_m,
+            "contact_stiffness": config.contact_stiffness,
             "timing": config.camera_timing,
         }
 
@@ -208,6 +214,11 @@ class Trial:
         self._stack.callback(self.vision.close)
         period = 1.0 / config.approach.servo.control_rate_hz
         clock = SteppedClock(world, world.camera, self.vision, step_s=period)
+        if config.faults:
+            self.injector = FaultInjector(
+                config.faults, world=world, workers=self.vision.workers, log=self.log,
+                t0=lambda: self.loop.t0,
+            )  # fmt: skip
         self.loop = ControlLoop(
             arm=world.arm,
             track=world.track,

@@ -61,7 +61,7 @@ from hil.runtime.history import StateSample
 from hil.runtime.rig import RigGeometry
 from hil.runtime.sequencer import TERMINAL, ApproachSequencer, SequencerInputs
 from hil.runtime.servo import camera_twist_to_flange
-from hil.runtime.supervisor import SafetySnapshot, Violation, check
+from hil.runtime.supervisor import SafetySnapshot, Violation, check, rate_exceeded_since
 from hil.runtime.vision import LoggedImage, VisionStatus
 
 
@@ -183,6 +183,13 @@ class ControlLoop:
         #: Why the loop ended before the sequencer did, and whether the stop worked: "interrupted
         #: by SIGINT in phase approach; arm and track stopped" (None when it ran to its end).
         self.ending: str | None = None
+        # What the supervisor compares against: the previous tick's sent command and states,
+        # the flange's orientation at the start, since when the target turns too fast.
+        self._sent: tuple[np.ndarray, float] | None = None
+        self._previous_arm: ArmState | None = None
+        self._previous_track: TrackState | None = None
+        self._R_BE_start: np.ndarray | None = None
+        self._rate_since: float | None = None
 
     # --- helpers ------------------------------------------------------------------------
     def _event(self, t: float, kind: str, message: str, **data: Any) -> None:
@@ -229,6 +236,8 @@ class ControlLoop:
         )
         if status.frame_problem is not None:
             problems.append(Violation("frames", status.frame_problem, True))
+        if status.camera_fault is not None:
+            problems.append(Violation("camera", status.camera_fault, False))
         if status.estimator_faults > self._faults_seen:
             self._faults_seen = status.estimator_faults
             problems.append(Violation("estimator", status.estimator_fault or "malfunction", False))
@@ -256,6 +265,12 @@ class ControlLoop:
         if arm is not None:
             V_BE = camera_twist_to_flange(output.camera_twist_C, arm.X_BE, self.geometry.X_EC)
         newest_frame = status.newest_frame_stamp
+        if self._R_BE_start is None and arm is not None:
+            self._R_BE_start = arm.X_BE.R
+        rate = None
+        if estimate.health == "ok" and estimate.V_MT is not None:
+            rate = float(np.linalg.norm(estimate.V_MT[:3]))
+        self._rate_since = rate_exceeded_since(self._rate_since, rate, t, self.config.supervisor)
         snapshot = SafetySnapshot(
             stamp=t,
             phase=str(self.sequencer.phase),
@@ -269,18 +284,29 @@ class ControlLoop:
             tick_s=max(late_s, self._last_work_s),
             commanded_V_BE=V_BE,
             commanded_track_velocity=output.track_velocity,
+            period_s=self.period_s,
+            previous_V_BE=None if self._sent is None else self._sent[0],
+            previous_track_velocity=None if self._sent is None else self._sent[1],
+            previous_arm=self._previous_arm,
+            track=track,
+            previous_track=self._previous_track,
+            R_BE_start=self._R_BE_start,
+            target_rate=rate,
+            target_rate_since=self._rate_since,
         )
         violations = problems + check(
-            snapshot,
-            self.config.supervisor,
-            self.config.servo,
-            max_track_speed=self.geometry.max_track_speed,
+            snapshot, self.config.supervisor, self.config.servo, self.geometry
         )
         events = list(output.events)
         command, track_velocity, gripper_command, more = self._command(
             t, violations, output, V_BE, phase_before
         )
         events.extend(more)
+        self._sent, self._previous_arm, self._previous_track = (
+            (command.V_BE, track_velocity),
+            arm,
+            track,
+        )
         for kind, message in events:
             self._event(t, kind, message)
         self._log_vision()

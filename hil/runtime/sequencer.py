@@ -30,11 +30,11 @@ from drivers.base import GripperState
 from estimators.geometry import Pose
 from hil.runtime.servo import (
     PoseError,
-    limit_acceleration,
+    limit_command,
     pbvs_twist,
     pose_error,
     saturate,
-    scheduled_speed,
+    speed_limit,
     split_along_track,
 )
 from hil.runtime.supervisor import Violation
@@ -102,6 +102,8 @@ class ApproachSequencer:
     _previous_track: float = 0.0
     _grasp: _GraspState = field(default_factory=_GraspState)
     _events: list[tuple[str, str]] = field(default_factory=list)
+    #: The kinds of recoverable violation holding the acquisition (logged once, not per tick).
+    _holding: frozenset[str] = frozenset()
 
     @property
     def X_TC_goal(self) -> Pose:
@@ -120,6 +122,8 @@ class ApproachSequencer:
         self.phase = phase
         self._phase_since = stamp
         self._within_since = None
+        if phase != Phase.ACQUIRE:
+            self._holding = frozenset()
         if phase == Phase.GRASP:
             self._grasp = _GraspState(since=stamp)
 
@@ -144,7 +148,10 @@ class ApproachSequencer:
         recoverable = all(v.recoverable for v in violations)
         can_reacquire = self.phase in (Phase.APPROACH, Phase.STANDOFF, Phase.ACQUIRE)
         if recoverable and self.config.supervisor.reacquire and can_reacquire:
-            self._events.append(("fault", text))
+            kinds = frozenset(v.kind for v in violations)
+            if self.phase != Phase.ACQUIRE or kinds != self._holding:
+                self._events.append(("fault", text))
+            self._holding = kinds
             self._healthy_since = None
             self._enter(Phase.ACQUIRE, stamp, f"stopped: {text}")
         else:
@@ -222,17 +229,7 @@ class ApproachSequencer:
         X_TC = inputs.X_TC_est
         assert X_TC is not None
         range_m = float(X_TC.p[2])
-        max_speed = (
-            speed
-            if speed is not None
-            else scheduled_speed(
-                range_m,
-                near_m=servo.near_range_m,
-                far_m=servo.far_range_m,
-                slow=servo.slow_speed,
-                fast=servo.max_speed,
-            )
-        )
+        max_speed = speed if speed is not None else speed_limit(range_m, servo)
         twist = saturate(
             pbvs_twist(X_TC, goal, servo.gain), max_speed, math.radians(servo.max_angular_speed_deg)
         )
@@ -280,18 +277,11 @@ class ApproachSequencer:
 
     def _limit(self, twist: np.ndarray, track: float, dt: float) -> tuple[np.ndarray, float]:
         """Acceleration limits on what is actually commanded (also when stopping)."""
-        servo = self.config.servo
         if self.phase in TERMINAL:
             self._previous_twist, self._previous_track = np.zeros(6), 0.0
             return np.zeros(6), 0.0
-        limited = limit_acceleration(
-            twist,
-            self._previous_twist,
-            dt,
-            servo.max_acceleration,
-            math.radians(servo.max_angular_acceleration_deg),
+        limited, track = limit_command(
+            twist, track, self._previous_twist, self._previous_track, dt, self.config.servo
         )
-        step = servo.max_acceleration * dt
-        track = float(np.clip(track, self._previous_track - step, self._previous_track + step))
         self._previous_twist, self._previous_track = limited, track
         return limited, track

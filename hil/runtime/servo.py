@@ -13,11 +13,13 @@ split between the linear track (the along-track part of the closing motion) and 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from configuration.approach import ServoConfig
 from estimators.geometry import Pose
 
 
@@ -91,6 +93,44 @@ def scheduled_speed(
         raise ValueError("scheduled_speed needs far_m > near_m")
     fraction = np.clip((range_m - near_m) / (far_m - near_m), 0.0, 1.0)
     return float(slow + fraction * (fast - slow))
+
+
+def speed_limit(range_m: float, servo: ServoConfig) -> float:
+    """The camera's speed limit (m/s) ``range_m`` from the ring face: ``slow_speed`` inside
+    ``near_range_m`` (the slow-down distance), ``max_speed`` beyond ``far_range_m``, linear in
+    between. The one schedule the sequencer proposes with and the supervisor enforces."""
+    return scheduled_speed(
+        range_m,
+        near_m=servo.near_range_m,
+        far_m=servo.far_range_m,
+        slow=servo.slow_speed,
+        fast=servo.max_speed,
+    )
+
+
+def limit_command(
+    twist: np.ndarray,
+    track_velocity: float,
+    previous_twist: np.ndarray,
+    previous_track_velocity: float,
+    dt: float,
+    servo: ServoConfig,
+) -> tuple[np.ndarray, float]:
+    """The camera twist and the track velocity one control period ``dt`` after the previous
+    ones, changed by at most the servo's acceleration limits (the twist along the straight line
+    between them, the track by ``max_acceleration``·dt)."""
+    limited = limit_acceleration(
+        twist,
+        previous_twist,
+        dt,
+        servo.max_acceleration,
+        math.radians(servo.max_angular_acceleration_deg),
+    )
+    step = servo.max_acceleration * dt
+    track = float(
+        np.clip(track_velocity, previous_track_velocity - step, previous_track_velocity + step)
+    )
+    return limited, track
 
 
 def camera_twist_to_flange(twist_C: np.ndarray, X_BE: Pose, X_EC: Pose) -> np.ndarray:

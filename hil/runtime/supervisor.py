@@ -1,8 +1,29 @@
 """The safety supervisor: checks run every control tick (a pure function of a snapshot).
 
-Any violation stops the arm and the track (ros2_control's error path: a failing read/write
-deactivates the hardware). A *recoverable* violation — the estimate or the frames went away —
-sends the sequencer back to ``acquire`` when the policy allows it; every other one aborts.
+It sees exactly what is about to be commanded (the flange twist, the track velocity) and what
+was measured (arm, track, the fused estimate), with the previous tick's command and states for
+accelerations. Any violation stops the arm and the track in that same tick (ros2_control's
+error path: a failing read/write deactivates the hardware). A *recoverable* violation — the
+estimate or the frames went away, the target turns too fast to follow — sends the sequencer
+back to ``acquire`` (holding still) when the policy allows it; every other one aborts.
+
+Every message names the measured value and its limit. The rules, by group:
+
+* devices: arm link and faults, track faults, the tick's deadline;
+* command: finite; nothing moves outside a moving phase; flange and track speeds under their
+  maxima; accelerations of the flange (linear, angular) and the track against the previous
+  command over one period;
+* measured motion: flange speed, flange and track accelerations between successive states;
+* range: the camera's speed and the track's under the range schedule
+  (``hil.runtime.servo.speed_limit``, ``slow_speed`` inside the slow-down distance), and the
+  combined closing speed of camera and target along the line of sight (arm + track);
+* track travel: the carriage braking at its maximum acceleration from the measured or the
+  commanded velocity must stop inside its soft limits (v·T + v²/2a);
+* arm envelope: workspace box, the keep-out around the arm's own base, the flange's rotation
+  from its start orientation, joint-range margins, the Jacobian's smallest singular value;
+* contact: the force and torque the arm reports at the TCP;
+* estimate (in moving phases): frames and estimate fresh and healthy, approach cone, keep-out
+  distance; the target's angular rate (also while acquiring): hold, then abort.
 """
 
 from __future__ import annotations
@@ -11,18 +32,34 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from configuration.approach import ServoConfig, SupervisorConfig
-from drivers.base import ArmState
+from configuration.rig import UR_JOINT_RANGE_DEG
+from drivers.base import ArmState, TrackState
+from drivers.ur_kinematics import jacobian, ur_model
 from estimators.geometry import Pose
+from hil.runtime.rig import RigGeometry
+from hil.runtime.servo import speed_limit
 
 #: Phases in which something moves; outside them a missing estimate is not a fault.
 MOVING_PHASES = frozenset({"approach", "standoff", "grasp", "retreat"})
+#: Phases in which a turning target must not be locked onto or followed.
+WATCHING_PHASES = MOVING_PHASES | {"acquire"}
+#: Changes smaller than this (m/s, rad/s) are no motion (a stopped command is exactly zero).
+_STILL = 1e-9
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, eq=False)
 class SafetySnapshot:
-    """What the loop knows at one tick, just before it sends a command."""
+    """What the loop knows at one tick, just before it sends a command.
+
+    ``commanded_*`` is what is about to be sent; ``previous_*`` what was sent (or measured) at
+    the tick before (None at the first tick). ``X_TC_est``: the camera in the target frame from
+    the fused estimate. ``R_BE_start``: the flange's orientation when the trial started.
+    ``target_rate``: the angular rate of the target in the fused estimate (rad/s), and
+    ``target_rate_since`` the stamp since which it has stayed above the limit
+    (``rate_exceeded_since``)."""
 
     stamp: float
     phase: str
@@ -36,6 +73,15 @@ class SafetySnapshot:
     tick_s: float
     commanded_V_BE: np.ndarray
     commanded_track_velocity: float
+    period_s: float = 0.008
+    previous_V_BE: np.ndarray | None = None
+    previous_track_velocity: float | None = None
+    previous_arm: ArmState | None = None
+    track: TrackState | None = None
+    previous_track: TrackState | None = None
+    R_BE_start: np.ndarray | None = None
+    target_rate: float | None = None
+    target_rate_since: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,12 +94,21 @@ class Violation:
         return f"{self.kind}: {self.message}"
 
 
+def rate_exceeded_since(
+    since: float | None, target_rate: float | None, stamp: float, config: SupervisorConfig
+) -> float | None:
+    """The stamp since which the target's rate has stayed above ``max_target_rate_deg_s``
+    (``since`` from the previous tick), or None when it is not above it now."""
+    if target_rate is None or target_rate <= math.radians(config.max_target_rate_deg_s):
+        return None
+    return stamp if since is None else since
+
+
 def check(
     snap: SafetySnapshot,
     config: SupervisorConfig,
     servo: ServoConfig,
-    *,
-    max_track_speed: float,
+    rig: RigGeometry,
 ) -> list[Violation]:
     """Every violated rule at this tick (empty when all is well)."""
     found: list[Violation] = []
@@ -61,6 +116,31 @@ def check(
     def fail(kind: str, message: str, recoverable: bool = False) -> None:
         found.append(Violation(kind, message, recoverable))
 
+    _devices(snap, config, fail)
+    V = np.asarray(snap.commanded_V_BE, dtype=float)
+    u = float(snap.commanded_track_velocity)
+    if not np.all(np.isfinite(V)) or not math.isfinite(u):
+        fail("command", "non-finite command")
+    else:
+        _command(snap, V, u, config, servo, rig, fail)
+        if snap.arm is not None and snap.X_TC_est is not None and snap.phase in MOVING_PHASES:
+            _range(snap, V, u, config, servo, rig, fail)
+    if snap.arm is not None:
+        _measured_arm(snap, snap.arm, config, servo, fail)
+        _envelope(snap, snap.arm, config, rig, fail)
+    if snap.track is not None:
+        _track(snap, snap.track, u if math.isfinite(u) else 0.0, config, rig, fail)
+    if snap.phase in MOVING_PHASES:
+        _estimate(snap, config, fail)
+    if snap.phase in WATCHING_PHASES:
+        _target_rate(snap, config, fail)
+    return found
+
+
+# --- rule groups ----------------------------------------------------------------------------
+
+
+def _devices(snap: SafetySnapshot, config: SupervisorConfig, fail) -> None:
     # Devices first: nothing else matters when the arm cannot be trusted.
     if snap.arm_error is not None:
         fail("arm_link", snap.arm_error)
@@ -73,56 +153,296 @@ def check(
             "deadline", f"tick took {1000 * snap.tick_s:.0f} ms > {1000 * config.max_tick_s:.0f} ms"
         )
 
-    V = np.asarray(snap.commanded_V_BE, dtype=float)
-    if not np.all(np.isfinite(V)) or not math.isfinite(snap.commanded_track_velocity):
-        fail("command", "non-finite command")
-    else:
-        # The flange moves faster than the camera when turning (lever arm): margin, not equality.
-        if np.linalg.norm(V[:3]) > servo.max_speed * config.speed_margin:
-            fail("speed", f"commanded flange speed {np.linalg.norm(V[:3]):.3f} m/s over the limit")
-        max_w = math.radians(servo.max_angular_speed_deg) * config.speed_margin
-        if np.linalg.norm(V[3:]) > max_w:
-            fail(
-                "speed",
-                f"commanded angular speed {math.degrees(np.linalg.norm(V[3:])):.1f}°/s over the limit",
-            )
-        if abs(snap.commanded_track_velocity) > max_track_speed * config.speed_margin:
-            fail(
-                "speed",
-                f"commanded track speed {snap.commanded_track_velocity:.3f} m/s over the limit",
-            )
-    if snap.arm is not None:
-        measured = float(np.linalg.norm(snap.arm.V_BE[:3]))
-        if measured > servo.max_speed * config.speed_margin * 1.5:
-            fail("speed", f"measured flange speed {measured:.3f} m/s over the limit")
-        p = snap.arm.X_BE.p
-        lo, hi = np.array(config.workspace_min_B), np.array(config.workspace_max_B)
-        if np.any(p < lo) or np.any(p > hi):
-            fail("workspace", f"flange at {np.round(p, 3).tolist()} m is outside the workspace box")
 
-    if snap.phase in MOVING_PHASES:
-        if snap.frame_age_s > config.max_frame_age_s:
-            fail("frames", f"no usable frame for {snap.frame_age_s:.2f} s", recoverable=True)
-        if snap.estimate_health != "ok":
-            fail("estimate", f"estimate is {snap.estimate_health}", recoverable=True)
-        elif snap.estimate_age_s > config.max_estimate_age_s:
-            fail("estimate", f"estimate is {snap.estimate_age_s:.2f} s old", recoverable=True)
-        X_TC = snap.X_TC_est
-        if X_TC is None or not (np.all(np.isfinite(X_TC.p)) and np.all(np.isfinite(X_TC.R))):
-            fail("estimate", "no finite pose estimate", recoverable=True)
-        else:
-            range_m = float(X_TC.p[2])
-            off_axis = math.degrees(
-                math.atan2(float(np.hypot(X_TC.p[0], X_TC.p[1])), max(range_m, 1e-9))
+def _command(
+    snap: SafetySnapshot,
+    V: np.ndarray,
+    u: float,
+    config: SupervisorConfig,
+    servo: ServoConfig,
+    rig: RigGeometry,
+    fail,
+) -> None:
+    """The command about to be sent: motion only where motion belongs, speeds, accelerations."""
+    moving = np.linalg.norm(V) > _STILL or abs(u) > _STILL
+    if moving and snap.phase not in MOVING_PHASES:
+        fail("command", f"motion commanded in phase {snap.phase}")
+    speed, angular = float(np.linalg.norm(V[:3])), float(np.linalg.norm(V[3:]))
+    # The flange moves faster than the camera when turning (lever arm): margin, not equality.
+    max_v = servo.max_speed * config.speed_margin
+    if speed > max_v:
+        fail("speed", f"commanded flange speed {speed:.3f} m/s, limit {max_v:.3f} m/s")
+    max_w = math.radians(servo.max_angular_speed_deg) * config.speed_margin
+    if angular > max_w:
+        fail(
+            "speed",
+            f"commanded angular speed {math.degrees(angular):.1f}°/s, "
+            f"limit {math.degrees(max_w):.1f}°/s",
+        )
+    max_u = rig.max_track_speed * config.speed_margin
+    if abs(u) > max_u:
+        fail("speed", f"commanded track speed {u:.3f} m/s, limit ±{max_u:.3f} m/s")
+
+    # Accelerations against what was sent one period before (without the arm's state the
+    # loop has no twist to send: the arm rule stops it).
+    dt = snap.period_s
+    max_a = servo.max_acceleration * config.acceleration_margin
+    if snap.previous_V_BE is not None and snap.arm is not None:
+        dV = (V - np.asarray(snap.previous_V_BE, dtype=float)) / dt
+        a, alpha = float(np.linalg.norm(dV[:3])), float(np.linalg.norm(dV[3:]))
+        if a > max_a:
+            fail(
+                "acceleration",
+                f"commanded flange acceleration {a:.2f} m/s², limit {max_a:.2f} m/s²",
             )
-            if range_m <= 0 or off_axis > config.approach_cone_deg:
+        max_alpha = math.radians(servo.max_angular_acceleration_deg) * config.acceleration_margin
+        if alpha > max_alpha:
+            fail(
+                "acceleration",
+                f"commanded angular acceleration {math.degrees(alpha):.0f}°/s², "
+                f"limit {math.degrees(max_alpha):.0f}°/s²",
+            )
+    if snap.previous_track_velocity is not None:
+        a_track = abs(u - snap.previous_track_velocity) / dt
+        if a_track > max_a:
+            fail(
+                "acceleration",
+                f"commanded track acceleration {a_track:.2f} m/s², limit {max_a:.2f} m/s²",
+            )
+
+
+def camera_velocity_B(V_BE: np.ndarray, X_BE: Pose, X_EC: Pose) -> np.ndarray:
+    """Velocity (m/s, in B) of the camera's origin for the flange twist ``V_BE`` = [v, ω] in B:
+    v + ω × (p_BC − p_BE)."""
+    lever_B = X_BE.R @ X_EC.p
+    return np.asarray(V_BE[:3], dtype=float) + np.cross(V_BE[3:], lever_B)
+
+
+def _range(
+    snap: SafetySnapshot,
+    V: np.ndarray,
+    u: float,
+    config: SupervisorConfig,
+    servo: ServoConfig,
+    rig: RigGeometry,
+    fail,
+) -> None:
+    """Speeds against the range schedule: each device's share, and together along the line of
+    sight (the camera moving toward the target and the track bringing the target closer add)."""
+    assert snap.arm is not None and snap.X_TC_est is not None
+    X_TC = snap.X_TC_est
+    if not (np.all(np.isfinite(X_TC.p)) and np.all(np.isfinite(X_TC.R))):
+        return  # the estimate rules name it
+    range_m = float(X_TC.p[2])
+    limit = speed_limit(range_m, servo) * config.speed_margin
+    X_BE = snap.arm.X_BE
+    v_camera_B = camera_velocity_B(V, X_BE, rig.X_EC)
+    camera_speed = float(np.linalg.norm(v_camera_B))
+    if camera_speed > limit:
+        fail(
+            "range_speed",
+            f"commanded camera speed {camera_speed:.3f} m/s at {range_m:.2f} m range, "
+            f"limit {limit:.3f} m/s",
+        )
+    if abs(u) > limit:
+        fail(
+            "range_speed",
+            f"commanded track speed {abs(u):.3f} m/s at {range_m:.2f} m range, "
+            f"limit {limit:.3f} m/s",
+        )
+    # The carriage carries the target along the track axis (W), seen in B.
+    target_v_B = u * (rig.X_WB.R.T @ rig.track_axis_W)
+    X_BC = X_BE @ rig.X_EC
+    p_CT = X_TC.inverse().p
+    distance = float(np.linalg.norm(p_CT))
+    if distance <= 0:
+        return
+    line_of_sight_B = X_BC.R @ (p_CT / distance)
+    closing = float((v_camera_B - target_v_B) @ line_of_sight_B)
+    if closing > limit:
+        fail(
+            "closing",
+            f"camera and target closing at {closing:.3f} m/s (arm + track) at {range_m:.2f} m "
+            f"range, limit {limit:.3f} m/s",
+        )
+
+
+def _measured_arm(
+    snap: SafetySnapshot, arm: ArmState, config: SupervisorConfig, servo: ServoConfig, fail
+) -> None:
+    measured = float(np.linalg.norm(arm.V_BE[:3]))
+    max_v = servo.max_speed * config.speed_margin * 1.5
+    if measured > max_v:
+        fail("speed", f"measured flange speed {measured:.3f} m/s, limit {max_v:.3f} m/s")
+    previous = snap.previous_arm
+    if previous is None:
+        return
+    dt = arm.stamp - previous.stamp
+    if dt < 0.5 * snap.period_s:
+        return  # the same state read twice (or clocks that disagree): nothing to differentiate
+    dV = (np.asarray(arm.V_BE) - np.asarray(previous.V_BE)) / dt
+    a, alpha = float(np.linalg.norm(dV[:3])), float(np.linalg.norm(dV[3:]))
+    if a > config.max_measured_acceleration:
+        fail(
+            "acceleration",
+            f"measured flange acceleration {a:.2f} m/s², "
+            f"limit {config.max_measured_acceleration:.2f} m/s²",
+        )
+    max_alpha = math.radians(config.max_measured_angular_acceleration_deg)
+    if alpha > max_alpha:
+        fail(
+            "acceleration",
+            f"measured angular acceleration {math.degrees(alpha):.0f}°/s², "
+            f"limit {config.max_measured_angular_acceleration_deg:.0f}°/s²",
+        )
+
+
+def _envelope(
+    snap: SafetySnapshot, arm: ArmState, config: SupervisorConfig, rig: RigGeometry, fail
+) -> None:
+    """Where the arm is: workspace box, base keep-out, flange rotation, joints, singularity."""
+    p = arm.X_BE.p
+    lo, hi = np.array(config.workspace_min_B), np.array(config.workspace_max_B)
+    if np.any(p < lo) or np.any(p > hi):
+        fail(
+            "workspace",
+            f"flange at {np.round(p, 3).tolist()} m is outside the workspace box "
+            f"{list(config.workspace_min_B)}…{list(config.workspace_max_B)} m",
+        )
+    radial = float(np.hypot(p[0], p[1]))
+    if radial < config.base_keepout_radius_m and p[2] < config.base_keepout_height_m:
+        fail(
+            "workspace",
+            f"flange {radial:.3f} m from the base axis at {p[2]:.3f} m height, inside the base "
+            f"keep-out (radius {config.base_keepout_radius_m} m, up to "
+            f"{config.base_keepout_height_m} m)",
+        )
+    if snap.R_BE_start is not None:
+        # Rotation vector of R_E0ᵀ·R_E: about the start flange's own axes.
+        turned = np.degrees(Rotation.from_matrix(snap.R_BE_start.T @ arm.X_BE.R).as_rotvec())
+        axis = int(np.argmax(np.abs(turned)))
+        if abs(turned[axis]) > config.max_flange_rotation_deg:
+            fail(
+                "orientation",
+                f"flange turned {turned[axis]:+.1f}° about its start {'xyz'[axis]} axis, "
+                f"limit ±{config.max_flange_rotation_deg}°",
+            )
+    q_deg = np.degrees(np.asarray(arm.q, dtype=float))
+    for i, (q, half_range) in enumerate(zip(q_deg, UR_JOINT_RANGE_DEG, strict=True)):
+        allowed = half_range - config.joint_margin_deg
+        if abs(q) > allowed:
+            fail(
+                "joint_limit",
+                f"joint {i + 1} at {q:+.1f}°, limit ±{allowed:.0f}° "
+                f"(range ±{half_range:.0f}° less {config.joint_margin_deg}°)",
+            )
+    if rig.arm_model is not None and config.min_singular_value > 0:
+        sigma_min = float(np.linalg.svd(jacobian(ur_model(rig.arm_model), arm.q))[1][-1])
+        if sigma_min < config.min_singular_value:
+            fail(
+                "singularity",
+                f"smallest singular value of the arm's Jacobian {sigma_min:.3f}, "
+                f"limit {config.min_singular_value}",
+            )
+    if arm.wrench_B is not None:
+        force = float(np.linalg.norm(arm.wrench_B[:3]))
+        torque = float(np.linalg.norm(arm.wrench_B[3:]))
+        if force > config.max_contact_force:
+            fail("contact", f"force {force:.1f} N at the tool, limit {config.max_contact_force} N")
+        if torque > config.max_contact_torque:
+            fail(
+                "contact",
+                f"torque {torque:.2f} N·m at the tool, limit {config.max_contact_torque} N·m",
+            )
+
+
+def stopping_position(position: float, velocity: float, deceleration: float, dt: float) -> float:
+    """Where a carriage at ``position`` moving at ``velocity`` comes to rest if it keeps going
+    for ``dt`` and then brakes at ``deceleration``: x + v·dt + v·|v|/2a."""
+    return position + velocity * dt + velocity * abs(velocity) / (2.0 * deceleration)
+
+
+def _track(
+    snap: SafetySnapshot,
+    track: TrackState,
+    u: float,
+    config: SupervisorConfig,
+    rig: RigGeometry,
+    fail,
+) -> None:
+    """Travel with braking distance, and the measured acceleration."""
+    a = rig.max_track_acceleration
+    if math.isfinite(a):
+        low = rig.travel_min + config.track_limit_margin_m
+        high = rig.travel_max - config.track_limit_margin_m
+        for what, v in (("measured", track.velocity), ("commanded", u)):
+            stop = stopping_position(track.position, v, a, snap.period_s)
+            if (v > 0 and stop > high) or (v < 0 and stop < low):
+                limit = rig.travel_max if v > 0 else rig.travel_min
                 fail(
-                    "cone",
-                    f"camera {off_axis:.1f}° off the ring axis (limit {config.approach_cone_deg}°)",
+                    "track_travel",
+                    f"track at {track.position:.3f} m, {what} {v:+.3f} m/s, would stop at "
+                    f"{stop:.3f} m: beyond its soft limit {limit:.3f} m less "
+                    f"{config.track_limit_margin_m} m",
                 )
-            if range_m < config.min_range_m:
+                break
+    previous = snap.previous_track
+    if previous is not None and math.isfinite(a):
+        dt = track.stamp - previous.stamp
+        if dt >= 0.5 * snap.period_s:
+            measured = abs(track.velocity - previous.velocity) / dt
+            limit = a * config.acceleration_margin
+            if measured > limit:
                 fail(
-                    "too_close",
-                    f"camera {range_m:.3f} m from the ring face (limit {config.min_range_m} m)",
+                    "acceleration",
+                    f"measured track acceleration {measured:.2f} m/s², limit {limit:.2f} m/s²",
                 )
-    return found
+
+
+def _estimate(snap: SafetySnapshot, config: SupervisorConfig, fail) -> None:
+    if snap.frame_age_s > config.max_frame_age_s:
+        fail(
+            "frames",
+            f"no usable frame for {snap.frame_age_s:.2f} s, limit {config.max_frame_age_s} s",
+            recoverable=True,
+        )
+    if snap.estimate_health != "ok":
+        fail("estimate", f"estimate is {snap.estimate_health}", recoverable=True)
+    elif snap.estimate_age_s > config.max_estimate_age_s:
+        fail(
+            "estimate",
+            f"estimate is {snap.estimate_age_s:.2f} s old, limit {config.max_estimate_age_s} s",
+            recoverable=True,
+        )
+    X_TC = snap.X_TC_est
+    if X_TC is None or not (np.all(np.isfinite(X_TC.p)) and np.all(np.isfinite(X_TC.R))):
+        fail("estimate", "no finite pose estimate", recoverable=True)
+        return
+    range_m = float(X_TC.p[2])
+    off_axis = math.degrees(math.atan2(float(np.hypot(X_TC.p[0], X_TC.p[1])), max(range_m, 1e-9)))
+    if range_m <= 0 or off_axis > config.approach_cone_deg:
+        fail(
+            "cone",
+            f"camera {off_axis:.1f}° off the ring axis, limit {config.approach_cone_deg}°",
+        )
+    if range_m < config.min_range_m:
+        fail(
+            "too_close",
+            f"camera {range_m:.3f} m from the ring face, limit {config.min_range_m} m",
+        )
+
+
+def _target_rate(snap: SafetySnapshot, config: SupervisorConfig, fail) -> None:
+    """A target turning faster than the limit is never followed: hold (recoverable: back to
+    acquire, which does not lock while it turns), abort once it has lasted the abort time."""
+    if snap.target_rate is None or not math.isfinite(snap.target_rate):
+        return
+    rate_deg = math.degrees(snap.target_rate)
+    if rate_deg <= config.max_target_rate_deg_s:
+        return
+    lasted = 0.0 if snap.target_rate_since is None else snap.stamp - snap.target_rate_since
+    message = f"target rotating at {rate_deg:.1f}°/s, limit {config.max_target_rate_deg_s}°/s"
+    if lasted >= config.target_rate_abort_s:
+        fail("target_rate", f"{message} (held {lasted:.1f} s)")
+    else:
+        fail("target_rate", f"{message}: holding", recoverable=True)

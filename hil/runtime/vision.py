@@ -3,7 +3,9 @@
 Data flow of one frame (docs/architecture.md):
 
 1. ``on_frame``: the camera hands over its newest frame (capture stamp = mid-exposure). A frame
-   that is replaced before any estimator took it is dropped and counted.
+   that is replaced before any estimator took it is dropped and counted. A frame whose stamp
+   does not advance, or whose image repeats the previous one byte for byte while the camera
+   moved (a CRC-32 fingerprint of the pixels), is a camera fault that stops the trial.
 2. ``step``: every system whose worker is free takes the newest frame it has not processed yet,
    with fusion's prior *at the frame's capture stamp* and the camera-to-carriage pose of that
    instant — so the three systems run concurrently, each as fast as it can, on the newest data.
@@ -26,8 +28,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import zlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+
+import numpy as np
 
 from configuration.vision import VisionConfig
 from estimators.frame import Frame, frame_problem
@@ -53,6 +58,8 @@ class VisionStatus:
     capture stamp of the newest usable frame received; ``frame_problem``: why the newest frame
     was unusable, if it was. ``estimator_faults`` counts estimator malfunctions (an exception,
     non-finite output) and ``estimator_fault`` names the latest: the supervisor stops on a new one.
+    ``camera_fault``: the camera delivers frames that cannot be live (a stamp that does not
+    advance, the same image while the camera moves); it latches, and the loop aborts on it.
     """
 
     fusion: FusionState | None
@@ -64,6 +71,12 @@ class VisionStatus:
     frame_problem: str | None = None
     estimator_faults: int = 0
     estimator_fault: str | None = None
+    camera_fault: str | None = None
+
+
+def image_fingerprint(image: np.ndarray) -> int:
+    """CRC-32 of the pixels (≈ 0.5 ms for 640×480×3): equal for a repeated image."""
+    return zlib.crc32(memoryview(np.ascontiguousarray(image)).cast("B"))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -104,6 +117,9 @@ class VisionPipeline:
         self._seeds: dict[str, tuple[float, Pose]] = {}
         self._received = self._processed = self._dropped = self._stale = 0
         self._frame_problem: str | None = None
+        self._camera_fault: str | None = None
+        self._fingerprint: int | None = None
+        self._repeated_since: Frame | None = None  # the first frame of a run of equal images
         self._faults = 0
         self._fault: str | None = None
         self._records: list[VisionRecord | LoggedImage] = []
@@ -129,6 +145,8 @@ class VisionPipeline:
         self._frame_problem = None
         if self._newest is not None and frame.seq <= self._newest.seq:
             return  # the camera handed the same frame twice: nothing new
+        if self._frozen(frame):
+            return
         if self._newest is not None and not self._newest_taken:
             self._dropped += 1
         self._newest, self._newest_taken = frame, False
@@ -137,6 +155,45 @@ class VisionPipeline:
         if log_every > 0 and frame.stamp - self._last_logged_image >= log_every:
             self._records.append(LoggedImage(frame.stamp, encode_image(frame.image)))
             self._last_logged_image = frame.stamp
+
+    def _frozen(self, frame: Frame) -> bool:
+        """Whether ``frame`` shows the camera is not live (and latch why)."""
+        if self._camera_fault is not None:
+            return True
+        previous = self._newest
+        fingerprint = image_fingerprint(frame.image)
+        repeated = fingerprint == self._fingerprint
+        self._fingerprint = fingerprint
+        if previous is not None and frame.stamp <= previous.stamp:
+            self._camera_fault = (
+                f"frame {frame.seq} stamped {frame.stamp - self.t0:.3f} s, not after frame "
+                f"{previous.seq} at {previous.stamp - self.t0:.3f} s"
+            )
+        elif not repeated or previous is None:
+            self._repeated_since = frame
+        else:
+            first = self._repeated_since or previous
+            moved = self._motion(first.stamp, frame.stamp)
+            if moved is not None:
+                self._camera_fault = (
+                    f"frozen camera: frame {frame.seq} repeats the image of frame {first.seq} "
+                    f"though the camera moved {1000 * moved[0]:.0f} mm, {moved[1]:.1f}° since"
+                )
+        return self._camera_fault is not None
+
+    def _motion(self, since: float, until: float) -> tuple[float, float] | None:
+        """(m, deg) the camera moved relative to the carriage between two stamps, when that is
+        more than the repeat thresholds; None when less or not known."""
+        before, after = self.history.X_CM_at(since), self.history.X_CM_at(until)
+        if before is None or after is None:
+            return None
+        moved_m = float(np.linalg.norm(after.p - before.p))
+        cosine = (np.trace(before.R.T @ after.R) - 1.0) / 2.0
+        turned_deg = math.degrees(math.acos(float(np.clip(cosine, -1.0, 1.0))))
+        config = self.config
+        if moved_m > config.repeat_motion_m or turned_deg > config.repeat_motion_deg:
+            return moved_m, turned_deg
+        return None
 
     def step(self, now: float) -> None:
         """Fuse the results that are done by ``now``, then hand the newest frame to every free
@@ -177,6 +234,7 @@ class VisionPipeline:
                 frame_problem=self._frame_problem,
                 estimator_faults=self._faults,
                 estimator_fault=self._fault,
+                camera_fault=self._camera_fault,
             )
         return self._status
 

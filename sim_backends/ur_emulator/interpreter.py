@@ -29,10 +29,10 @@ import re
 
 import numpy as np
 
+from drivers.ur_kinematics import forward_kinematics
 from estimators.geometry import Pose
 from sim_backends.ur_emulator.command_log import command_name
 from sim_backends.ur_emulator.controller import EmulatedController, Operation
-from sim_backends.ur_kinematics import forward_kinematics
 
 READY, DONE = 1, 2
 REALTIME = frozenset({6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})

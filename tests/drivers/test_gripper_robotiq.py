@@ -4,10 +4,11 @@
 import pytest
 
 from configuration.rig import GripperConfig
-from drivers.base import Gripper
-from drivers.gripper_robotiq import RobotiqGripper, RobotiqRegisters, command_registers
+from drivers.base import DeviceError, Gripper
+from drivers.gripper_robotiq import RobotiqGripper, RobotiqRegisters, command_registers, fault_name
 from sim_backends.gripper import GripperModel
 from sim_backends.modbus_server import ModbusDeviceServer
+from tests.drivers.register_fakes import RecordingLink
 
 CONFIG = GripperConfig(activation_s=0.5)
 
@@ -126,3 +127,125 @@ def test_robotiq_gripper_releases_when_object_removed(served_gripper):
     model.set_object(None)
     state = run(model, gripper, 1.0)
     assert not state.object_detected and state.position == 1.0
+
+
+# --- the driver's encodings, word by word (in-process) ----------------------------------------
+
+
+def recording_gripper(status=(0, 0, 0), **options):
+    link = RecordingLink(dict(zip((2000, 2001, 2002), status, strict=True)))
+    return link, RobotiqGripper(link, clock=lambda: 12.5, **options)
+
+
+@pytest.mark.parametrize("name", ["speed", "force"])
+def test_robotiq_gripper_speed_and_force_bounds_inclusive(name):
+    for value in (0.0, 1.0):
+        link, gripper = recording_gripper(**{name: value})
+        gripper.grip()
+        word = link.writes[-1][1][2]
+        byte = word >> 8 if name == "speed" else word & 0xFF
+        assert byte == round(255 * value)
+    for value in (-0.001, 1.001):
+        with pytest.raises(ValueError, match=f"gripper {name} must be in \\[0, 1\\]; got {value}"):
+            recording_gripper(**{name: value})
+
+
+def test_robotiq_gripper_move_open_grip_write_the_request():
+    link, gripper = recording_gripper(speed=0.5, force=0.2)
+    gripper.grip()
+    gripper.open()
+    gripper.move(100)
+    action = (RobotiqRegisters.rACT | RobotiqRegisters.rGTO) << 8
+    speed_force = (round(255 * 0.5) << 8) | round(255 * 0.2)
+    assert link.writes == [
+        (1000, [action, 255, speed_force]),
+        (1000, [action, 0, speed_force]),
+        (1000, [action, 100, speed_force]),
+    ]
+
+
+def test_robotiq_gripper_activate_resets_then_requests_activation():
+    link, gripper = recording_gripper()
+    gripper.activate()
+    assert link.writes == [(1000, [0, 0, 0]), (1000, [RobotiqRegisters.rACT << 8, 0, 0])]
+    gripper.deactivate()  # keeps the fingers where they are: writes nothing
+    assert len(link.writes) == 2
+
+
+def test_robotiq_gripper_connect_reads_status_and_close_closes():
+    link, gripper = recording_gripper()
+    gripper.connect()
+    assert link.connected
+    gripper.close()
+    assert link.closed
+
+    class Short(RecordingLink):
+        def read_input(self, address, count):
+            return [0] * (count - 1)
+
+    with pytest.raises(DeviceError, match=r"short status read \(2 registers\)"):
+        RobotiqGripper(Short()).connect()
+
+
+def status_word(sta=0, obj=0, go=False, active=True):
+    bits = (sta << 4) | (obj << 6) | (RobotiqRegisters.gGTO if go else 0)
+    return (bits | (RobotiqRegisters.gACT if active else 0)) << 8
+
+
+@pytest.mark.parametrize(
+    ("sta", "obj", "go", "activated", "moving", "detected"),
+    [
+        (0, 0, False, False, False, False),
+        (1, 0, False, False, True, False),  # activating
+        (3, 0, True, True, True, False),  # going, no object yet
+        (3, 0, False, True, False, False),
+        (3, 1, True, True, False, True),  # stopped on an object while opening
+        (3, 2, True, True, False, True),  # … while closing
+        (3, 3, True, True, False, False),  # at the requested position, nothing there
+    ],
+)
+def test_robotiq_gripper_state_decodes_the_status(sta, obj, go, activated, moving, detected):
+    status = (status_word(sta, obj, go), 0x0E00 | 0x7F, (200 << 8) | 12)
+    _, gripper = recording_gripper(status)
+    state = gripper.state()
+    assert (state.activated, state.moving, state.object_detected) == (activated, moving, detected)
+    assert state.position == pytest.approx(200 / 255)
+    assert state.fault == "overcurrent triggered"
+    assert state.stamp == 12.5
+
+
+def test_robotiq_fault_names():
+    assert fault_name(0) is None
+    assert fault_name(0x05) == "action delayed: activation must complete first"
+    assert fault_name(0x0F) == "automatic release completed"
+    assert fault_name(0x42) == "fault 0x42"
+    assert fault_name(0x01) == "fault 0x01"
+
+
+@pytest.mark.parametrize("name", ["position", "speed", "force"])
+def test_robotiq_command_registers_range_on_both_ends(name):
+    for value in (0, 255):
+        registers = command_registers(0xFF, **{name: value})
+        word = {"position": registers[1], "speed": registers[2] >> 8, "force": registers[2] & 0xFF}
+        assert word[name] == value
+    for value in (-1, 256):
+        with pytest.raises(ValueError, match=f"gripper {name} request {value} is outside 0…255"):
+            command_registers(0, **{name: value})
+    assert command_registers(0x1FF)[0] == 0xFF00  # the action request is one byte
+
+
+def test_robotiq_gripper_over_tcp_builds_its_link():
+    gripper = RobotiqGripper.over_tcp("127.0.0.9", 5999, timeout_s=0.7)
+    link = gripper.link
+    assert (link.host, link.port, link.device_id, link.timeout_s) == ("127.0.0.9", 5999, 9, 0.7)
+    other = RobotiqGripper.over_tcp("127.0.0.9", 5999, 4)
+    assert other.link.device_id == 4 and other.link.timeout_s == 0.5
+
+
+def test_robotiq_gripper_over_tcp_passes_speed_force_and_clock():
+    gripper = RobotiqGripper.over_tcp("127.0.0.9", 5999, speed=0.2, force=0.4, clock=lambda: 3.5)
+    link = RecordingLink({2000: status_word(3, 3)})
+    gripper._link = link  # the same driver on a recording link: what it would send
+    gripper.grip()
+    assert link.writes[-1][1][2] == (round(255 * 0.2) << 8) | round(255 * 0.4)
+    assert gripper.state().stamp == 3.5

@@ -10,9 +10,11 @@ import pytest
 
 from configuration.rig import load_rig
 from drivers.base import DeviceError, DeviceFault, DeviceTimeout, Track
+from drivers.modbus_link import int32_to_registers
 from drivers.track_modbus import ModbusTrack, TrackRegisters, describe_faults
 from sim_backends.modbus_server import ModbusDeviceServer
 from sim_backends.track import TrackModel
+from tests.drivers.register_fakes import RecordingLink
 
 CONFIG = load_rig().track
 
@@ -185,3 +187,199 @@ def test_modbus_track_moves_only_while_active_and_deactivate_removes_power(serve
     track.deactivate()
     final = run(model, track, 1.0)
     assert final.velocity == 0.0 and not final.moving
+
+
+# --- the driver's encodings, word by word (in-process) ----------------------------------------
+
+R = TrackRegisters
+
+
+def limits_image(travel=(-0.5, 2.05), speed=0.25, acceleration=0.5) -> dict[int, int]:
+    values = [*travel, speed, acceleration]
+    image = {}
+    for i, value in enumerate(values):
+        high, low = int32_to_registers(round(value * 1e6))
+        image[R.SOFT_LIMIT_MIN + 2 * i], image[R.SOFT_LIMIT_MIN + 2 * i + 1] = high, low
+    return image
+
+
+def recording_track(active=True, **limits):
+    link = RecordingLink(limits_image(**limits))
+    track = ModbusTrack(link, clock=lambda: 7.25)
+    track.connect()
+    if active:
+        track.activate()
+    return link, track
+
+
+def block(mode, *, control=R.CTRL_ENABLE, position=0.0, speed=0.0, velocity=0.0, beat=1):
+    words = [control, mode]
+    for value in (position, speed, velocity):
+        words += int32_to_registers(round(value * 1e6))
+    return (R.CONTROL, [*words, beat])
+
+
+def test_modbus_track_connect_reads_the_limits_with_their_signs():
+    link, track = recording_track(active=False, travel=(-0.5, 2.05))
+    assert link.connected and link.writes == []
+    assert (track.travel_min, track.travel_max) == (-0.5, 2.05)
+    assert (track.max_speed, track.max_acceleration) == (0.25, 0.5)
+
+
+@pytest.mark.parametrize(
+    ("travel", "speed"), [((1.0, 1.0), 0.25), ((2.0, 1.0), 0.25), ((0.0, 1.0), 0.0), ((0, 1), -0.1)]
+)
+def test_modbus_track_connect_refuses_implausible_limits(travel, speed):
+    link = RecordingLink(limits_image(travel=travel, speed=speed))
+    with pytest.raises(DeviceError, match="recording link: implausible limits read from the track"):
+        ModbusTrack(link).connect()
+
+
+def test_modbus_track_commands_write_one_whole_block():
+    link, track = recording_track()
+    track.move_velocity(-0.125)
+    track.move_to(1.5, 0.2)
+    track.stop()
+    track.reset_fault()
+    track.deactivate()
+    assert link.writes == [
+        block(R.MODE_STOP, beat=1),  # activate: enabled, holding still
+        block(R.MODE_VELOCITY, velocity=-0.125, beat=2),
+        block(R.MODE_POSITION, position=1.5, speed=0.2, beat=3),
+        block(R.MODE_STOP, beat=4),
+        block(R.MODE_STOP, control=R.CTRL_ENABLE | R.CTRL_FAULT_RESET, beat=5),
+        block(R.MODE_STOP, control=0, beat=6),  # deactivate removes drive power
+    ]
+
+
+def test_modbus_track_heartbeat_wraps():
+    link, track = recording_track()
+    track._heartbeat = 0xFFFE
+    track.stop()
+    track.stop()
+    assert [w[1][-1] for w in link.writes[-2:]] == [0xFFFF, 0]
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_modbus_track_velocity_limit_on_both_signs(sign):
+    link, track = recording_track()
+    track.move_velocity(sign * 0.25)  # the limit itself is allowed
+    assert link.writes[-1] == block(R.MODE_VELOCITY, velocity=sign * 0.25, beat=2)
+    for bad in (sign * 0.2501, float("nan"), sign * float("inf")):
+        with pytest.raises(ValueError, match=r"outside ±0\.25 m/s \(max_speed\)"):
+            track.move_velocity(bad)
+    assert len(link.writes) == 2  # nothing sent for a refused command
+
+
+def test_modbus_track_move_to_limits_inclusive():
+    link, track = recording_track(travel=(-0.5, 2.05))
+    track.move_to(-0.5, 0.25)
+    track.move_to(2.05, 1e-6)
+    assert [w[1][1] for w in link.writes[1:]] == [R.MODE_POSITION] * 2
+    for position in (-0.5001, 2.0501, float("nan")):
+        with pytest.raises(ValueError, match=r"outside the travel \[-0\.5, 2\.05\] m"):
+            track.move_to(position, 0.1)
+    for speed in (0.0, -0.1, 0.2501, float("nan")):
+        with pytest.raises(ValueError, match=r"must be in \(0, 0\.25\] m/s"):
+            track.move_to(1.0, speed)
+    assert len(link.writes) == 3
+
+
+def test_modbus_track_refuses_motion_until_active_but_always_stops():
+    link, track = recording_track(active=False)
+    for name, call in (
+        ("move_velocity", lambda: track.move_velocity(0.1)),
+        ("move_to", lambda: track.move_to(1.0, 0.1)),
+    ):
+        with pytest.raises(
+            DeviceError,
+            match=rf"recording link: {name} refused: the track is not active \(call activate\(\)\)",
+        ):
+            call()
+    track.stop()
+    assert link.writes == [block(R.MODE_STOP, beat=1)]
+
+
+def status_image(status=0, faults=0, position=0.0, velocity=0.0):
+    image = {R.STATUS: status, R.FAULTS: faults}
+    for address, value in ((R.ACTUAL_POSITION, position), (R.ACTUAL_VELOCITY, velocity)):
+        image[address], image[address + 1] = int32_to_registers(round(value * 1e6))
+    return image
+
+
+@pytest.mark.parametrize(
+    ("status", "faults", "fault"),
+    [
+        (R.ST_MOVING, 0, None),
+        (0, 0, None),
+        (R.ST_FAULT, R.FAULT_DRIVE, "drive fault"),
+        (R.ST_FAULT, 0, "fault (no fault bits given)"),
+        (0, R.FAULT_WATCHDOG, "communication watchdog (no request in time)"),
+    ],
+)
+def test_modbus_track_state_decodes_position_velocity_and_faults(status, faults, fault):
+    link, track = recording_track()
+    link.inputs.update(status_image(status, faults, position=-0.012345, velocity=-0.2))
+    state = track.state()
+    assert state.position == pytest.approx(-0.012345, abs=1e-9)
+    assert state.velocity == pytest.approx(-0.2, abs=1e-9)
+    assert state.moving == bool(status & R.ST_MOVING)
+    assert state.fault == fault and state.stamp == 7.25
+
+
+def test_modbus_track_refused_command_names_the_device_fault():
+    link, track = recording_track()
+    link.inputs.update(status_image(R.ST_FAULT, R.FAULT_SOFT_LIMIT_MAX))
+    link.refuse = DeviceFault("exception 4")
+    with pytest.raises(DeviceFault, match="track refused the velocity command: soft limit max"):
+        track.move_velocity(0.1)
+    link.unreadable = DeviceError("no reply")  # the reason cannot be read: the refusal is named
+    with pytest.raises(DeviceFault, match="track refused the stop command: exception 4"):
+        track.stop()
+
+
+def test_modbus_track_close_deactivates_an_active_track_only():
+    link, track = recording_track()
+    track.close()
+    assert link.writes[-1] == block(R.MODE_STOP, control=0, beat=2) and link.closed
+    link, track = recording_track(active=False)
+    track.close()
+    assert link.writes == [] and link.closed
+    link, track = recording_track()
+    link.refuse = DeviceError("gone")
+    track.close()  # a failing deactivation does not keep the link open
+    assert link.closed
+    with pytest.raises(DeviceError, match="not active"):
+        track.move_velocity(0.1)
+
+
+def test_modbus_track_over_tcp_builds_its_link():
+    track = ModbusTrack.over_tcp("127.0.0.9", 5998, 3, timeout_s=0.7)
+    link = track.link
+    assert (link.host, link.port, link.device_id, link.timeout_s) == ("127.0.0.9", 5998, 3, 0.7)
+    default = ModbusTrack.over_tcp("127.0.0.9", 5998)
+    assert default.link.device_id == 1 and default.link.timeout_s == 0.5
+
+
+def test_modbus_track_before_connect_checks_only_the_register_range():
+    """Limits are the device's: before ``connect`` has read them the driver refuses nothing
+    but what its registers cannot hold (µm and µm/s in 32 bits: ±2147 m)."""
+    link = RecordingLink()
+    track = ModbusTrack(link)
+    track.activate()
+    track.move_velocity(-3.0)
+    track.move_to(-5.0, 4.0)
+    assert [w[1][1] for w in link.writes] == [R.MODE_STOP, R.MODE_VELOCITY, R.MODE_POSITION]
+    for call, name in (
+        (lambda: track.move_velocity(3000.0), "velocity"),
+        (lambda: track.move_to(-3000.0, 1.0), "position"),
+        (lambda: track.move_to(1.0, 3000.0), "speed"),
+    ):
+        with pytest.raises(ValueError, match=f"^{name} = .* is out of the register range"):
+            call()
+
+
+def test_modbus_track_over_tcp_passes_its_clock():
+    track = ModbusTrack.over_tcp("127.0.0.9", 5998, clock=lambda: 4.5)
+    track._link = RecordingLink(status_image())  # the same driver on a recording link
+    assert track.state().stamp == 4.5

@@ -11,9 +11,9 @@ from pydantic import ValidationError
 from configuration.devices import URArmConfig
 from configuration.rig import load_rig
 from drivers.base import Arm, DeviceError, DeviceFault, DeviceTimeout, ServoCommand
+from drivers.ur_kinematics import forward_kinematics, ur_model
 from drivers.ur_rtde import URArm, URArmOptions
 from sim_backends.ur_emulator import free_loopback_host
-from sim_backends.ur_kinematics import forward_kinematics, ur_model
 from tests.sim_backends.ur_emulation import running_emulator, wait_until
 
 MODEL = ur_model(load_rig().arm.model)

@@ -5,8 +5,8 @@ import pytest
 
 from configuration.rig import load_rig
 from drivers.base import Arm, DeviceError, DeviceFault, DeviceTimeout, ServoCommand
+from drivers.ur_kinematics import forward_kinematics, ur_model
 from sim_backends.arm import SimArm
-from sim_backends.ur_kinematics import forward_kinematics, ur_model
 
 RIG = load_rig()
 PERIOD = 1.0 / RIG.arm.control_rate_hz

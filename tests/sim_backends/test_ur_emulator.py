@@ -12,6 +12,7 @@ from dashboard_client import DashboardClient
 
 from configuration.rig import load_rig
 from drivers import rtde_protocol as rtde
+from drivers.ur_kinematics import forward_kinematics, ur_model
 from drivers.ur_states import RobotMode, RuntimeState, SafetyMode
 from estimators.geometry import Pose
 from sim_backends.ur_emulator import EmulatorError, UREmulator
@@ -21,7 +22,6 @@ from sim_backends.ur_emulator.dashboard import DashboardSession
 from sim_backends.ur_emulator.faults import LinkFaults
 from sim_backends.ur_emulator.interpreter import ControlScript
 from sim_backends.ur_emulator.rtde_server import InputOwnership, RTDESession
-from sim_backends.ur_kinematics import forward_kinematics, ur_model
 from tests.sim_backends.ur_emulation import released, running_emulator, wait_until
 
 ARM = load_rig().arm

@@ -4,10 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimators.geometry import Pose
-from sim_backends.bullet import connect_direct, pybullet, silenced_fds
-from sim_backends.ur_kinematics import (
-    JOINT_NAMES,
+from drivers.ur_kinematics import (
     UR_MODELS,
     damped_least_squares,
     forward_kinematics,
@@ -15,9 +12,10 @@ from sim_backends.ur_kinematics import (
     joint_frames,
     solve_ik,
     ur_model,
-    ur_urdf,
-    urdf_path,
 )
+from estimators.geometry import Pose
+from sim_backends.bullet import connect_direct, pybullet, silenced_fds
+from sim_backends.ur_urdf import JOINT_NAMES, ur_urdf, urdf_path
 
 UR10E = ur_model("ur10e")
 

@@ -19,8 +19,9 @@ from drivers.base import (
 )
 from drivers.clock import SimClock
 from estimators.frame import CameraInfo, Frame, GroundTruth
-from estimators.geometry import Pose, intrinsics_from_fov, look_at
+from estimators.geometry import Pose, intrinsics_from_fov
 from estimators.measurement import Measurement
+from estimators.target import facing_camera
 from hil.runtime.rig import RigGeometry
 from sim_backends.camera import StreamingSimCamera
 
@@ -39,7 +40,8 @@ def rig_geometry() -> RigGeometry:
 
 @dataclass
 class FakeArm:
-    """Integrates the commanded flange twist exactly; faults on demand."""
+    """Integrates the commanded flange twist exactly, brakes to rest at the stop's deceleration
+    (both parts reaching zero together, like ``SimArm``); faults on demand."""
 
     clock: SimClock
     X_BE: Pose
@@ -47,6 +49,7 @@ class FakeArm:
     protective_stop: bool = False
     link_down: bool = False
     stops: list = field(default_factory=list)
+    braking: float | None = None  # the deceleration of a stop in progress
 
     def connect(self):
         pass
@@ -75,12 +78,17 @@ class FakeArm:
         if self.protective_stop:
             raise DeviceFault("protective stop")
         self.V_BE = command.V_BE.copy()
+        self.braking = None
 
     def stop(self, deceleration: float = 2.0) -> None:
-        self.V_BE = np.zeros(6)
+        self.braking = deceleration
         self.stops.append(self.clock.now())
 
     def advance(self, dt: float) -> None:
+        if self.braking is not None:
+            largest = max(np.linalg.norm(self.V_BE[:3]), np.linalg.norm(self.V_BE[3:]))
+            slower = max(0.0, largest - self.braking * dt)
+            self.V_BE = self.V_BE * (slower / largest) if largest > 0 else self.V_BE
         w, v = self.V_BE[3:], self.V_BE[:3]
         self.X_BE = Pose(
             Pose.from_rotvec(w * dt, np.zeros(3)).R @ self.X_BE.R, self.X_BE.p + v * dt
@@ -166,13 +174,17 @@ class FakeGripper:
 
 
 class FakeStillCamera:
-    """Draws a blank frame carrying the truth of the moment (what ``StreamingSimCamera`` wraps)."""
+    """Draws a blank frame carrying the truth of the moment (what ``StreamingSimCamera`` wraps);
+    its frame number is written into the first pixels, as a live sensor's noise makes every
+    frame differ. ``frozen``: the image stops changing (a stuck driver), stamps go on."""
 
     def __init__(self, world: FakeWorld):
         self.world = world
         self.seq = 0
         self.streaming = False
         self.corrupt_next = False
+        self.frozen = False
+        self._last_image: np.ndarray | None = None
 
     @property
     def info(self) -> CameraInfo:
@@ -194,6 +206,10 @@ class FakeStillCamera:
         truth = self.world.truth()
         X_CT = truth["X_WC"].inverse() @ truth["X_WT"]
         image = np.zeros((48, 64), np.uint8)
+        image[0, :4] = np.frombuffer(np.uint32(self.seq).tobytes(), np.uint8)
+        if self.frozen and self._last_image is not None:
+            image = self._last_image
+        self._last_image = image
         if self.corrupt_next:
             self.corrupt_next = False
             image = np.zeros((10, 10), np.uint8)
@@ -280,13 +296,14 @@ class TruthEstimator:
 def start_X_BE(
     geometry: RigGeometry, distance: float = 2.5, offset=(0.2, -0.15), tilt_deg=6.0
 ) -> Pose:
-    """Flange pose putting the camera ``distance`` in front of the target, off-centre and tilted."""
+    """Flange pose putting the camera ``distance`` in front of the target, off-centre and tilted
+    by ``tilt_deg`` about its optical axis (and half that about the other two) from the
+    stand-off's orientation — within the flange's rotation envelope, as a rig's start is."""
     X_WT = geometry.X_WM(0.0)
-    z_T = X_WT.R[:, 2]
-    look_point = X_WT.apply(np.array([offset[0] * 0.3, offset[1] * 0.3, 0.0]))
-    eye = X_WT.apply(np.array([offset[0], offset[1], distance]))
-    X_WC = look_at(eye, look_point, np.array([0.0, 0.0, 1.0])) @ Pose.from_rpy(
-        0, 0, math.radians(tilt_deg), np.zeros(3)
+    tilt = math.radians(tilt_deg)
+    X_TC = (
+        Pose(np.eye(3), np.array([offset[0], offset[1], 0.0]))
+        @ facing_camera(distance)
+        @ Pose.from_rpy(tilt / 2, -tilt / 2, tilt, np.zeros(3))
     )
-    assert z_T @ (eye - X_WT.p) > 0
-    return geometry.X_WB.inverse() @ X_WC @ geometry.X_EC.inverse()
+    return geometry.X_WB.inverse() @ X_WT @ X_TC @ geometry.X_EC.inverse()

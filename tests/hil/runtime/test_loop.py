@@ -153,6 +153,7 @@ def test_loop_acts_on_the_estimate_brought_forward_to_the_tick(full_run):
     [
         ("frames stop", lambda b: setattr(b.world, "frames_stopped", True), "frames", "abort"),
         ("corrupt frame", lambda b: setattr(b.world.still, "corrupt_next", True), "frames", None),
+        ("frozen camera", lambda b: setattr(b.world.still, "frozen", True), "camera", "abort"),
         (
             "estimator raises",
             lambda b: setattr(b.estimators["a"], "raise_error", True),
@@ -280,7 +281,8 @@ def test_loop_stops_arm_and_track_on_a_stop_request_within_one_period():
     # Asked during the tick at asked[0]: the loop does not sleep, it stops in that period.
     assert 0.0 <= data["reaction_s"] <= loop.period_s and t - data["asked_t"] <= loop.period_s
     assert bench.arm.stops and bench.arm.stops[0] - loop.t0 - data["asked_t"] <= loop.period_s
-    assert bench.track.velocity == 0.0 and not np.any(bench.arm.V_BE)
+    # The fake arm brakes at the stop's deceleration; no motion command came after the stop.
+    assert bench.track.velocity == 0.0 and bench.arm.braking is not None
     after = [tick for tick in log.ticks if tick.tick > asked[1]]
     assert after and all(tick.command.stop and tick.command.track_velocity == 0 for tick in after)
     assert after[0].t - asked[0] <= loop.period_s
@@ -303,7 +305,7 @@ def test_loop_stops_both_devices_when_a_driver_call_raises_and_logs_why():
     with pytest.raises(ValueError, match=r"outside ±0\.05 m/s") as raised:
         loop.run(max_duration_s=60)
     assert loop.ended_by is raised.value
-    assert track.velocity == 0.0 and not np.any(bench.arm.V_BE) and bench.arm.stops
+    assert track.velocity == 0.0 and bench.arm.braking is not None and bench.arm.stops
     t, message, data = log.event("abort")
     assert message.startswith("trial ended by ValueError: track velocity")
     assert message.endswith("in phase approach; arm and track stopped")

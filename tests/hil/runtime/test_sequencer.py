@@ -144,3 +144,19 @@ def test_sequencer_recentres_from_off_centre_starts(offset):
     rig = ToyRig(offset=offset, tilt_deg=-10.0)
     seq, _, events, _ = run(rig, ApproachConfig())
     assert seq.phase == Phase.DONE, events
+
+
+def test_sequencer_logs_a_hold_once_not_every_tick():
+    seq = ApproachSequencer(ApproachConfig())
+    seq.start(0.0)
+    seq.phase = Phase.APPROACH
+    turning = [Violation("target_rate", "target rotating at 3.0°/s, limit 1.0°/s: holding", True)]
+    first = seq.on_violations(turning, 1.0)
+    assert ("fault", f"target_rate: {turning[0].message}") in first
+    assert seq.phase == Phase.ACQUIRE
+    again = [Violation("target_rate", "target rotating at 3.1°/s, limit 1.0°/s: holding", True)]
+    assert [e for e in seq.on_violations(again, 1.008) if e[0] == "fault"] == []
+    other = [Violation("frames", "no usable frame for 0.50 s, limit 0.4 s", True)]
+    assert [e[0] for e in seq.on_violations(other, 1.016)] == ["fault"]
+    seq._enter(Phase.APPROACH, 2.0, "estimate locked")  # a lock ends the hold
+    assert [e[0] for e in seq.on_violations(other, 2.5) if e[0] == "fault"] == ["fault"]

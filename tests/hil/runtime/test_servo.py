@@ -1,17 +1,22 @@
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from configuration.approach import ServoConfig
 from estimators.geometry import Pose, rotation_error_geodesic
 from hil.runtime.servo import (
     camera_twist_to_flange,
     flange_twist_to_camera,
     limit_acceleration,
+    limit_command,
     pbvs_twist,
     pose_error,
     saturate,
     scheduled_speed,
+    speed_limit,
     split_along_track,
 )
 
@@ -107,3 +112,81 @@ def test_split_along_track_preserves_the_relative_motion():
     assert abs(slow.track_velocity) == pytest.approx(0.01)
     relative_slow = R_WC @ slow.camera_twist_C[:3] - slow.track_velocity * axis
     assert np.allclose(np.cross(relative_slow, R_WC @ twist[:3]), 0.0, atol=1e-12)  # same direction
+
+
+# --- the limits, exactly ----------------------------------------------------------------------
+
+SERVO = ServoConfig()
+
+
+def test_speed_limit_is_the_range_schedule_of_the_servo_config():
+    servo = ServoConfig(slow_speed=0.02, max_speed=0.2, near_range_m=0.5, far_range_m=2.0)
+    assert speed_limit(0.4, servo) == 0.02
+    assert speed_limit(0.5, servo) == 0.02
+    assert speed_limit(1.25, servo) == pytest.approx(0.11)
+    assert speed_limit(2.0, servo) == pytest.approx(0.2)
+    assert speed_limit(9.0, servo) == 0.2
+
+
+def test_scheduled_speed_boundaries_and_refusal():
+    kwargs = dict(near_m=0.5, far_m=2.0, slow=0.02, fast=0.2)
+    assert scheduled_speed(0.5, **kwargs) == 0.02 and scheduled_speed(2.0, **kwargs) == 0.2
+    with pytest.raises(ValueError, match=r"^scheduled_speed needs far_m > near_m$"):
+        scheduled_speed(1.0, near_m=1.0, far_m=1.0, slow=0.1, fast=0.2)
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_limit_command_caps_each_change_at_one_period_of_acceleration(sign):
+    dt = 0.008
+    step_v = SERVO.max_acceleration * dt
+    step_w = math.radians(SERVO.max_angular_acceleration_deg) * dt
+    previous = np.array([0.1, -0.05, 0.02, 0.01, 0.0, -0.02])
+    # within the limits: passed through exactly
+    small = previous + sign * np.array([0.5 * step_v, 0, 0, 0, 0, 0.5 * step_w])
+    twist, track = limit_command(small, 0.1 + sign * 0.5 * step_v, previous, 0.1, dt, SERVO)
+    assert np.allclose(twist, small, atol=1e-15) and track == pytest.approx(
+        0.1 + sign * 0.5 * step_v
+    )
+    # beyond: the linear change capped at max_acceleration·dt, direction kept
+    far = previous + sign * np.array([3.0, 4.0, 0.0, 0.0, 0.0, 0.0])
+    twist, track = limit_command(far, 0.1 + sign * 5.0, previous, 0.1, dt, SERVO)
+    assert np.allclose(twist - previous, sign * np.array([0.6, 0.8, 0, 0, 0, 0]) * step_v)
+    assert track == pytest.approx(0.1 + sign * step_v)
+    # the angular change capped at max_angular_acceleration·dt (converted from degrees)
+    turn = previous + sign * np.array([0, 0, 0, 0.0, 2.0, 0.0])
+    twist, _ = limit_command(turn, 0.1, previous, 0.1, dt, SERVO)
+    assert np.allclose(twist - previous, sign * np.array([0, 0, 0, 0, step_w, 0]))
+
+
+def test_limit_acceleration_moves_from_the_previous_toward_the_target():
+    previous = np.array([0.2, 0.0, 0.0, 0.0, 0.1, 0.0])
+    target = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    out = limit_acceleration(target, previous, 0.1, max_acc=0.5, max_angular_acc=0.5)
+    # the linear part sets the scale: 0.05 of a 0.2 change, both parts scaled together
+    assert np.allclose(out, previous - 0.25 * previous)
+    out = limit_acceleration(target, previous, 1.0, max_acc=0.5, max_angular_acc=0.5)
+    assert np.allclose(out, target)  # within one step: reached exactly
+    out = limit_acceleration(target, previous, 0.1, max_acc=5.0, max_angular_acc=0.5)
+    assert np.allclose(out, 0.5 * previous)  # now the angular part sets it: 0.05 of 0.1
+
+
+def test_saturate_passes_a_twist_within_limits_and_scales_by_the_tighter_limit():
+    twist = np.array([0.1, 0.0, 0.0, 0.0, 0.0, 0.2])
+    assert np.array_equal(saturate(twist, 0.1, 0.2), twist)
+    assert np.allclose(saturate(twist, 0.05, 1.0), 0.5 * twist)
+    assert np.allclose(saturate(twist, 1.0, 0.05), 0.25 * twist)
+    assert np.allclose(saturate(twist, 0.05, 0.05), 0.25 * twist)
+
+
+def test_split_along_track_with_a_scaled_axis_and_the_track_at_its_limit():
+    R_WC = np.eye(3)
+    twist = np.array([0.3, 0.1, 0.0, 0.01, 0.02, 0.03])
+    split = split_along_track(twist, R_WC, np.array([2.0, 0.0, 0.0]), max_track_speed=1.0)
+    assert split.track_velocity == pytest.approx(-0.3)  # the axis is normalised
+    assert np.allclose(split.camera_twist_C, [0.0, 0.1, 0.0, 0.01, 0.02, 0.03])
+    at_limit = split_along_track(twist, R_WC, np.array([1.0, 0.0, 0.0]), max_track_speed=0.3)
+    assert at_limit.track_velocity == pytest.approx(-0.3)
+    assert np.allclose(at_limit.camera_twist_C, [0.0, 0.1, 0.0, 0.01, 0.02, 0.03])
+    slower = split_along_track(-twist, R_WC, np.array([1.0, 0.0, 0.0]), max_track_speed=0.15)
+    assert slower.track_velocity == pytest.approx(0.15)
+    assert np.allclose(slower.camera_twist_C, -0.5 * np.array([0.0, 0.1, 0.0, 0.01, 0.02, 0.03]))

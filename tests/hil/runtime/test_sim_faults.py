@@ -10,6 +10,7 @@ tested elsewhere.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -20,12 +21,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
+from scipy.spatial.transform import Rotation
 
+from configuration.rig import load_rig
 from configuration.simulation import SimulationConfig
 from drivers.base import DeviceTimeout
 from estimators.frame import Frame
 from hil.logs.triallog import TrialLog
 from hil.runtime.compose import Trial
+from sim_backends.rig_geometry import track_position_at_distance
 from tests.hil.runtime.loop_fakes import TruthEstimator
 
 ORACLE = "tests.hil.fake_estimators:build_oracle"
@@ -112,6 +117,7 @@ FAULTS = {
         "corrupt frame",
         VISION_DELAY_S,
     ),
+    "frozen camera": (lambda t: t.world.camera.inject_freeze(), "frozen camera", VISION_DELAY_S),
     "estimator raises": (lambda t: _estimator(t, raise_error=True), "raised", VISION_DELAY_S),
     "NaN pose": (lambda t: _estimator(t, nan=True), "non-finite", VISION_DELAY_S),
     "protective stop": (lambda t: t.world.arm.inject_protective_stop(), "protective stop", 0.01),
@@ -236,3 +242,103 @@ def test_approach_drives_track_and_gripper_over_a_loopback_modbus_server(tmp_pat
         with pytest.raises(OSError):
             socket.create_connection(("127.0.0.1", server.port), timeout=0.5).close()
     assert len(list(TrialLog.open(log_path).ticks())) > 100
+
+
+def rig_file(tmp_path: Path, **track) -> str:
+    """The built-in rig with some track settings changed, as a YAML file."""
+    rig = load_rig().model_dump(mode="json")
+    rig["track"].update(track)
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump(rig))
+    return str(path)
+
+
+def true_distance_m(tick) -> float:
+    """The camera's true distance from the ring's centre."""
+    return float(np.linalg.norm(tick.truth.X_CT.p))
+
+
+@pytest.mark.parametrize("onset", ["from the start", "mid-approach"])
+def test_tumbling_mockup_is_held_then_aborted_never_chased(tmp_path, onset):
+    """The mock-up turns at 3°/s about its vertical axis: the loop holds still and aborts
+    naming the rate; the camera never comes inside the stand-off distance."""
+    # Holding is acquiring: the acquisition's own time-out must outlast the hold.
+    changes = {"approach": {"supervisor": {"acquire_timeout_s": 6.0}}, "max_duration_s": 10.0}
+    if onset == "from the start":
+        rig = rig_file(tmp_path, drift_rate_deg_s=[0.0, 3.0, 0.0])
+        sim = small_sim(tmp_path, rig=rig, **changes)
+    else:
+        fault = {"kind": "tumbling_target", "phase": "approach", "after_s": 1.0}
+        sim = small_sim(tmp_path, faults=[fault], **changes)
+    log_path = tmp_path / "trial.mcap"
+    with Trial(sim, seed=2, log_path=log_path) as trial:
+        result = trial.run()
+    reason = result.outcome.abort_reason
+    assert result.outcome.phase == "abort"
+    assert re.search(r"target rotating at [23]\.\d°/s, limit 1\.0°/s", reason), reason
+    ticks = list(TrialLog.open(log_path).ticks())
+    standoff = sim.approach.standoff.distance_m
+    assert min(true_distance_m(t) for t in ticks if t.phase != "grasp") > standoff
+    # Held: from the first stop on, nothing moves until the abort.
+    first_stop = next(t for t in ticks if t.command.stop)
+    assert all(
+        not np.any(t.command.V_BE) and t.command.track_velocity == 0
+        for t in ticks
+        if t.t >= first_stop.t
+    )
+    held = ticks[-1].t - first_stop.t
+    assert held >= sim.approach.supervisor.target_rate_abort_s - 0.05
+    # The flange never turned after it: max rotation from its start stays small.
+    R0 = ticks[0].arm.X_BE.R
+    turned = max(np.degrees(Rotation.from_matrix(R0.T @ t.arm.X_BE.R).magnitude()) for t in ticks)
+    assert turned < 5.0
+
+
+def test_soft_limit_approached_at_speed_stops_before_it(tmp_path):
+    """travel_max 1.0 m lies across the approach: the carriage reaches it at ≈ 0.2 m/s; the
+    supervisor stops it while it can still brake (v²/2a ≈ 4 cm before), so it never crosses."""
+    sim = small_sim(tmp_path, rig=rig_file(tmp_path, travel_max=1.0))
+    log_path = tmp_path / "trial.mcap"
+    with Trial(sim, seed=2, log_path=log_path) as trial:
+        result = trial.run()
+        step(trial, 1.5)  # the carriage brakes to rest
+        final = trial.world.track.state()
+    assert result.outcome.phase == "abort"
+    assert "track_travel" in result.outcome.abort_reason
+    ticks = list(TrialLog.open(log_path).ticks())
+    first_stop = next(t for t in ticks if t.command.stop)
+    assert first_stop.track.velocity > 0.15  # stopped at speed, not crawling up to it
+    assert max(t.track.position for t in ticks) < 1.0
+    assert final.position < 1.0 and final.velocity == 0.0 and final.fault is None
+
+
+def test_guarded_advance_into_the_face_stops_on_the_contact_force(tmp_path):
+    """The fingertips reach 3 cm past the grasp pose's: the guarded advance pushes them into
+    the ring's face and the arm's TCP force stops it (the camera stays out of min_range)."""
+    rig = rig_file(tmp_path, start_position=track_position_at_distance(load_rig(), 0.6))
+    sim = small_sim(
+        tmp_path,
+        rig=rig,
+        start={"distance_m": 0.6, "max_offset_m": 0.01, "max_rotation_deg": 0.5},
+        tool_reach_m=0.38,
+        approach={
+            "supervisor": {"acquire_timeout_s": 1.5},
+            "standoff": {"dwell_s": 0.2},
+            "servo": {"slow_speed": 0.06},
+            "grasp": {"speed": 0.06},
+        },
+        max_duration_s=20.0,
+    )
+    log_path = tmp_path / "trial.mcap"
+    with Trial(sim, seed=2, log_path=log_path) as trial:
+        result = trial.run()
+    reason = result.outcome.abort_reason
+    assert result.outcome.phase == "abort" and "contact: force" in reason, reason
+    ticks = list(TrialLog.open(log_path).ticks())
+    stop = next(t for t in ticks if t.command.stop and t.phase == "abort")
+    force = np.linalg.norm(stop.arm.wrench_B[:3])
+    limit = sim.approach.supervisor.max_contact_force
+    assert limit < force < limit + 2.0  # caught the first tick over the limit
+    before = [t for t in ticks if t.t < stop.t]
+    assert all(np.linalg.norm(t.arm.wrench_B[:3]) <= limit for t in before)
+    assert "grasp" in {t.phase for t in before}
