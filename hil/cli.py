@@ -15,6 +15,7 @@ import typer
 from rich.console import Console
 
 from configuration.files import ConfigError
+from hil import cli_campaigns
 from hil.cli_emulate import emulate_app
 
 app = typer.Typer(
@@ -26,6 +27,8 @@ app = typer.Typer(
 bench_app = typer.Typer(help="Benchmarks (timings on this machine).", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 app.add_typer(emulate_app, name="emulate")
+app.command()(cli_campaigns.crb)
+app.command()(cli_campaigns.recover)
 
 console = Console(stderr=True, soft_wrap=True)  # never split a path across lines
 out = Console(soft_wrap=True)
@@ -641,6 +644,25 @@ def approach(
 
 @app.command()
 def campaign(
+    file: Annotated[
+        Path | None,
+        typer.Argument(
+            help="Campaign file (YAML) or a built-in name (smoke, reference). Without it: "
+            "closed-loop approaches from --seeds, --noise, --config."
+        ),
+    ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", help="Campaign directory [default: runs/campaigns/<name>]."),
+    ] = None,
+    workers: Annotated[int, typer.Option(min=1, help="Trials run at once.")] = 1,
+    executor: Annotated[
+        str, typer.Option(help="local (processes) | dask (needs satgrasp[cluster]).")
+    ] = "local",
+    scheduler: Annotated[
+        str | None,
+        typer.Option(help="Dask scheduler address [default: a LocalCluster on 127.0.0.1]."),
+    ] = None,
     config: SimOpt = "sim",
     seeds: Annotated[
         int, typer.Option(min=1, help="Trials per noise level (seeds S..S+N-1).")
@@ -655,35 +677,44 @@ def campaign(
     ] = 1,
     noise: Annotated[str, typer.Option(help="Comma-separated noise levels.")] = "low,high",
     systems: Annotated[str | None, typer.Option(help="Comma-separated estimators.")] = None,
-    jobs: Annotated[int, typer.Option(min=1, help="Trials run at once (processes).")] = 1,
+    jobs: Annotated[int, typer.Option(min=1, help="Same as --workers (older name).")] = 1,
     settings: SetOpt = None,
-    out_dir: Annotated[Path, typer.Option(help="Directory for the logs and the summary.")] = Path(
+    out_dir: Annotated[Path, typer.Option(help="Same as --out (older name).")] = Path(
         "runs/campaign"
     ),
 ) -> None:
-    """Run many simulated approaches (random starts as in the reference: 2.5 m, ±0.3 m off
-    centre, ±10° rotated) and summarise success and errors from their logs."""
-    from hil.analysis.campaign import campaign_markdown, run_campaign
+    """Run a campaign: every trial of FILE (open-loop frames, open-loop path, closed-loop
+    approaches; axes swept, seeds per cell) that has no result yet — so a killed campaign
+    resumes — on local processes or a Dask cluster; OUT/summary.csv and summary.parquet hold
+    one row per cell. Without FILE: closed-loop approaches (random starts as in the reference:
+    2.5 m, ±0.3 m off centre, ±10° rotated), summarised per trial in OUT/summary.md too."""
+    from hil.cli_campaigns import load_campaign_file, run_with_progress
+
+    workers = max(workers, jobs)
+    if file is not None:
+        campaign_config, source = load_campaign_file(file)
+        run = run_with_progress(campaign_config, out, workers, executor, scheduler, source)
+        out_print = f"report: satgrasp report {run.summary_csv.parent}"
+        console.print(out_print, markup=False, highlight=False)
+        return
+    from hil.analysis.campaign import campaign_markdown, seeds_campaign, summarize_log
+    from hil.analysis.campaigns.spec import expand
+    from hil.analysis.campaigns.trials import log_path
 
     levels = noise.split(",")
     for level in levels:
         _noise_config(level)
     sim = _simulation(config, None, systems, None, None, settings)
-
-    def progress(row, done, total) -> None:
-        verdict = "ok  " if row.success else "FAIL"
-        console.print(
-            f"[{done}/{total}] {verdict} noise {row.noise} seed {row.seed}: {row.phase} "
-            f"{row.abort_reason}".rstrip()
-        )
-
-    rows = run_campaign(
-        sim, range(first_seed, first_seed + seeds), levels, out_dir, jobs=jobs, progress=progress
-    )
+    target = out if out is not None else out_dir
+    campaign_config = seeds_campaign(sim, range(first_seed, first_seed + seeds), levels)
+    run_with_progress(campaign_config, target, workers, executor, scheduler)
+    rows = [
+        summarize_log(log_path(target, t), t.seed, t.cell["noise"]) for t in expand(campaign_config)
+    ]
     table = campaign_markdown(rows)
-    (out_dir / "summary.md").write_text(table, encoding="utf-8")
+    (target / "summary.md").write_text(table, encoding="utf-8")
     out.print(table, markup=False, highlight=False)
-    out.print(f"summary: {out_dir / 'summary.md'}")
+    out.print(f"summary: {target / 'summary.md'}")
 
 
 @app.command()
