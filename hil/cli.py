@@ -422,7 +422,12 @@ def bench_estimate(
 
 @app.command()
 def report(
-    log: Annotated[Path, typer.Argument(help="Trial log (.mcap), complete or cut off by a crash.")],
+    log: Annotated[
+        Path,
+        typer.Argument(
+            help="Trial log (.mcap), complete or cut off by a crash; or a campaign directory."
+        ),
+    ],
     out_dir: Annotated[
         Path | None,
         typer.Option(
@@ -440,10 +445,15 @@ def report(
         ),
     ] = False,
 ) -> None:
-    """Plots and an HTML page for one trial log: range and phases, errors of each estimator
+    """Plots and an HTML page for one trial log (or, for a campaign directory, its tables in
+    the reference study's layout beside the reference's numbers, figures and a page): range and phases, errors of each estimator
     and of the fused estimate against ground truth (simulation), estimator results accepted /
     rejected / lost / stale, commands, control-loop timing and vision latency, and a summary.
     With --json, the same figures as one JSON object (docs/trial_logs.md lists the keys)."""
+    if log.is_dir():  # a campaign: its tables beside the reference's, figures, a page
+        from hil.cli_campaigns import campaign_report
+
+        return campaign_report(log, out_dir)
     from hil.analysis.report import report_json, write_report
     from hil.analysis.trial_analysis import analyse
     from hil.logs.triallog import TrialLog, TrialLogError

@@ -149,3 +149,16 @@ def recover(
     except OSError as exc:
         raise fail(f"cannot write {target}: {exc}") from None
     out.print(f"recovered: {target}")
+
+
+def campaign_report(campaign_dir: Path, out_dir: Path | None) -> None:
+    """``satgrasp report CAMPAIGN_DIR``: tables beside the reference's, figures, HTML page."""
+    from hil.analysis.campaigns.report import CampaignReportError, write_campaign_report
+
+    try:
+        index, markdown = write_campaign_report(campaign_dir, out_dir)
+    except CampaignReportError as exc:
+        raise fail(str(exc)) from None
+    except OSError as exc:
+        raise fail(f"cannot write the report: {exc}") from None
+    out.print(f"report: {index}\ntables: {markdown}")

@@ -183,3 +183,26 @@ def test_campaign_smoke_killed_and_resumed_equals_an_uninterrupted_run_on_dask(
     assert run.skipped == len(done) and not finished_before & set(ran)
     assert sorted(ran) == sorted(t.key for t in trials if t.key not in finished_before)
     assert (out / "summary.csv").read_bytes() == (uninterrupted_dask / "summary.csv").read_bytes()
+
+
+def test_campaign_report_puts_the_reference_beside_ours_with_the_ratio(tmp_path):
+    from hil.analysis.campaigns.report import write_campaign_report
+    from hil.analysis.campaigns.runner import CellRow
+
+    rows = []
+    for system in ("corners", "fused"):
+        for maneuver in ("none", "turn_x_10deg"):
+            stats = cell_stats([Series((0.0,), (True,), (0.019,), (math.radians(0.5),))])
+            cell = {"distance_m": 1.2, "maneuver": maneuver, "system": system, "noise": "low"}
+            rows.append(CellRow("matrix", "frames", cell, stats, {}, (0.0019, 0.05)))
+    write_atomic(tmp_path / "summary.csv", csv_text(*summary_table(rows)))
+    index, markdown = write_campaign_report(tmp_path)
+    text = markdown.read_text(encoding="utf-8")
+    # corners at 1.2 m, low noise: the reference's 1.8–2.4 cm; ours 1.9 cm → ratio 1.9/1.8
+    assert "| none | 1.900 ± 0.000 cm | 1.8–2.4 cm | 1.06 |" in text
+    # the fused system is held against the reference's best system there (lines: 0.9–1.1 cm)
+    assert "fused, noise low: translation error (reference: its best system)" in text
+    assert "| none | 1.900 ± 0.000 cm | 0.9–1.1 cm | 2.11 |" in text
+    assert "| corners | low | 1.2 m | 19.00 mm | 1.90 mm | 10.0 |" in text  # efficiency
+    assert (tmp_path / "report" / "systems_low_noise.png").stat().st_size > 1000
+    assert "<table>" in index.read_text(encoding="utf-8")
