@@ -162,3 +162,39 @@ def campaign_report(campaign_dir: Path, out_dir: Path | None) -> None:
     except OSError as exc:
         raise fail(f"cannot write the report: {exc}") from None
     out.print(f"report: {index}\ntables: {markdown}")
+
+
+def compare(
+    a: Annotated[Path, typer.Argument(help="Trial log (.mcap) or campaign directory: before.")],
+    b: Annotated[Path, typer.Argument(help="The same kind: after.")],
+    out_dir: Annotated[
+        Path | None, typer.Option("--out", help="Directory for the table and the plot.")
+    ] = None,
+) -> None:
+    """Compare two trials or two campaigns: aligned differences (B − A, B ÷ A) with a
+    Mann–Whitney p-value where it applies, and overlaid plots (B against A per cell for
+    campaigns, errors against time for trials)."""
+    from hil.analysis.campaigns import compare as cmp
+    from hil.logs.triallog import TrialLogError
+
+    if a.is_dir() != b.is_dir():
+        raise fail("compare two trial logs or two campaign directories, not one of each")
+    for path in (a, b):
+        if not path.exists():
+            raise fail(f"{path} does not exist")
+    target = out_dir if out_dir is not None else Path(f"compare_{a.stem}_{b.stem}")
+    try:
+        if a.is_dir():
+            differences = cmp.compare_campaigns(a, b)
+            target.mkdir(parents=True, exist_ok=True)
+            plot = cmp.plot_campaigns(differences, target / "compare.png")
+        else:
+            differences, errors_a, errors_b = cmp.compare_trials(a, b)
+            target.mkdir(parents=True, exist_ok=True)
+            plot = cmp.plot_trials(errors_a, errors_b, target / "compare.png", a.stem, b.stem)
+    except (ValueError, TrialLogError, FileNotFoundError) as exc:
+        raise fail(str(exc)) from None
+    text = cmp.markdown(differences, str(a), str(b))
+    (target / "compare.md").write_text(text, encoding="utf-8")
+    out.print(text, markup=False, highlight=False)
+    out.print(f"table: {target / 'compare.md'}; plot: {plot}")
