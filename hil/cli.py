@@ -30,6 +30,7 @@ app.add_typer(emulate_app, name="emulate")
 app.command()(cli_campaigns.crb)
 app.command()(cli_campaigns.recover)
 app.command()(cli_campaigns.compare)
+app.command()(cli_campaigns.video)
 
 console = Console(stderr=True, soft_wrap=True)  # never split a path across lines
 out = Console(soft_wrap=True)

@@ -198,3 +198,28 @@ def compare(
     (target / "compare.md").write_text(text, encoding="utf-8")
     out.print(text, markup=False, highlight=False)
     out.print(f"table: {target / 'compare.md'}; plot: {plot}")
+
+
+def video(
+    log: Annotated[Path, typer.Argument(help="Trial log (.mcap) with logged frames.")],
+    out_path: Annotated[
+        Path | None, typer.Option("--out", help="Video file [default: <log>_overlay.mp4].")
+    ] = None,
+    codec: Annotated[
+        str, typer.Option(help="FourCC: vp09 (.mp4, plays in browsers), mp4v, MJPG (.avi).")
+    ] = "vp09",
+    fps: Annotated[
+        float | None, typer.Option(min=0.1, help="Frame rate [default: the logged rate].")
+    ] = None,
+) -> None:
+    """Render the logged frames with each system's features and reprojected model and the
+    fused pose (white model, axes) as a video."""
+    from hil.analysis.video import VideoError, default_video_path, render_video
+    from hil.logs.triallog import TrialLogError
+
+    target = out_path if out_path is not None else default_video_path(log)
+    try:
+        path, frames = render_video(log, target, codec=codec, fps=fps)
+    except (VideoError, TrialLogError, FileNotFoundError) as exc:
+        raise fail(str(exc)) from None
+    out.print(f"video: {path} ({frames} frames)")

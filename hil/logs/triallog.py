@@ -819,6 +819,16 @@ class TrialLog:
                 data=base64.b64decode(record.get("data", "")),
             )
 
+    def messages(self, topic_prefix: str) -> Iterator[tuple[str, float, bytes]]:
+        """(topic, trial time s, raw data) of every message on topics starting with
+        ``topic_prefix`` (e.g. Foxglove's ``/camera/features/``), in time order, read from the
+        file (a killed writer's too) on each call."""
+        scan = _scan(self.path, keep=lambda c: c.topic.startswith(topic_prefix))
+        topics = {channel.id: channel.topic for channel in scan.channels.values()}
+        for message in sorted(scan.messages, key=lambda m: (m.log_time, m.sequence)):
+            t = (message.log_time - self._start_ns) / 1e9
+            yield topics[message.channel_id], t, message.data
+
     def _decode(self, message: Message, what: str) -> dict[str, Any]:
         try:
             return json.loads(message.data)
