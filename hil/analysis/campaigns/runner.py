@@ -334,8 +334,8 @@ def _timing_csv(trials: Sequence[TrialSpec], out_dir: Path) -> str:
             k: float(np.median(v)) for k, v in timing.items() if isinstance(v, list) and len(v)
         }
         for name, median in medians.items() or [("", math.nan)]:
-            values.append([trial.key, timing.get("wall_s"), name, median])
-    return csv_text(("trial", "wall_s", "series", "processing_median_ms"), values)
+            values.append([trial.key, timing.get("wall_s"), timing.get("cpu_s"), name, median])
+    return csv_text(("trial", "wall_s", "cpu_s", "series", "processing_median_ms"), values)
 
 
 def _write_parquet(path: Path, columns: Sequence[str], values: Sequence[Sequence[Any]]):

@@ -51,10 +51,11 @@ def execute(trial_data: dict[str, Any], out_dir: str) -> tuple[str, float]:
     """Run the trial (``TrialSpec.to_dict()``), write its result; (key, wall seconds)."""
     _single_threaded()
     trial = TrialSpec.from_dict(trial_data)
-    started = time.perf_counter()
+    started, started_cpu = time.perf_counter(), time.process_time()
     runner = {"frames": _frames, "path": _path, "approach": _approach}[trial.kind]
     rows, extra, timing = runner(trial, Path(out_dir))
     seconds = time.perf_counter() - started
+    timing["cpu_s"] = time.process_time() - started_cpu
     result = {
         "version": RESULT_VERSION,
         "trial": trial.to_dict(),
