@@ -267,7 +267,8 @@ def matrix(
     per-case mean ± std of the errors beside the targets and the reference's numbers."""
     from dataclasses import asdict
 
-    from hil.evaluation.matrix import MatrixSpec, markdown_table, run_matrix, summarize
+    from hil.analysis.campaigns.matrix_runs import run_matrix_campaign
+    from hil.evaluation.matrix import MatrixSpec, markdown_table, summarize
     from hil.evaluation.scenarios import MANEUVERS
 
     try:
@@ -290,8 +291,12 @@ def matrix(
         raise _fail(f"bad --distance or --blank: {exc}") from None
     for level in spec.noises:
         _noise_config(level)
-    try:
-        rows = run_matrix(spec, jobs=jobs, progress=lambda text: console.print(text))
+    try:  # one frames part of the campaign runner: the same trials, workers and results
+        rows = run_matrix_campaign(
+            spec,
+            workers=jobs,
+            progress=lambda key, s, done, total: console.print(f"[{done}/{total}] {key} {s:.0f} s"),
+        )
     except (ValueError, NotImplementedError, ConfigError) as exc:
         raise _fail(str(exc)) from None
     table = markdown_table(summarize(rows))

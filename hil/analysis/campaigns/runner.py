@@ -331,7 +331,9 @@ def _timing_csv(trials: Sequence[TrialSpec], out_dir: Path) -> str:
             continue
         timing = result["timing"]
         medians = {
-            k: float(np.median(v)) for k, v in timing.items() if isinstance(v, list) and len(v)
+            k: float(np.median(v))
+            for k, v in timing.items()
+            if k.endswith("processing_ms") and isinstance(v, list) and len(v)
         }
         for name, median in medians.items() or [("", math.nan)]:
             values.append([trial.key, timing.get("wall_s"), timing.get("cpu_s"), name, median])

@@ -123,6 +123,35 @@ def matrix_spec(params: dict[str, Any], seed: int):
     return MatrixSpec(**values, seed=seed)
 
 
+def _no_nan(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _no_nan(v) for k, v in value.items()}
+    return value
+
+
+def frame_results_to_json(results: list[Any]) -> list[dict[str, Any]]:
+    """The matrix's ``FrameResult``s as JSON (NaN as null), for ``satgrasp matrix``'s tables."""
+    return [_no_nan(dataclasses.asdict(r)) for r in results]
+
+
+def frame_results_from_json(data: list[dict[str, Any]]) -> list[Any]:
+    from hil.evaluation.errors import MeasurementError
+    from hil.evaluation.matrix import FrameResult
+
+    def number(v: Any) -> Any:
+        return math.nan if v is None else v
+
+    return [
+        FrameResult(
+            **{k: number(v) for k, v in row.items() if k != "error"},
+            error=MeasurementError(**{k: number(v) for k, v in row["error"].items()}),
+        )
+        for row in data
+    ]
+
+
 def _frames(trial: TrialSpec, out_dir: Path):
     from hil.evaluation.matrix import run_case_group
 
@@ -139,7 +168,9 @@ def _frames(trial: TrialSpec, out_dir: Path):
             series = _judged_series(frames, system, OPEN_LOOP_FPS, blank=lambda r: r.blank)
             rows.append(_row({**trial.cell, "system": system, "noise": noise}, series))
             timing[f"{system}/{noise}/processing_ms"] = [r.time_ms for r in frames]
-    return rows, {}, timing
+    # every frame's full result (NEES, wrong locks, acquisition rows) for the matrix's tables;
+    # machine-dependent processing times included, so it stays out of summary.csv
+    return rows, {}, {**timing, "frame_results": frame_results_to_json(results)}
 
 
 # --- path: one system along the open-loop approach path --------------------------------------

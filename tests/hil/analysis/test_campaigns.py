@@ -206,3 +206,23 @@ def test_campaign_report_puts_the_reference_beside_ours_with_the_ratio(tmp_path)
     assert "| corners | low | 1.2 m | 19.00 mm | 1.90 mm | 10.0 |" in text  # efficiency
     assert (tmp_path / "report" / "systems_low_noise.png").stat().st_size > 1000
     assert "<table>" in index.read_text(encoding="utf-8")
+
+
+def test_matrix_through_the_campaign_runner_equals_run_matrix():
+    from hil.analysis.campaigns.matrix_runs import run_matrix_campaign
+    from hil.evaluation.matrix import MatrixSpec, run_matrix
+
+    spec = MatrixSpec(
+        systems=("corners", "fused"),
+        distances_m=(2.0,),
+        maneuvers=("move_x_10cm",),
+        noises=("low",),
+        frames=3,
+        seed=4,
+    )
+    direct, through = run_matrix(spec), run_matrix_campaign(spec)
+    assert [(r.system, r.index, r.status) for r in direct] == [
+        (r.system, r.index, r.status) for r in through
+    ]
+    for a, b in zip(direct, through, strict=True):
+        assert a.error.position_m == pytest.approx(b.error.position_m, nan_ok=True, abs=1e-12)
