@@ -52,6 +52,10 @@ def run_with_progress(
     from hil.analysis.campaigns.runner import run_campaign
     from hil.analysis.campaigns.spec import expand
 
+    if executor not in ("local", "dask"):
+        raise fail(f"--executor must be local or dask; got {executor!r}")
+    if scheduler is not None and executor != "dask":
+        raise fail("--scheduler needs --executor dask")
     try:
         trials = expand(config)
     except ValueError as exc:  # CampaignError

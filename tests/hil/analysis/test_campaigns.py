@@ -226,3 +226,34 @@ def test_matrix_through_the_campaign_runner_equals_run_matrix():
     ]
     for a, b in zip(direct, through, strict=True):
         assert a.error.position_m == pytest.approx(b.error.position_m, nan_ok=True, abs=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["campaign", "no_such.yaml"], "file not found"),
+        (["campaign", "smoke", "--executor", "spark"], "--executor must be local or dask"),
+        (["campaign", "smoke", "--scheduler", "tcp://127.0.0.1:1"], "--scheduler needs"),
+        (["crb", "--noise", "none"], "needs Gaussian noise"),
+        (["crb", "--distance", "far"], "--distance"),
+    ],
+)
+def test_campaign_commands_refuse_bad_input_in_one_line(args, message):
+    from typer.testing import CliRunner
+
+    from hil.cli import app
+
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2 and message in result.output
+    assert "Traceback" not in result.output
+
+
+def test_crb_command_prints_every_system_and_all():
+    from typer.testing import CliRunner
+
+    from hil.cli import app
+
+    result = CliRunner().invoke(app, ["crb", "--distance", "2"])
+    assert result.exit_code == 0, result.output
+    for system in ("corners", "lines", "ellipses", "all"):
+        assert f"| 2.00 m | {system} |" in result.output
