@@ -93,6 +93,11 @@ def run_with_progress(
             )
         except ValueError as exc:
             raise fail(str(exc)) from None
+        except Exception as exc:  # a trial that crashed: the finished ones are kept
+            raise fail(
+                f"a trial failed ({type(exc).__name__}: {exc}); the finished trials are kept in "
+                f"{target}, run the campaign again to resume"
+            ) from None
     out.print(
         f"{run.ran} trials run, {run.skipped} already done, {run.wall_s:.0f} s; "
         f"summary: {run.summary_csv}" + (f", {run.summary_parquet}" if run.summary_parquet else "")
