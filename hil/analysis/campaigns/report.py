@@ -295,12 +295,13 @@ def figure_error_vs_distance(rows, path: Path, noise: str = "low") -> Path | Non
                 for d in distances
             ]
             ax.plot(distances, means, "o-", color=COLORS[system], label=f"{system} (ours)")
+            shift = 0.04 * (SYSTEMS.index(system) - 1)  # the systems' bars side by side
             for d in distances:
                 ref = reference_ranges(system, d, noise)[k] if system != "fused" else None
                 if ref is not None:  # translation in cm, rotation in degrees
                     unit = _CM if k == 0 else _DEG
                     ax.plot(
-                        [d, d],
+                        [d + shift, d + shift],
                         [ref[0] / unit, ref[1] / unit],
                         color=COLORS[system],
                         lw=6,
