@@ -24,6 +24,7 @@ from typer.core import TyperGroup
 from configuration.files import ConfigError
 from configuration.render import NoiseConfig
 from configuration.simulation import ClockKind, LinkKind
+from hil import cli_campaigns
 from hil.cli_emulate import emulate_app
 from hil.cli_faults import faults_command
 
@@ -65,6 +66,10 @@ bench_app = typer.Typer(help="Benchmarks (timings on this machine).", no_args_is
 app.add_typer(bench_app, name="bench")
 app.add_typer(emulate_app, name="emulate")
 app.command("faults")(faults_command)
+app.command()(cli_campaigns.crb)
+app.command()(cli_campaigns.recover)
+app.command()(cli_campaigns.compare)
+app.command()(cli_campaigns.video)
 
 console = Console(stderr=True, soft_wrap=True)  # never split a path across lines
 out = Console(soft_wrap=True)
@@ -364,7 +369,8 @@ def matrix(
     per-case mean ± std of the errors beside the targets and the reference's numbers."""
     from dataclasses import asdict
 
-    from hil.evaluation.matrix import MatrixSpec, markdown_table, run_matrix, summarize
+    from hil.analysis.campaigns.matrix_runs import run_matrix_campaign
+    from hil.evaluation.matrix import MatrixSpec, markdown_table, summarize
     from hil.evaluation.scenarios import MANEUVERS
 
     try:
@@ -389,8 +395,12 @@ def matrix(
         _output_file(out_path, "--out")
     if results is not None:
         _output_file(results, "--results")
-    try:
-        rows = run_matrix(spec, jobs=jobs, progress=lambda text: console.print(text))
+    try:  # one frames part of the campaign runner: the same trials, workers and results
+        rows = run_matrix_campaign(
+            spec,
+            workers=jobs,
+            progress=lambda key, s, done, total: console.print(f"[{done}/{total}] {key} {s:.0f} s"),
+        )
     except (ValueError, NotImplementedError, ConfigError) as exc:
         raise _fail(str(exc)) from None
     table = markdown_table(summarize(rows))
@@ -531,7 +541,12 @@ def bench_estimate(
 
 @app.command()
 def report(
-    log: Annotated[Path, typer.Argument(help="Trial log (.mcap), complete or cut off by a crash.")],
+    log: Annotated[
+        Path,
+        typer.Argument(
+            help="Trial log (.mcap), complete or cut off by a crash; or a campaign directory."
+        ),
+    ],
     out_dir: Annotated[
         Path | None,
         typer.Option(
@@ -549,10 +564,15 @@ def report(
         ),
     ] = False,
 ) -> None:
-    """Plots and an HTML page for one trial log: range and phases, errors of each estimator
+    """Plots and an HTML page for one trial log (or, for a campaign directory, its tables in
+    the reference study's layout beside the reference's numbers, figures and a page): range and phases, errors of each estimator
     and of the fused estimate against ground truth (simulation), estimator results accepted /
     rejected / lost / stale, commands, control-loop timing and vision latency, and a summary.
     With --json, the same figures as one JSON object (docs/trial_logs.md lists the keys)."""
+    if log.is_dir():  # a campaign: its tables beside the reference's, figures, a page
+        from hil.cli_campaigns import campaign_report
+
+        return campaign_report(log, out_dir)
     from hil.analysis.report import report_json, write_report
     from hil.analysis.trial_analysis import analyse
     from hil.logs.triallog import TrialLog, TrialLogError
@@ -820,6 +840,25 @@ def _approach_report(log_path: Path, code: int) -> int:
 
 @app.command()
 def campaign(
+    file: Annotated[
+        Path | None,
+        typer.Argument(
+            help="Campaign file (YAML) or a built-in name (smoke, reference). Without it: "
+            "closed-loop approaches from --seeds, --noise, --config."
+        ),
+    ] = None,
+    out_dir_option: Annotated[
+        Path | None,
+        typer.Option("--out", help="Campaign directory [default: runs/campaigns/<name>]."),
+    ] = None,
+    workers: Annotated[int, typer.Option(min=1, help="Trials run at once.")] = 1,
+    executor: Annotated[
+        str, typer.Option(help="local (processes) | dask (needs satgrasp[cluster]).")
+    ] = "local",
+    scheduler: Annotated[
+        str | None,
+        typer.Option(help="Dask scheduler address [default: a LocalCluster on 127.0.0.1]."),
+    ] = None,
     config: SimOpt = "sim",
     seeds: Annotated[
         int, typer.Option(min=1, help="Trials per noise level (seeds S..S+N-1).")
@@ -834,35 +873,46 @@ def campaign(
     ] = 1,
     noise: Annotated[str, typer.Option(help="Comma-separated noise levels.")] = "low,high",
     systems: Annotated[str | None, typer.Option(help="Comma-separated estimators.")] = None,
-    jobs: Annotated[int, typer.Option(min=1, help="Trials run at once (processes).")] = 1,
+    jobs: Annotated[int, typer.Option(min=1, help="Same as --workers (older name).")] = 1,
     settings: SetOpt = None,
-    out_dir: Annotated[Path, typer.Option(help="Directory for the logs and the summary.")] = Path(
+    out_dir: Annotated[Path, typer.Option(help="Same as --out (older name).")] = Path(
         "runs/campaign"
     ),
 ) -> None:
-    """Run many simulated approaches (random starts as in the reference: 2.5 m, ±0.3 m off
-    centre, ±10° rotated) and summarise success and errors from their logs."""
-    from hil.analysis.campaign import campaign_markdown, run_campaign
+    """Run a campaign: every trial of FILE (open-loop frames, open-loop path, closed-loop
+    approaches; axes swept, seeds per cell) that has no result yet — so a killed campaign
+    resumes — on local processes or a Dask cluster; OUT/summary.csv and summary.parquet hold
+    one row per cell. Without FILE: closed-loop approaches (random starts as in the reference:
+    2.5 m, ±0.3 m off centre, ±10° rotated), summarised per trial in OUT/summary.md too."""
+    from hil.cli_campaigns import load_campaign_file, run_with_progress
+
+    workers = max(workers, jobs)
+    if file is not None:
+        campaign_config, source = load_campaign_file(file)
+        run = run_with_progress(
+            campaign_config, out_dir_option, workers, executor, scheduler, source
+        )
+        out_print = f"report: satgrasp report {run.summary_csv.parent}"
+        console.print(out_print, markup=False, highlight=False)
+        return
+    from hil.analysis.campaign import campaign_markdown, seeds_campaign, summarize_log
+    from hil.analysis.campaigns.spec import expand
+    from hil.analysis.campaigns.trials import log_path
 
     levels = _noise_levels(noise)
     sim = _simulation(config, None, systems, None, None, settings)
-    _output_dir(out_dir, "--out-dir")
-
-    def progress(row, done, total) -> None:
-        verdict = "ok  " if row.success else "FAIL"
-        console.print(
-            f"[{done}/{total}] {verdict} noise {row.noise} seed {row.seed}: {row.phase} "
-            f"{row.abort_reason}".rstrip()
-        )
-
-    rows = run_campaign(
-        sim, range(first_seed, first_seed + seeds), levels, out_dir, jobs=jobs, progress=progress
-    )
+    target = out_dir_option if out_dir_option is not None else out_dir
+    _output_dir(target, "--out")
+    campaign_config = seeds_campaign(sim, range(first_seed, first_seed + seeds), levels)
+    run_with_progress(campaign_config, target, workers, executor, scheduler)
+    rows = [
+        summarize_log(log_path(target, t), t.seed, t.cell["noise"]) for t in expand(campaign_config)
+    ]
     table = campaign_markdown(rows)
-    with _writing(out_dir / "summary.md", "--out-dir"):
-        (out_dir / "summary.md").write_text(table, encoding="utf-8")
+    with _writing(target / "summary.md", "--out"):
+        (target / "summary.md").write_text(table, encoding="utf-8")
     out.print(table, markup=False, highlight=False)
-    out.print(f"summary: {out_dir / 'summary.md'}")
+    out.print(f"summary: {target / 'summary.md'}")
 
 
 @app.command()

@@ -5,16 +5,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from configuration.simulation import SimulationConfig, with_overrides
+from configuration.campaign import CampaignConfig, CampaignPart
+from configuration.simulation import SimulationConfig
 from hil.analysis.trial_analysis import analyse
 from hil.logs.triallog import TrialLog
-from hil.runtime.compose import run_trial
 
 
 @dataclass(frozen=True, slots=True)
@@ -40,10 +39,6 @@ class TrialSummary:
     fused_below_all_1s_attitude: float
     deadline_misses: int = 0
     vision_latency_p95_ms: float = math.nan
-
-
-def trial_log_path(out_dir: Path, noise: str, seed: int) -> Path:
-    return out_dir / f"approach_{noise}_seed{seed:03d}.mcap"
 
 
 def summarize_log(path: Path, seed: int, noise: str) -> TrialSummary:
@@ -87,12 +82,23 @@ def summarize_log(path: Path, seed: int, noise: str) -> TrialSummary:
     )
 
 
-def _run_one(sim: SimulationConfig, seed: int, noise: str, out_dir: Path) -> TrialSummary:
-    path = trial_log_path(out_dir, noise, seed)
-    if path.exists():
-        path.unlink()  # a campaign re-run replaces its own logs
-    run_trial(with_overrides(sim, noise={"preset": noise}), seed=seed, log_path=path)
-    return summarize_log(path, seed, noise)
+def seeds_campaign(
+    sim: SimulationConfig, seeds: Sequence[int], noises: Sequence[str], name: str = "seeds"
+) -> CampaignConfig:
+    """``satgrasp campaign --seeds``: closed-loop approaches of ``sim`` (its full resolved
+    configuration), every noise level × every seed — a campaign of one ``approach`` part."""
+    return CampaignConfig(
+        name=name,
+        parts=[
+            CampaignPart(
+                name="approach",
+                kind="approach",
+                settings={"config": sim.model_dump(mode="json")},
+                axes={"noise": list(noises)},
+                seeds=list(seeds),
+            )
+        ],
+    )
 
 
 def run_campaign(
@@ -102,25 +108,17 @@ def run_campaign(
     out_dir: Path,
     *,
     jobs: int = 1,
-    progress: Callable[[TrialSummary, int, int], None] | None = None,
+    progress: Callable[[str, float, int, int], None] | None = None,
 ) -> list[TrialSummary]:
-    """Run every (noise, seed) trial, ``jobs`` at a time in separate processes."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    cases = [(seed, noise) for noise in noises for seed in seeds]
-    rows: list[TrialSummary] = []
-    if jobs <= 1:
-        for seed, noise in cases:
-            rows.append(_run_one(sim, seed, noise, out_dir))
-            if progress:
-                progress(rows[-1], len(rows), len(cases))
-        return rows
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
-        futures = [pool.submit(_run_one, sim, seed, noise, out_dir) for seed, noise in cases]
-        for future in futures:
-            rows.append(future.result())
-            if progress:
-                progress(rows[-1], len(rows), len(cases))
-    return rows
+    """Run every (noise, seed) trial through the campaign runner (resumable, ``jobs`` at a
+    time) and read each trial's summary back from its log."""
+    from hil.analysis.campaigns.runner import run_campaign as run
+    from hil.analysis.campaigns.spec import expand
+    from hil.analysis.campaigns.trials import log_path
+
+    config = seeds_campaign(sim, seeds, noises)
+    run(config, out_dir, workers=jobs, progress=progress)
+    return [summarize_log(log_path(out_dir, t), t.seed, t.cell["noise"]) for t in expand(config)]
 
 
 def _cm(m: float) -> str:

@@ -26,21 +26,19 @@ from estimators.planar_pose import PointObservations
 from estimators.target import TargetModel
 
 
-def tilt_bounds(
+def circle_information(
     target: TargetModel,
     K: np.ndarray,
     X_CT: Pose,
     circles: tuple[str, ...],
     *,
     free_radius: tuple[str, ...] = (),
-    sigma_px: float = 0.5,
+    sigma_px: float | dict[str, float] = 0.5,
     spacing_px: float = 1.0,
-    points_T: np.ndarray | None = None,
-    point_sigma_px: float = 0.2,
-) -> tuple[np.ndarray, float]:
-    """Bounds of a 6-DOF fit to edge points on ``circles`` (and labeled ``points_T``): the
-    tilt's standard deviations (rad; weak axis first, then strong) and the centre's (m, root
-    of the trace)."""
+) -> np.ndarray:
+    """6×6 Fisher information about [δθ, δp] of edge points every ``spacing_px`` along each of
+    ``circles`` (σ across the curve ``sigma_px``, or per circle name), with the radii of
+    ``free_radius`` estimated too and marginalised out (Schur complement)."""
     sets = []
     for name in circles:
         c = target.circle(name)
@@ -62,19 +60,49 @@ def tilt_bounds(
         return centers, np.einsum("bij,sj->bsi", R, normals_T), r
 
     J = _ConicModel(sets, geometry, 6 + len(free), K).jacobian()
-    information = J.T @ J / sigma_px**2
+    sigmas = {name: sigma_px for name in circles} if np.isscalar(sigma_px) else sigma_px
+    weights = np.concatenate([np.full(len(s.uv), 1.0 / sigmas[s.circle.name]) for s in sets])
+    Jw = J * weights[:, None]  # the model's rows run set by set, point by point
+    information = Jw.T @ Jw
+    A, B, D = information[:6, :6], information[:6, 6:], information[6:, 6:]
+    return A - B @ np.linalg.pinv(D) @ B.T if free else A
+
+
+def tilt_bounds(
+    target: TargetModel,
+    K: np.ndarray,
+    X_CT: Pose,
+    circles: tuple[str, ...],
+    *,
+    free_radius: tuple[str, ...] = (),
+    sigma_px: float = 0.5,
+    spacing_px: float = 1.0,
+    points_T: np.ndarray | None = None,
+    point_sigma_px: float = 0.2,
+) -> tuple[np.ndarray, float]:
+    """Bounds of a 6-DOF fit to edge points on ``circles`` (and labeled ``points_T``): the
+    tilt's standard deviations (rad; weak axis first, then strong) and the centre's (m, root
+    of the trace)."""
+    information = circle_information(
+        target, K, X_CT, circles, free_radius=free_radius, sigma_px=sigma_px, spacing_px=spacing_px
+    )
     if points_T is not None and len(points_T):
         uv = project(X_CT.apply(points_T), K)
         cov = np.tile(point_sigma_px**2 * np.eye(2), (len(uv), 1, 1))
         _, _, J_points = PointObservations(points_T, uv, cov).linearize(X_CT, K)
-        information[:6, :6] += J_points.T @ J_points
-    covariance = np.linalg.pinv(information)[:6, :6]
-    n = X_CT.R[:, 2]
-    nx = np.array([[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]])
-    normal_cov = nx @ covariance[:3, :3] @ nx.T  # δn = δθ × n
-    tilts = np.sqrt(np.clip(np.linalg.eigvalsh(normal_cov)[1:], 0.0, None))[::-1]
+        information += J_points.T @ J_points
+    covariance = np.linalg.pinv(information)
+    tilts = normal_tilt_sigmas(covariance, X_CT.R[:, 2])
     center = float(np.sqrt(np.trace(covariance[3:, 3:])))
     return tilts, center
+
+
+def normal_tilt_sigmas(covariance: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Standard deviations (rad) of a normal ``n`` (in C) along the principal axes of its
+    error δn = δθ × n under a pose covariance over [δθ, δp]: weak axis first."""
+    nx = np.array([[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]])
+    normal_cov = nx @ covariance[:3, :3] @ nx.T
+    return np.sqrt(np.clip(np.linalg.eigvalsh(normal_cov)[1:], 0.0, None))[::-1]
 
 
 def main() -> None:

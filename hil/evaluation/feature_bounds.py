@@ -37,7 +37,7 @@ from estimators.target import facing_camera
 from hil.evaluation.scenarios import REFERENCE_DISTANCES_M
 
 
-def _lit(color, lighting: Lighting) -> float:
+def lit_gray(color, lighting: Lighting) -> float:
     """Grey level of a face-on (+z) Lambertian surface of ``color``."""
     sun = np.asarray(lighting.sun_direction_T, dtype=float)
     cosine = max(0.0, sun[2] / np.linalg.norm(sun))
@@ -66,7 +66,7 @@ def panel_edge_information(
     """6×6 Fisher information of the panel's four edges about [δθ, δp]."""
     target = mockup.target_model()
     contrast = abs(
-        _lit(mockup.centre_panel.color, lighting) - _lit(mockup.bus_face.color, lighting)
+        lit_gray(mockup.centre_panel.color, lighting) - lit_gray(mockup.bus_face.color, lighting)
     )
     corners = target.panel_corners_T
     ends = np.stack([corners, np.roll(corners, -1, axis=0)], axis=1)
@@ -86,7 +86,7 @@ def outline_edge_information(
     """6×6 information of the bus face's outline against the dark background (the parts in
     view) — the straight edges the line system fits besides the panel's."""
     face = mockup.bus_face
-    contrast = _lit(face.color, lighting)  # against space black
+    contrast = lit_gray(face.color, lighting)  # against space black
     w, h, z = face.width / 2, face.height / 2, mockup.z_bus
     corners = np.array([[w, h, z], [-w, h, z], [-w, -h, z], [w, -h, z]])
     ends = np.stack([corners, np.roll(corners, -1, axis=0)], axis=1)
@@ -119,7 +119,7 @@ def disc_information(
     info = np.zeros((6, 6))
     features = {f.name: f for f in target.point_features if f.kind == "disc"}
     for group in mockup.fasteners:
-        contrast = abs(_lit(group.color, lighting) - _lit(surface[group.surface], lighting))
+        contrast = abs(lit_gray(group.color, lighting) - lit_gray(surface[group.surface], lighting))
         for i in range(len(group.centers_xy())):
             feature = features[f"{group.name}_{i}"]
             P_C = X_CT.apply(feature.p_T)

@@ -29,7 +29,9 @@ from configuration.render import NoiseConfig, RenderConfig
 from estimators.frame import Frame, GroundTruth
 from estimators.measurement import Tracker
 from estimators.registry import build_estimator
+from estimators.target import facing_camera
 from hil.evaluation.errors import MeasurementError, measurement_error
+from hil.evaluation.fused_frames import FUSED, OpenLoopFusion
 from hil.evaluation.reference import reference_text
 from hil.evaluation.scenarios import MANEUVERS, REFERENCE_DISTANCES_M, Maneuver, camera_pose_for
 from hil.evaluation.targets import (
@@ -118,7 +120,11 @@ def run_case_group(spec: MatrixSpec, distance_m: float, maneuver_name: str) -> l
         trackers = {
             s: Tracker(build_estimator(s, target, camera, **spec.estimator_options))
             for s in spec.systems
+            if s != FUSED
         }
+        # the camera stands still and the target maneuvers: M is the target's nominal pose
+        X_CM = facing_camera(distance_m).inverse()
+        fusion = OpenLoopFusion(target, X_CM) if FUSED in spec.systems else None
         for i, rendering in enumerate(renderings):
             blank = i in spec.blank_frames
             scene = np.full_like(rendering.image, BLANK_LEVEL) if blank else rendering.image
@@ -127,14 +133,19 @@ def run_case_group(spec: MatrixSpec, distance_m: float, maneuver_name: str) -> l
                 image, float(i) / 30.0, camera, i, GroundTruth(rendering.X_CT, rendering.X_WC)
             )
             case = (distance_m, maneuver_name, noise, i, rendering.X_CT, target, blank)
+            measurements = []
             for system, tracker in trackers.items():
                 had_prior = tracker.prior_X_CT is not None
+                measurements.append(tracker.update(frame))
                 results.append(
-                    _frame_result(tracker.update(frame), system, *case, had_prior, "tracking")
+                    _frame_result(measurements[-1], system, *case, had_prior, "tracking")
                 )
                 if spec.acquisition:
                     m = Tracker(tracker.estimator).update(frame)  # no prior at all
                     results.append(_frame_result(m, system, *case, False, "acquisition"))
+            if fusion is not None:
+                m = fusion.update(frame, measurements)
+                results.append(_frame_result(m, FUSED, *case, i > 0, "tracking"))
     return results
 
 

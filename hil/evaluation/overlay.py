@@ -25,12 +25,19 @@ def _polyline(image: np.ndarray, uv: np.ndarray, color, closed: bool) -> None:
 
 
 def draw_measurement(
-    image: np.ndarray, m: Measurement, camera: CameraInfo, target: TargetModel
+    image: np.ndarray,
+    m: Measurement,
+    camera: CameraInfo,
+    target: TargetModel,
+    *,
+    model_color: tuple[int, int, int] = _RED,
+    text_row: int = 0,
 ) -> np.ndarray:
     """A BGR copy of ``image`` with the measurement drawn on it.
 
-    Grey: every ``extracted`` feature; green: ``labeled`` ones; red: the target model reprojected
-    with the estimated pose (panel outline, circles); cyan: a 5-DOF circle; text: status.
+    Grey: every ``extracted`` feature; green: ``labeled`` ones; ``model_color`` (red): the
+    target model reprojected with the estimated pose (panel outline, circles); cyan: a 5-DOF
+    circle; text: status, on line ``text_row`` (several systems on one frame).
     """
     canvas = image.copy()
     if canvas.ndim == 2:
@@ -48,7 +55,7 @@ def draw_measurement(
     if m.X_CT is not None:
         corners_C = m.X_CT.apply(target.panel_corners_T)
         if np.all(camera.in_view(corners_C, margin_px=-50)):
-            _polyline(canvas, camera.project(corners_C), _RED, closed=True)
+            _polyline(canvas, camera.project(corners_C), model_color, closed=True)
         for circle in target.circles:
             rim_C = m.X_CT.apply(
                 circle_points(circle.center_T, circle.normal_T, circle.radius, 180)
@@ -56,7 +63,10 @@ def draw_measurement(
             visible = camera.in_view(rim_C, margin_px=-50)
             if np.any(visible):
                 _polyline(
-                    canvas, camera.project(rim_C[visible]), _RED, closed=bool(np.all(visible))
+                    canvas,
+                    camera.project(rim_C[visible]),
+                    model_color,
+                    closed=bool(np.all(visible)),
                 )
     elif m.center_C is not None and m.normal_C is not None and m.circle is not None:
         radius = target.circle(m.circle).radius
@@ -69,5 +79,6 @@ def draw_measurement(
         text += f" ({m.reason})"
     elif np.isfinite(m.residual_px):
         text += f"  rms {m.residual_px:.2f} px"
-    cv2.putText(canvas, text, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, _YELLOW, 1, cv2.LINE_AA)
+    origin = (8, 20 + 18 * text_row)
+    cv2.putText(canvas, text, origin, cv2.FONT_HERSHEY_SIMPLEX, 0.5, _YELLOW, 1, cv2.LINE_AA)
     return canvas

@@ -38,3 +38,25 @@ def reference_text(system: str, distance_m: float) -> str:
         return "–"
     (t0, t1), (r0, r1) = ranges
     return f"{t0 / _CM:.1f}–{t1 / _CM:.1f} cm / {r0 / _DEG:.2g}–{r1 / _DEG:.2g}°"
+
+
+#: What the reference says of high noise (variance 0.1), where it gives a figure: corners'
+#: rotation rose to about 5° at 3 m; lines kept track at 3.8–7.7 cm at 3 m. None: not given.
+REFERENCE_HIGH_NOISE: dict[
+    str, dict[float, tuple[tuple[float, float] | None, tuple[float, float] | None]]
+] = {
+    "corners": {3.0: (None, (5.0 * _DEG, 5.0 * _DEG))},
+    "lines": {3.0: ((3.8 * _CM, 7.7 * _CM), None)},
+}
+
+
+def reference_ranges(
+    system: str, distance_m: float, noise: str
+) -> tuple[tuple[float, float] | None, tuple[float, float] | None]:
+    """(translation (min, max) m, rotation (min, max) rad) the reference reports for a
+    system, distance and noise level over its maneuvers; None where it gives no figure."""
+    table = {"low": REFERENCE_LOW_NOISE, "high": REFERENCE_HIGH_NOISE}.get(noise, {})
+    for distance, ranges in table.get(system, {}).items():
+        if abs(distance - distance_m) < 1e-6:
+            return ranges
+    return None, None

@@ -316,6 +316,7 @@ class TrialLogWriter:
             "invalid_ticks": 0,
             "invalid_vision": 0,
             "replaced": 0,
+            "other": 0,  # messages of add_channel's channels (Foxglove's)
         }
         #: How many times the open chunk was closed and the file flushed (for tests/monitors).
         self.flush_count = 0
@@ -464,6 +465,34 @@ class TrialLogWriter:
         self.counts["frames"] += 1
         return True
 
+    def add_channel(
+        self, topic: str, schema_name: str, schema_encoding: str, schema: bytes, encoding: str
+    ) -> bool:
+        """Register a channel of another encoding (e.g. Foxglove's protobuf schemas,
+        ``hil.logs.foxglove``) for ``write_message``; False if logging has stopped."""
+        with self._lock:
+            if self._closed or self.error is not None:
+                return False
+            if topic in self._channels:
+                return True
+            try:
+                schema_id = self._writer.register_schema(schema_name, schema_encoding, schema)
+                self._channels[topic] = self._writer.register_channel(topic, encoding, schema_id)
+            except Exception as exc:
+                self._fail(exc)
+                return False
+            return True
+
+    def write_message(self, topic: str, t: float, data: bytes) -> bool:
+        """Log an already encoded message on a channel of ``add_channel`` at trial time ``t``."""
+        with self._lock:
+            if topic not in self._channels:
+                return False
+            if not self._add(topic, self._time_of({"t": t}), data):
+                return False
+            self.counts["other"] += 1
+            return True
+
     def flush(self) -> None:
         """Close the open chunk and push everything written so far to the OS."""
         with self._lock:
@@ -523,6 +552,10 @@ class TrialLogWriter:
             self._last_t = max(self._last_t, float(t))
             return float(t)
         return self._last_t
+
+    def stamp_ns(self, t: float) -> int:
+        """The log time (ns since the Unix epoch) of trial time ``t`` (s): the start + ``t``."""
+        return self._log_time(t)
 
     def _log_time(self, t: float) -> int:
         return self._start_ns + round(max(t, 0.0) * 1e9)
@@ -959,6 +992,16 @@ class TrialLog:
                 frame_id=record.get("frame_id", ""),
                 data=base64.b64decode(record.get("data", "")),
             )
+
+    def messages(self, topic_prefix: str) -> Iterator[tuple[str, float, bytes]]:
+        """(topic, trial time s, raw data) of every message on topics starting with
+        ``topic_prefix`` (e.g. Foxglove's ``/camera/features/``), in time order, read from the
+        file (a killed writer's too) on each call."""
+        scan = _scan(self.path, keep=lambda c: c.topic.startswith(topic_prefix))
+        topics = {channel.id: channel.topic for channel in scan.channels.values()}
+        for message in sorted(scan.messages, key=lambda m: (m.log_time, m.sequence)):
+            t = (message.log_time - self._start_ns) / 1e9
+            yield topics[message.channel_id], t, message.data
 
     def _decode(self, message: Message, what: str) -> dict[str, Any]:
         try:

@@ -31,6 +31,7 @@ from configuration.simulation import ClockKind, SimulationConfig
 from estimators.fusion import PoseFusion
 from estimators.geometry import Pose
 from estimators.registry import build_estimator
+from hil.logs.foxglove import FoxgloveRecorder
 from hil.logs.records import TickRecord
 from hil.logs.triallog import TrialLogError, TrialLogWriter
 from hil.runtime.faults import FaultInjector
@@ -149,6 +150,14 @@ class Trial:
                     ),
                 )
             )  # fmt: skip
+            self.log = FoxgloveRecorder(
+                self.log,
+                X_WB=self.geometry.X_WB,
+                X_EC=self.geometry.X_EC,
+                X_WM=self.geometry.X_WM,
+                camera=self.camera.camera_info(),
+                target=self.mockup.target_model(),
+            )
             if self.clock_kind == "sim":
                 self._build_stepped()
             else:

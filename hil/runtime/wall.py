@@ -35,6 +35,7 @@ from estimators.frame import CameraInfo
 from estimators.fusion import FusionParams, PoseFusion
 from estimators.registry import build_estimator
 from estimators.target import TargetModel
+from hil.logs.foxglove import bounded_features
 from hil.logs.records import VisionRecord
 from hil.runtime.history import StateHistory, StateRing, StateSample
 from hil.runtime.judge import truth_record
@@ -149,10 +150,11 @@ def _serve(
 
 
 def _lean(item: VisionRecord | LoggedImage) -> VisionRecord | LoggedImage:
-    """A record without the measurement's feature points (overlay data the log does not keep):
+    """A record with only the feature points the log draws, thinned (``bounded_features``):
     what crosses into the control process stays small."""
     if isinstance(item, VisionRecord) and item.measurement.features:
-        return replace(item, measurement=replace(item.measurement, features={}))
+        features = bounded_features(item.measurement.features)
+        return replace(item, measurement=replace(item.measurement, features=features))
     return item
 
 

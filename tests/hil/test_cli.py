@@ -146,7 +146,8 @@ def test_campaign_runs_the_seeds_asked_for_and_writes_a_summary(tmp_path):
     args = ["campaign", "--config", str(config), "--seeds", "1", "--first-seed", "7"]
     result = runner.invoke(app, [*args, "--noise", "none", "--out-dir", str(out_dir)])
     assert result.exit_code == 0, result.output
-    assert "ok   noise none seed 7" in result.output
-    assert sorted(p.name for p in out_dir.glob("*.mcap")) == ["approach_none_seed007.mcap"]
+    assert "1 trials run, 0 already done" in result.output
+    logs = sorted(p.relative_to(out_dir).as_posix() for p in out_dir.rglob("*.mcap"))
+    assert len(logs) == 1 and logs[0].startswith("logs/approach/none-s7-"), logs
     summary = (out_dir / "summary.md").read_text()
     assert "| none | 1 | 1/1 (100 %)" in summary
