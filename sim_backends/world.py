@@ -189,7 +189,7 @@ class SimRig:
                 self._next_capture += 1.0 / self.timing.fps
 
     def _step(self, dt: float) -> None:
-        self.arm.step(dt)
+        self._step_arm(dt)
         self.track_model.step(dt)
         self.gripper_model.step(dt)
         self.clock.advance(dt)
@@ -200,6 +200,10 @@ class SimRig:
             and rotation_error_geodesic(X_TC, self._grasp_X_TC) <= self._capture_rad
         )
         self.gripper_model.set_object(self._object_width if captured else None)
+
+    def _step_arm(self, dt: float) -> None:
+        """The arm's share of a step (an emulated controller drives it instead: emulated_world)."""
+        self.arm.step(dt)
 
     def truth(self) -> Mapping[str, Pose]:
         return {"X_WT": self.track_model.X_WT(), "X_WC": self.arm.camera_pose_W()}

@@ -152,6 +152,22 @@ class LatestSender:
                 return
 
 
+def capture_requests(world: SimRig, camera: Connection | None) -> LatestSender | None:
+    """From now on, at each frame instant of ``world``, ask the camera process to render the
+    scene as it is then (newest request only: a camera behind the frame rate drops frames)."""
+    requests = LatestSender(camera) if camera is not None else None
+    seq = 0
+
+    def on_capture(stamp: float) -> None:
+        nonlocal seq
+        if requests is not None:
+            requests.put(RenderRequest(seq, stamp, world.viewpoint(), world.track_model.X_WT()))
+        seq += 1
+
+    world.on_capture = on_capture  # type: ignore[method-assign]
+    return requests
+
+
 def run_world(
     world: SimRig,
     control: Connection,
@@ -160,16 +176,7 @@ def run_world(
     step_s: float = 0.008,
 ) -> None:
     """Run ``world`` in real time until the control side says stop (or goes away)."""
-    seq = 0
-    requests = LatestSender(camera) if camera is not None else None
-
-    def on_capture(stamp: float) -> None:
-        nonlocal seq
-        if requests is not None:  # the newest only: a camera behind the frame rate drops frames
-            requests.put(RenderRequest(seq, stamp, world.viewpoint(), world.track_model.X_WT()))
-        seq += 1
-
-    world.on_capture = on_capture  # type: ignore[method-assign]
+    requests = capture_requests(world, camera)
     grid = world.grid_s
     sender = LatestSender(control)
     running = True
@@ -205,22 +212,32 @@ def realtime_priority(priority: int) -> str:
     return ""
 
 
-def world_main(build: Any, control: Connection, camera: Connection | None) -> None:
-    """The world process: build the rig with ``build(start_time)``, say ready, run, clean up.
+def world_main(
+    build: Any, control: Connection, camera: Connection | None, run: Any = run_world
+) -> None:
+    """The world process: build the rig with ``build(start_time)``, say ready, run it with
+    ``run(world, control, camera)`` (``run_world``, or the emulated rig's loop), clean up.
 
     Like a robot controller it runs at real-time priority when the system allows (below the
     control loop's): on a loaded machine a world that falls behind the wall clock would make
     the trial fail for reasons no rig has."""
     with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C goes to the control process
+        # First, so that the threads the rig starts (Modbus servers) inherit the priority.
+        priority = realtime_priority(WORLD_PRIORITY)
         # The activation in start() runs on simulated time (about a second): begin that far in
         # the past, then catch up with the present before the control side takes over.
-        world = build(start_time=time.monotonic() - 2.0)
+        try:
+            world = build(start_time=time.monotonic() - 2.0)
+        except Exception as exc:  # e.g. an emulator's address in use: say so, in one line
+            with contextlib.suppress(OSError):
+                control.send(("failed", f"{type(exc).__name__}: {exc}"))
+            return
         try:
             world.start()
             grid = world.grid_s
             world.advance(math.floor((time.monotonic() - world.clock.now()) / grid) * grid)
-            control.send(("ready", realtime_priority(WORLD_PRIORITY)))
-            run_world(world, control, camera)
+            control.send(("ready", priority))
+            run(world, control, camera)
         except Exception as exc:
             with contextlib.suppress(OSError):
                 control.send(("failed", f"{type(exc).__name__}: {exc}"))
