@@ -15,6 +15,7 @@ from pydantic import Field, ValidationError, field_serializer, model_validator
 
 from configuration.approach import ApproachConfig
 from configuration.base import PositiveM, Strict
+from configuration.devices import DevicesConfig
 from configuration.files import load_config
 from configuration.render import NoiseConfig, RenderConfig
 from configuration.vision import CameraTiming, VisionConfig
@@ -55,6 +56,9 @@ class SimulationConfig(Strict):
     #: How the track and gripper drivers reach their simulated devices: in-process register
     #: access ("direct") or a real pymodbus server on 127.0.0.1 ("tcp").
     links: Literal["direct", "tcp"] = "direct"
+    #: Which backend drives each device: every one simulated (default), the real drivers
+    #: against loopback emulators of the simulated world, or the real rig (configuration.devices).
+    devices: DevicesConfig = DevicesConfig()
     fusion: FusionParams = Field(default_factory=FusionParams)
     approach: ApproachConfig = ApproachConfig()
     start: StartConfig = StartConfig()

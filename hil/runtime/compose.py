@@ -82,7 +82,7 @@ def header(
         },
         "seed": seed,
         "clock": clock,
-        "notes": f"simulated approach, clock {clock}, noise {config.noise.preset}, "
+        "notes": f"{config.devices.kind} approach, clock {clock}, noise {config.noise.preset}, "
         f"systems {', '.join(config.systems)}",
         "start": {"X_TC": start.X_TC.to_list(), "q": start.start_q.tolist()},
     }
@@ -111,6 +111,11 @@ class Trial:
         self.clock_kind = clock or config.clock
         if self.clock_kind not in ("sim", "wall"):
             raise ValueError(f"clock must be 'sim' or 'wall'; got {self.clock_kind!r}")
+        if self.clock_kind == "sim" and config.devices.kind != "sim":
+            raise ValueError(
+                f"--clock sim steps a simulated world; {config.devices.kind} devices run on the "
+                "wall clock (use --clock wall)"
+            )
         self._on_tick = on_tick
         self.mockup = mockup or load_mockup(config.mockup)
         self.camera = load_camera(config.camera)

@@ -28,6 +28,7 @@ from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection, wait
 from typing import TYPE_CHECKING, Any
 
+from configuration.devices import SimDevice
 from configuration.vision import VisionConfig
 from drivers.base import DeviceTimeout
 from drivers.clock import RealClock
@@ -36,6 +37,7 @@ from estimators.fusion import FusionParams, PoseFusion
 from estimators.registry import build_estimator
 from estimators.target import TargetModel
 from hil.logs.records import VisionRecord
+from hil.runtime.devices import RealDevices, device_camera_main, emulated_endpoints
 from hil.runtime.history import StateHistory, StateRing, StateSample
 from hil.runtime.loop import ControlLoop
 from hil.runtime.processes import peak_rss_mib, stop_process
@@ -43,9 +45,10 @@ from hil.runtime.rig import RigGeometry
 from hil.runtime.vision import LoggedImage, VisionPipeline, VisionStatus
 from hil.runtime.workers import InlineWorkers, ProcessWorkers
 from sim_backends.camera_server import camera_main
+from sim_backends.emulated_world import EmulatedRig, run_emulated_world
 from sim_backends.remote import RemoteArm, RemoteCamera, RemoteGripper, RemoteTrack, WorldLink
 from sim_backends.world import SimRig
-from sim_backends.world_server import world_main
+from sim_backends.world_server import run_world, world_main
 
 if TYPE_CHECKING:
     from hil.runtime.compose import Trial
@@ -274,27 +277,11 @@ class RealtimePriority:
 
 
 def build_wall(trial: Trial) -> None:
-    """Start the world, camera and vision processes for ``trial`` and build its loop on them."""
-    config, start, stack = trial.config, trial.start, trial._stack
-    from hil.runtime.compose import grasp_pose
-
+    """Start the processes of ``trial`` — world (simulated, or emulated behind the real devices'
+    protocols) and camera, or a real camera alone; vision — build its devices and its loop."""
+    config, stack = trial.config, trial._stack
+    kind = config.devices.kind
     context = mp.get_context("spawn")
-    build = functools.partial(
-        SimRig,
-        start.rig,
-        grasp_X_TC=grasp_pose(config),
-        start_q=start.start_q,
-        links=config.links,
-        capture_position_m=config.grasp_capture_m,
-        capture_angle_deg=config.grasp_capture_deg,
-        object_width=config.grasp_object_width_m,
-        timing=config.camera_timing,
-    )
-    world_ours, world_theirs = context.Pipe()
-    # Pipe(duplex=False) gives (reading end, writing end).
-    requests_in, requests_out = context.Pipe(duplex=False)  # world → camera
-    frames_in, frames_out = context.Pipe(duplex=False)  # camera → vision
-    camera_ready_in, camera_ready_out = context.Pipe(duplex=False)
     processes: dict[str, mp.process.BaseProcess] = {}
 
     def stop_all() -> None:
@@ -302,57 +289,58 @@ def build_wall(trial: Trial) -> None:
             stop_process(process)
 
     stack.callback(stop_all)
-    processes["camera"] = context.Process(
-        target=camera_main,
-        args=(
-            trial.mockup,
-            trial.camera,
-            config.noise,
-            config.render,
-            config.camera_timing,
-            trial.seed,
-            requests_in,
-            frames_out,
-            camera_ready_out,
-        ),
-        name="satgrasp-camera",
-    )
-    processes["world"] = context.Process(
-        target=world_main, args=(build, world_theirs, requests_out), name="satgrasp-world"
-    )
-    for process in processes.values():
-        process.start()
-    for connection in (world_theirs, requests_out, requests_in, frames_out, camera_ready_out):
-        connection.close()
+    info = trial.camera.camera_info()
+    world_ours = None
+    if kind == "real" or not isinstance(config.devices.camera, SimDevice):
+        frames_in, camera_ready = _start_device_camera(
+            config.devices.camera, context, processes, stack
+        )
+    else:
+        frames_in, camera_ready = _start_render_camera(trial, context, processes)
+    if kind != "real":
+        world_ours = _start_world(trial, context, processes, camera_ready)
     spec = VisionSpec(
         tuple(config.systems),
         trial.mockup.target_model(),
-        trial.camera.camera_info(),
+        info,
         config.fusion,
         trial.geometry,
         config.vision,
     )
+    if camera_ready is not None and isinstance(camera_ready, _DeviceCamera):
+        spec = replace(spec, info=camera_ready.await_info(processes["camera"]))
     processes["vision"], vision = start_vision(spec, frames_in, context)
     frames_in.close()
-    _await_ready(_Ready(camera_ready_in), "camera", processes["camera"])
-    _await_ready(world_ours, "world", processes["world"])
+    if camera_ready is not None and not isinstance(camera_ready, _DeviceCamera):
+        _await_ready(camera_ready, "camera", processes["camera"])
+    truth = None
+    if world_ours is not None:
+        _await_ready(world_ours, "world", processes["world"])
+        link = WorldLink(world_ours)
+        stack.callback(link.close)
+        link.wait_for_state(5.0)
+        trial.world_link = link
 
-    link = WorldLink(world_ours)
-    stack.callback(link.close)
-    link.wait_for_state(5.0)
+        def truth():
+            from hil.runtime.compose import truth_record
+
+            newest = link.newest()
+            if newest is None:
+                return None
+            return truth_record({"X_WT": newest.X_WT, "X_WC": newest.X_WC})
+
     stack.callback(vision.stop)
     trial.vision = vision
-    trial.world_link = link
     trial.processes = processes
-    arm, track, gripper = RemoteArm(link), RemoteTrack(link), RemoteGripper(link)
-    for device in (arm, track, gripper):
-        device.connect()
-
-    def truth():
-        from hil.runtime.compose import truth_record
-
-        newest = link.newest()
-        return None if newest is None else truth_record({"X_WT": newest.X_WT, "X_WC": newest.X_WC})
+    if kind == "sim":
+        arm, track, gripper = RemoteArm(link), RemoteTrack(link), RemoteGripper(link)
+        for device in (arm, track, gripper):
+            device.connect()
+    else:
+        devices = RealDevices.from_config(config.devices, trial.start.rig)
+        stack.callback(devices.close)
+        trial.devices = devices
+        arm, track, gripper = devices.arm, devices.track, devices.gripper
 
     trial.loop = ControlLoop(
         arm=arm,
@@ -366,6 +354,8 @@ def build_wall(trial: Trial) -> None:
         truth=truth,
         observers=trial._observers(),
     )
+    if kind != "sim":  # last: the arm's watchdog runs from its activation on
+        trial.devices.start()
     trial.realtime = stack.enter_context(RealtimePriority())
 
     def resources() -> dict[str, Any]:
@@ -384,11 +374,98 @@ def build_wall(trial: Trial) -> None:
     trial.resources = resources
 
 
-class _Ready:
-    """The camera process answers its ready pipe with a bare string."""
+def _start_render_camera(
+    trial: Trial, context: Any, processes: dict[str, mp.process.BaseProcess]
+) -> tuple[Connection, Connection]:
+    """The rendering camera process; returns the frames' reading end and the world's end of
+    the render requests (its ready answer comes on a pipe of its own: ``_Ready``)."""
+    config = trial.config
+    requests_in, requests_out = context.Pipe(duplex=False)  # world → camera
+    frames_in, frames_out = context.Pipe(duplex=False)  # camera → vision
+    ready_in, ready_out = context.Pipe(duplex=False)
+    processes["camera"] = context.Process(
+        target=camera_main,
+        args=(
+            trial.mockup,
+            trial.camera,
+            config.noise,
+            config.render,
+            config.camera_timing,
+            trial.seed,
+            requests_in,
+            frames_out,
+            ready_out,
+        ),
+        name="satgrasp-camera",
+    )
+    processes["camera"].start()
+    for connection in (requests_in, frames_out, ready_out):
+        connection.close()
+    return frames_in, _Ready(ready_in, requests_out)
 
-    def __init__(self, connection: Connection):
+
+def _start_device_camera(
+    camera: Any, context: Any, processes: dict[str, mp.process.BaseProcess], stack: Any
+) -> tuple[Connection, _DeviceCamera]:
+    """The camera process of a real camera (or a replay): ``hil.runtime.devices``."""
+    frames_in, frames_out = context.Pipe(duplex=False)
+    ours, theirs = context.Pipe()
+    processes["camera"] = context.Process(
+        target=device_camera_main, args=(camera, frames_out, theirs), name="satgrasp-camera"
+    )
+    processes["camera"].start()
+    frames_out.close()
+    theirs.close()
+    handle = _DeviceCamera(ours)
+    stack.callback(handle.stop)
+    return frames_in, handle
+
+
+def _start_world(
+    trial: Trial,
+    context: Any,
+    processes: dict[str, mp.process.BaseProcess],
+    camera: _Ready | _DeviceCamera,
+) -> Connection:
+    """The world process — simulated, or emulated behind the real devices' protocols — fed
+    with the rendering camera's request pipe when there is one; returns the control's end."""
+    config, start = trial.config, trial.start
+    from hil.runtime.compose import grasp_pose
+
+    options = {
+        "grasp_X_TC": grasp_pose(config),
+        "start_q": start.start_q,
+        "capture_position_m": config.grasp_capture_m,
+        "capture_angle_deg": config.grasp_capture_deg,
+        "object_width": config.grasp_object_width_m,
+        "timing": config.camera_timing,
+    }
+    if config.devices.kind == "emulated":
+        endpoints = emulated_endpoints(config.devices)
+        build = functools.partial(EmulatedRig, start.rig, endpoints, **options)
+        run: Any = run_emulated_world
+    else:
+        build = functools.partial(SimRig, start.rig, links=config.links, **options)
+        run = run_world
+    ours, theirs = context.Pipe()
+    requests = camera.requests if isinstance(camera, _Ready) else None
+    processes["world"] = context.Process(
+        target=world_main, args=(build, theirs, requests, run), name="satgrasp-world"
+    )
+    processes["world"].start()
+    theirs.close()
+    if requests is not None:
+        requests.close()
+    return ours
+
+
+class _Ready:
+    """The rendering camera process answers its ready pipe with a bare string. ``requests``:
+    the writing end of its render requests, for the world process."""
+
+    def __init__(self, connection: Connection, requests: Connection | None = None):
         self._connection = connection
+        self.requests = requests
 
     def poll(self, timeout: float) -> bool:
         return self._connection.poll(timeout)
@@ -396,3 +473,30 @@ class _Ready:
     def recv(self) -> tuple[str, Any]:
         answer = self._connection.recv()
         return ("ready", None) if answer == "ready" else ("failed", answer)
+
+
+class _DeviceCamera:
+    """The control side of a real camera's process: its ready answer carries the camera's
+    ``CameraInfo``; ``stop`` asks it to end."""
+
+    def __init__(self, connection: Connection):
+        self._connection = connection
+        self.info: CameraInfo | None = None
+
+    def poll(self, timeout: float) -> bool:
+        return self._connection.poll(timeout)
+
+    def recv(self) -> tuple[str, Any]:
+        kind, detail = self._connection.recv()
+        if kind == "ready":
+            self.info = detail
+        return kind, detail
+
+    def await_info(self, process: mp.process.BaseProcess) -> CameraInfo:
+        _await_ready(self, "camera", process)
+        assert self.info is not None
+        return self.info
+
+    def stop(self) -> None:
+        with contextlib.suppress(BrokenPipeError, OSError):
+            self._connection.send("stop")
