@@ -291,6 +291,16 @@ class URArm:
             wrench_B=np.array(wrench),
         )
 
+    def controller_modes(self) -> dict[str, str]:
+        """The controller's safety mode, robot mode and program runtime state, by name (what
+        ``satgrasp check-rig`` reports)."""
+        receive = self._require_connected("controller_modes")
+        return {
+            "safety mode": name_of(SafetyMode, receive.getSafetyMode()),
+            "robot mode": name_of(RobotMode, receive.getRobotMode()),
+            "runtime state": name_of(RuntimeState, receive.getRuntimeState()),
+        }
+
     def _flags(self, receive) -> tuple[bool, bool, str | None]:
         safety = receive.getSafetyMode()
         protective = bool(receive.isProtectiveStopped()) or safety == SafetyMode.PROTECTIVE_STOP

@@ -16,6 +16,7 @@ from rich.console import Console
 
 from configuration.files import ConfigError
 from hil.cli_emulate import emulate_app
+from hil.cli_rig import check_rig
 
 app = typer.Typer(
     help="satgrasp: vision-guided approach and grasp of a satellite mock-up with a UR arm.",
@@ -26,6 +27,7 @@ app = typer.Typer(
 bench_app = typer.Typer(help="Benchmarks (timings on this machine).", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 app.add_typer(emulate_app, name="emulate")
+app.command("check-rig")(check_rig)
 
 console = Console(stderr=True, soft_wrap=True)  # never split a path across lines
 out = Console(soft_wrap=True)

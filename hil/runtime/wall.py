@@ -26,7 +26,7 @@ import os
 import time
 from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection, wait
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from configuration.devices import SimDevice
 from configuration.vision import VisionConfig
@@ -36,7 +36,7 @@ from estimators.frame import CameraInfo
 from estimators.fusion import FusionParams, PoseFusion
 from estimators.registry import build_estimator
 from estimators.target import TargetModel
-from hil.logs.records import VisionRecord
+from hil.logs.records import TruthRecord, VisionRecord
 from hil.runtime.devices import RealDevices, device_camera_main, emulated_endpoints
 from hil.runtime.history import StateHistory, StateRing, StateSample
 from hil.runtime.loop import ControlLoop
@@ -51,7 +51,11 @@ from sim_backends.world import SimRig
 from sim_backends.world_server import run_world, world_main
 
 if TYPE_CHECKING:
+    from configuration.camera import CameraConfig
+    from configuration.mockup import MockupConfig
+    from configuration.simulation import SimulationConfig
     from hil.runtime.compose import Trial
+    from sim_backends.start import TrialStart
 
 log = logging.getLogger(__name__)
 START_TIMEOUT_S = 120.0
@@ -174,7 +178,7 @@ def start_vision(
     process.start()
     theirs.close()
     try:
-        _await_ready(ours, "vision", process)
+        await_ready(ours, "vision", process)
     except BaseException:
         stop_process(process, timeout_s=0.0)
         states.close()
@@ -238,7 +242,7 @@ class VisionClient:
 # --- building the wall-clock trial -----------------------------------------------------------
 
 
-def _await_ready(connection: Connection, what: str, process: mp.process.BaseProcess) -> None:
+def await_ready(connection: Connection, what: str, process: mp.process.BaseProcess) -> None:
     deadline = time.monotonic() + START_TIMEOUT_S
     while time.monotonic() < deadline:
         if connection.poll(0.1):
@@ -276,6 +280,16 @@ class RealtimePriority:
                 os.sched_setscheduler(0, self._previous[0], self._previous[1])
 
 
+class RigSetup(Protocol):
+    """What the world and camera processes are built from (a ``Trial`` has it all)."""
+
+    config: SimulationConfig
+    mockup: MockupConfig
+    camera: CameraConfig
+    start: TrialStart
+    seed: int
+
+
 def build_wall(trial: Trial) -> None:
     """Start the processes of ``trial`` — world (simulated, or emulated behind the real devices'
     protocols) and camera, or a real camera alone; vision — build its devices and its loop."""
@@ -296,9 +310,9 @@ def build_wall(trial: Trial) -> None:
             config.devices.camera, context, processes, stack
         )
     else:
-        frames_in, camera_ready = _start_render_camera(trial, context, processes)
+        frames_in, camera_ready = start_render_camera(trial, context, processes)
     if kind != "real":
-        world_ours = _start_world(trial, context, processes, camera_ready)
+        world_ours = start_world(trial, context, processes, camera_ready)
     spec = VisionSpec(
         tuple(config.systems),
         trial.mockup.target_model(),
@@ -307,32 +321,23 @@ def build_wall(trial: Trial) -> None:
         trial.geometry,
         config.vision,
     )
-    if camera_ready is not None and isinstance(camera_ready, _DeviceCamera):
+    if isinstance(camera_ready, _DeviceCamera):
         spec = replace(spec, info=camera_ready.await_info(processes["camera"]))
     processes["vision"], vision = start_vision(spec, frames_in, context)
     frames_in.close()
-    if camera_ready is not None and not isinstance(camera_ready, _DeviceCamera):
-        _await_ready(camera_ready, "camera", processes["camera"])
-    truth = None
+    if isinstance(camera_ready, CameraReady):
+        await_ready(camera_ready, "camera", processes["camera"])
+    link = None
     if world_ours is not None:
-        _await_ready(world_ours, "world", processes["world"])
+        await_ready(world_ours, "world", processes["world"])
         link = WorldLink(world_ours)
         stack.callback(link.close)
         link.wait_for_state(5.0)
         trial.world_link = link
-
-        def truth():
-            from hil.runtime.compose import truth_record
-
-            newest = link.newest()
-            if newest is None:
-                return None
-            return truth_record({"X_WT": newest.X_WT, "X_WC": newest.X_WC})
-
     stack.callback(vision.stop)
     trial.vision = vision
     trial.processes = processes
-    if kind == "sim":
+    if link is not None and kind == "sim":
         arm, track, gripper = RemoteArm(link), RemoteTrack(link), RemoteGripper(link)
         for device in (arm, track, gripper):
             device.connect()
@@ -351,7 +356,7 @@ def build_wall(trial: Trial) -> None:
         config=config.approach,
         clock=RealClock(),
         log=trial.log,
-        truth=truth,
+        truth=None if link is None else functools.partial(_truth, link),
         observers=trial._observers(),
     )
     if kind != "sim":  # last: the arm's watchdog runs from its activation on
@@ -374,11 +379,21 @@ def build_wall(trial: Trial) -> None:
     trial.resources = resources
 
 
-def _start_render_camera(
-    trial: Trial, context: Any, processes: dict[str, mp.process.BaseProcess]
-) -> tuple[Connection, Connection]:
-    """The rendering camera process; returns the frames' reading end and the world's end of
-    the render requests (its ready answer comes on a pipe of its own: ``_Ready``)."""
+def _truth(link: WorldLink) -> TruthRecord | None:
+    """The ground truth of the simulated world's newest state (a rig has none)."""
+    from hil.runtime.compose import truth_record
+
+    newest = link.newest()
+    if newest is None:
+        return None
+    return truth_record({"X_WT": newest.X_WT, "X_WC": newest.X_WC})
+
+
+def start_render_camera(
+    trial: RigSetup, context: Any, processes: dict[str, mp.process.BaseProcess]
+) -> tuple[Connection, CameraReady]:
+    """The rendering camera process of ``trial``'s simulated world; returns the frames' reading
+    end and its ``CameraReady`` (which holds the world's end of the render requests)."""
     config = trial.config
     requests_in, requests_out = context.Pipe(duplex=False)  # world → camera
     frames_in, frames_out = context.Pipe(duplex=False)  # camera → vision
@@ -401,7 +416,7 @@ def _start_render_camera(
     processes["camera"].start()
     for connection in (requests_in, frames_out, ready_out):
         connection.close()
-    return frames_in, _Ready(ready_in, requests_out)
+    return frames_in, CameraReady(ready_in, requests_out)
 
 
 def _start_device_camera(
@@ -421,11 +436,11 @@ def _start_device_camera(
     return frames_in, handle
 
 
-def _start_world(
-    trial: Trial,
+def start_world(
+    trial: RigSetup,
     context: Any,
     processes: dict[str, mp.process.BaseProcess],
-    camera: _Ready | _DeviceCamera,
+    camera: CameraReady | _DeviceCamera | None,
 ) -> Connection:
     """The world process — simulated, or emulated behind the real devices' protocols — fed
     with the rendering camera's request pipe when there is one; returns the control's end."""
@@ -448,7 +463,7 @@ def _start_world(
         build = functools.partial(SimRig, start.rig, links=config.links, **options)
         run = run_world
     ours, theirs = context.Pipe()
-    requests = camera.requests if isinstance(camera, _Ready) else None
+    requests = camera.requests if isinstance(camera, CameraReady) else None
     processes["world"] = context.Process(
         target=world_main, args=(build, theirs, requests, run), name="satgrasp-world"
     )
@@ -459,8 +474,8 @@ def _start_world(
     return ours
 
 
-class _Ready:
-    """The rendering camera process answers its ready pipe with a bare string. ``requests``:
+class CameraReady:
+    """The rendering camera process's ready pipe (it answers with a bare string); ``requests``:
     the writing end of its render requests, for the world process."""
 
     def __init__(self, connection: Connection, requests: Connection | None = None):
@@ -493,7 +508,7 @@ class _DeviceCamera:
         return kind, detail
 
     def await_info(self, process: mp.process.BaseProcess) -> CameraInfo:
-        _await_ready(self, "camera", process)
+        await_ready(self, "camera", process)
         assert self.info is not None
         return self.info
 
