@@ -585,20 +585,23 @@ def approach(
         bool, typer.Option("--report/--no-report", help="Write the report after the trial.")
     ] = True,
 ) -> None:
-    """Run one simulated approach (2.5 m → 0.5 m stand-off, grasp, retreat) with a live
-    progress line; write its trial log (MCAP) and, by default, its report."""
+    """Run one approach (2.5 m → 0.5 m stand-off, grasp, retreat) with a live progress line;
+    write its trial log (MCAP) and, by default, its report. Simulated by default; the config's
+    devices: section may name the real drivers against emulators (emulated) or the rig."""
     import time
 
     from rich.live import Live
 
+    from drivers.base import DeviceError
     from hil.progress import tick_line
     from hil.runtime.compose import run_trial
+    from hil.runtime.processes import ProcessStartError
 
     sim = _simulation(config, noise, systems, links, clock, settings)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     log_path = log_dir / f"approach_{sim.noise.preset}_seed{seed}_{stamp}.mcap"
     out.print(
-        f"simulated approach: systems {', '.join(sim.systems)}, noise {sim.noise.preset}, "
+        f"{sim.devices.kind} approach: systems {', '.join(sim.systems)}, noise {sim.noise.preset}, "
         f"seed {seed}, clock {sim.clock}"
     )
     last_shown = [-1.0]
@@ -611,8 +614,8 @@ def approach(
 
         try:
             result = run_trial(sim, seed=seed, log_path=log_path, on_tick=on_tick)
-        except (ValueError, NotImplementedError) as exc:
-            raise _fail(str(exc)) from None
+        except (ValueError, NotImplementedError, DeviceError, ProcessStartError) as exc:
+            raise _fail(str(exc)) from None  # a device or emulator that did not start: why
     console.print()  # end the live line
     o = result.outcome
     verdict = "[bold green]SUCCESS[/]" if result.success else "[bold red]FAILURE[/]"

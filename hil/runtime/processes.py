@@ -6,6 +6,10 @@ import os
 from multiprocessing.process import BaseProcess
 
 
+class ProcessStartError(RuntimeError):
+    """A process of the trial did not start (its reason, e.g. an emulator's address in use)."""
+
+
 def peak_rss_mib(pid: int | None = None) -> float:
     """Peak resident memory (VmHWM) of a process, MiB; NaN where /proc does not say."""
     try:

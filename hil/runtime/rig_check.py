@@ -45,7 +45,7 @@ from drivers.base import DeviceError, DeviceTimeout
 from drivers.gripper_robotiq import RobotiqGripper
 from drivers.track_modbus import ModbusTrack
 from estimators.frame import CameraInfo, Frame
-from hil.runtime.processes import stop_process
+from hil.runtime.processes import ProcessStartError, stop_process
 from hil.runtime.wall import CameraReady, await_ready, start_render_camera, start_world
 from sim_backends.remote import RemoteCamera, WorldLink
 from sim_backends.start import TrialStart, sample_start
@@ -324,7 +324,7 @@ def _check_emulated(
             await_ready(world, "emulated world", processes["world"])
             if isinstance(camera_ready, CameraReady):
                 await_ready(camera_ready, "camera", processes["camera"])
-        except RuntimeError as exc:
+        except ProcessStartError as exc:
             return [DeviceCheck(name, False, str(exc)) for name in DEVICES]
         link = WorldLink(world)
         results = run_bounded(configs, timeout_s)

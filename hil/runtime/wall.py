@@ -24,6 +24,7 @@ import logging
 import multiprocessing as mp
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection, wait
 from typing import TYPE_CHECKING, Any, Protocol
@@ -40,7 +41,7 @@ from hil.logs.records import TruthRecord, VisionRecord
 from hil.runtime.devices import RealDevices, device_camera_main, emulated_endpoints
 from hil.runtime.history import StateHistory, StateRing, StateSample
 from hil.runtime.loop import ControlLoop
-from hil.runtime.processes import peak_rss_mib, stop_process
+from hil.runtime.processes import ProcessStartError, peak_rss_mib, stop_process
 from hil.runtime.rig import RigGeometry
 from hil.runtime.vision import LoggedImage, VisionPipeline, VisionStatus
 from hil.runtime.workers import InlineWorkers, ProcessWorkers
@@ -163,11 +164,17 @@ def _lean(item: VisionRecord | LoggedImage) -> VisionRecord | LoggedImage:
 
 
 def start_vision(
-    spec: VisionSpec, frames: Connection, context: Any = None
+    spec: VisionSpec,
+    frames: Connection,
+    context: Any = None,
+    *,
+    meanwhile: Callable[[], None] | None = None,
 ) -> tuple[mp.process.BaseProcess, VisionClient]:
     """Start the vision process on the reading end ``frames`` of a camera's pipe; returns it
-    and the control side's link once it is ready (its workers built). The caller closes the
-    link (``VisionClient.stop``), which also frees the shared state ring."""
+    and the control side's link once it is ready (its workers built). ``meanwhile`` runs while
+    it starts (waiting for the other processes: one that fails is reported at once, not after
+    the estimators' start-up). The caller closes the link (``VisionClient.stop``), which also
+    frees the shared state ring."""
     context = context or mp.get_context("spawn")
     states = StateRing()
     spec = replace(spec, state_ring=states.name)
@@ -178,6 +185,8 @@ def start_vision(
     process.start()
     theirs.close()
     try:
+        if meanwhile is not None:
+            meanwhile()
         await_ready(ours, "vision", process)
     except BaseException:
         stop_process(process, timeout_s=0.0)
@@ -249,10 +258,12 @@ def await_ready(connection: Connection, what: str, process: mp.process.BaseProce
             kind, detail = connection.recv()
             if kind == "ready":
                 return
-            raise RuntimeError(f"the {what} process failed to start: {detail}")
+            raise ProcessStartError(f"the {what} process failed to start: {detail}")
         if not process.is_alive():
-            raise RuntimeError(f"the {what} process exited during start-up ({process.exitcode})")
-    raise RuntimeError(f"the {what} process did not start within {START_TIMEOUT_S:.0f} s")
+            raise ProcessStartError(
+                f"the {what} process exited during start-up ({process.exitcode})"
+            )
+    raise ProcessStartError(f"the {what} process did not start within {START_TIMEOUT_S:.0f} s")
 
 
 class RealtimePriority:
@@ -323,18 +334,22 @@ def build_wall(trial: Trial) -> None:
     )
     if isinstance(camera_ready, _DeviceCamera):
         spec = replace(spec, info=camera_ready.await_info(processes["camera"]))
-    processes["vision"], vision = start_vision(spec, frames_in, context)
+
+    def others_ready() -> None:
+        if world_ours is not None:
+            await_ready(world_ours, "world", processes["world"])
+        if isinstance(camera_ready, CameraReady):
+            await_ready(camera_ready, "camera", processes["camera"])
+
+    processes["vision"], vision = start_vision(spec, frames_in, context, meanwhile=others_ready)
+    stack.callback(vision.stop)
     frames_in.close()
-    if isinstance(camera_ready, CameraReady):
-        await_ready(camera_ready, "camera", processes["camera"])
     link = None
     if world_ours is not None:
-        await_ready(world_ours, "world", processes["world"])
         link = WorldLink(world_ours)
         stack.callback(link.close)
         link.wait_for_state(5.0)
         trial.world_link = link
-    stack.callback(vision.stop)
     trial.vision = vision
     trial.processes = processes
     if link is not None and kind == "sim":

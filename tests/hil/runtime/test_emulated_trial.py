@@ -6,16 +6,25 @@ their addresses are free again."""
 
 from __future__ import annotations
 
+import multiprocessing as mp
 import socket
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from configuration.camera import load_camera
+from configuration.mockup import load_mockup
+from configuration.rig import load_rig
 from hil.analysis.report import report_json
 from hil.analysis.trial_analysis import analyse
 from hil.logs.triallog import TrialLog
 from hil.runtime.compose import Trial, run_trial
+from hil.runtime.processes import ProcessStartError, stop_process
+from hil.runtime.wall import await_ready, start_world
+from sim_backends.start import sample_start
+from sim_backends.ur_emulator import UREmulator
 from tests.hil.runtime.emulated import short_trial
 
 pytestmark = pytest.mark.slow
@@ -151,3 +160,26 @@ def test_emulated_devices_refuse_the_simulated_clock_in_one_line(tmp_path):
         Trial(sim, seed=1, log_path=tmp_path / "never.mcap")
     assert "\n" not in str(refused.value)
     assert not (tmp_path / "never.mcap").exists()
+
+
+def test_emulated_world_on_a_taken_address_fails_its_start_in_one_line(tmp_path):
+    sim = short_trial(tmp_path)
+    setup = SimpleNamespace(
+        config=sim,
+        mockup=load_mockup(sim.mockup),
+        camera=load_camera(sim.camera),
+        start=sample_start(sim.start, load_rig(sim.rig), np.random.default_rng(0)),
+        seed=0,
+    )
+    context = mp.get_context("spawn")
+    processes: dict = {}
+    with UREmulator(sim.devices.arm.host):  # someone else's emulator holds the address
+        world = start_world(setup, context, processes, None)
+        try:
+            with pytest.raises(ProcessStartError) as refused:
+                await_ready(world, "world", processes["world"])
+        finally:
+            stop_process(processes["world"], timeout_s=5.0)
+    message = str(refused.value)
+    assert f"cannot listen on {sim.devices.arm.host}:29999 (dashboard)" in message, message
+    assert "\n" not in message and not processes["world"].is_alive()
