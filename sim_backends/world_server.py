@@ -115,6 +115,7 @@ class LatestSender:
         self._messages: list[Any] = []
         self._ready = threading.Condition()
         self._closed = False
+        self._drain = False
         self.broken = False
         self._thread = threading.Thread(target=self._run, name="world-sender", daemon=True)
         self._thread.start()
@@ -129,9 +130,12 @@ class LatestSender:
             self._messages.append(message)
             self._ready.notify()
 
-    def close(self) -> None:
+    def close(self, *, drain: bool = False) -> None:
+        """Stop sending; with ``drain``, what is pending goes out first (a camera's last
+        frame), within the 2 s the thread is waited for."""
         with self._ready:
             self._closed = True
+            self._drain = drain
             self._ready.notify()
         self._thread.join(timeout=2.0)
 
@@ -140,7 +144,8 @@ class LatestSender:
             with self._ready:
                 while self._item is None and not self._messages and not self._closed:
                     self._ready.wait()
-                if self._closed:
+                pending = self._item is not None or bool(self._messages)
+                if self._closed and not (self._drain and pending):
                     return
                 outgoing = [*self._messages, *([self._item] if self._item is not None else [])]
                 self._messages, self._item = [], None

@@ -174,7 +174,7 @@ def device_camera_main(config: OakCameraDevice, frames: Connection, control: Con
         except (EOFError, OSError):
             pass
         finally:
-            outgoing.close()
+            outgoing.close(drain=True)  # the newest frame still goes out
             with contextlib.suppress(OSError):
                 frames.send(None)  # the vision side's camera reports it stopped
             camera.close()
