@@ -35,7 +35,12 @@ from sim_backends.modbus_server import ModbusDeviceServer
 from sim_backends.ur_emulator.controller import EmulatedController
 from sim_backends.ur_emulator.server import EmulatorServer, EmulatorSettings
 from sim_backends.world import SimRig
-from sim_backends.world_server import LatestSender, WorldSnapshot, capture_requests
+from sim_backends.world_server import (
+    LatestSender,
+    apply_message,
+    capture_requests,
+    snapshot,
+)
 
 #: Faults the control side may inject, per device: the UR emulator's requests
 #: (``UREmulator``'s methods), and the Modbus devices' own.
@@ -155,32 +160,10 @@ class EmulatedRig(SimRig):
         super().close()
 
 
-def truth_snapshot(world: SimRig) -> WorldSnapshot:
-    """The ground truth of this instant (the device states go through the real drivers)."""
-    return WorldSnapshot(
-        stamp=world.clock.now(),
-        arm=None,
-        track=None,
-        gripper=None,
-        errors={},
-        X_WT=world.track_model.X_WT(),
-        X_WC=world.arm.camera_pose_W(),
-    )
-
-
-def _apply(world: EmulatedRig, message: tuple, replies: LatestSender) -> bool:
-    """Carry out one message from the control side; False when told to stop."""
-    kind = message[0]
-    if kind == "stop":
-        return False
-    _, device, method, args = message
-    try:
-        if kind != "fault":
-            raise DeviceError(f"{device}.{method}: the emulated rig is driven through its drivers")
-        world.inject(device, method, *args)
-    except Exception as exc:  # reported to the control side, never fatal here
-        replies.tell(("error", device, method, f"{type(exc).__name__}: {exc}"))
-    return True
+def _emulated_call(world: EmulatedRig, kind: str, device: str, method: str, args: tuple) -> None:
+    if kind != "fault":
+        raise DeviceError(f"{device}.{method}: the emulated rig is driven through its drivers")
+    world.inject(device, method, *args)
 
 
 def run_emulated_world(
@@ -203,7 +186,7 @@ def run_emulated_world(
         server.poll(max(world.clock.now() + grid - time.monotonic(), 0.0))
         try:
             while control.poll(0):
-                running = _apply(world, control.recv(), sender) and running
+                running = apply_message(world, control.recv(), sender, _emulated_call) and running
         except (EOFError, OSError):
             break
         # Whole grid steps only: every model's state is then the state of its stamp.
@@ -213,7 +196,7 @@ def run_emulated_world(
             server.publish()
         now = time.monotonic()
         if now >= next_truth:
-            sender.put(truth_snapshot(world))
+            sender.put(snapshot(world, states=False))  # the states go through the drivers
             next_truth = now + truth_every_s
     sender.close()
     if requests is not None:

@@ -71,35 +71,46 @@ def _read(read: Any, name: str, errors: dict[str, str]) -> Any:
         return None
 
 
-def snapshot(world: SimRig) -> WorldSnapshot:
+def snapshot(world: SimRig, *, states: bool = True) -> WorldSnapshot:
+    """The world now: the device states (unless ``states`` is false: a world whose devices
+    are read through real drivers elsewhere) and the ground truth."""
     errors: dict[str, str] = {}
     return WorldSnapshot(
         stamp=world.clock.now(),
-        arm=_read(world.arm.state, "arm", errors),
-        track=_read(world.track.state, "track", errors),
-        gripper=_read(world.gripper.state, "gripper", errors),
+        arm=_read(world.arm.state, "arm", errors) if states else None,
+        track=_read(world.track.state, "track", errors) if states else None,
+        gripper=_read(world.gripper.state, "gripper", errors) if states else None,
         errors=errors,
         X_WT=world.track_model.X_WT(),
         X_WC=world.arm.camera_pose_W(),
     )
 
 
-def _apply(world: SimRig, message: tuple, replies: LatestSender) -> bool:
-    """Carry out one message from the control side; False when told to stop."""
+def simulated_call(world: SimRig, kind: str, device: str, method: str, args: tuple) -> None:
+    """A device call (``CALLS``) or an injected fault (``FAULTS``) in the simulated world."""
+    allowed = (CALLS if kind == "call" else FAULTS).get(device, set())
+    target = {"arm": world.arm, "track": world.track, "gripper": world.gripper}.get(device)
+    if kind == "fault":
+        target = world.arm if device == "arm" else world.track_model
+    if method not in allowed or target is None:
+        raise DeviceError(f"{device}.{method} is not available in the simulated world")
+    getattr(target, method)(*args)
+
+
+def apply_message(
+    world: Any, message: tuple, replies: LatestSender, carry_out: Any = simulated_call
+) -> bool:
+    """Carry out one message from the control side with ``carry_out(world, kind, device,
+    method, args)``; a failure is sent back (the control side's next call raises it), never
+    fatal here. False when told to stop."""
     kind = message[0]
     if kind == "stop":
         return False
     if kind in ("call", "fault"):
         _, device, method, args = message
-        allowed = (CALLS if kind == "call" else FAULTS).get(device, set())
-        target = {"arm": world.arm, "track": world.track, "gripper": world.gripper}.get(device)
-        if kind == "fault":
-            target = world.arm if device == "arm" else world.track_model
         try:
-            if method not in allowed or target is None:
-                raise DeviceError(f"{device}.{method} is not available in the simulated world")
-            getattr(target, method)(*args)
-        except Exception as exc:  # reported to the caller's next call, never fatal here
+            carry_out(world, kind, device, method, args)
+        except Exception as exc:  # reported to the caller's next call
             replies.tell(("error", device, method, f"{type(exc).__name__}: {exc}"))
     return True
 
@@ -189,7 +200,7 @@ def run_world(
     while running and not sender.broken:
         try:
             while control.poll(0):
-                running = _apply(world, control.recv(), sender) and running
+                running = apply_message(world, control.recv(), sender) and running
         except (EOFError, OSError):
             break
         # Whole grid steps only: every model's state is then the state of the snapshot's stamp.

@@ -46,16 +46,23 @@ log = logging.getLogger(__name__)
 _POLL_S = 0.02
 
 
-def emulated_endpoints(devices: DevicesConfig) -> EmulatedEndpoints:
-    """Where the emulators of ``devices`` (an emulated rig) listen; ``ValueError`` when an
-    address is not a loopback address."""
+def _drivers_of(
+    devices: DevicesConfig,
+) -> tuple[URArmDevice, ModbusDevice, RobotiqGripperDevice]:
     arm, track, gripper = devices.arm, devices.track, devices.gripper
     if not (
         isinstance(arm, URArmDevice)
         and isinstance(track, ModbusDevice)
-        and isinstance(gripper, ModbusDevice)
+        and isinstance(gripper, RobotiqGripperDevice)
     ):
-        raise ValueError("emulated devices need arm ur_rtde, track modbus and gripper modbus")
+        raise ValueError("real devices need arm ur_rtde, track modbus and gripper modbus")
+    return arm, track, gripper
+
+
+def emulated_endpoints(devices: DevicesConfig) -> EmulatedEndpoints:
+    """Where the emulators of ``devices`` (an emulated rig) listen; ``ValueError`` when an
+    address is not a loopback address."""
+    arm, track, gripper = _drivers_of(devices)
     return EmulatedEndpoints(arm.host, track.endpoint(), gripper.endpoint())
 
 
@@ -72,13 +79,7 @@ class RealDevices:
     def from_config(devices: DevicesConfig, rig: RigConfig) -> RealDevices:
         """The drivers ``devices`` describe (not yet connected). ``rig`` gives the gripper's
         speed and force."""
-        arm, track, gripper = devices.arm, devices.track, devices.gripper
-        if not (
-            isinstance(arm, URArmDevice)
-            and isinstance(track, ModbusDevice)
-            and isinstance(gripper, RobotiqGripperDevice)
-        ):
-            raise ValueError("real devices need arm ur_rtde, track modbus and gripper modbus")
+        arm, track, gripper = _drivers_of(devices)
         return RealDevices(
             arm=arm.driver(),
             track=ModbusTrack.over_tcp(

@@ -7,7 +7,6 @@ their addresses are free again."""
 from __future__ import annotations
 
 import multiprocessing as mp
-import socket
 import time
 from types import SimpleNamespace
 
@@ -23,21 +22,12 @@ from hil.logs.triallog import TrialLog
 from hil.runtime.compose import Trial, run_trial
 from hil.runtime.processes import ProcessStartError, stop_process
 from hil.runtime.wall import await_ready, start_world
+from sim_backends.loopback import bindable
 from sim_backends.start import sample_start
 from sim_backends.ur_emulator import UREmulator
 from tests.hil.runtime.emulated import short_trial
 
 pytestmark = pytest.mark.slow
-
-
-def _bindable(host: str, port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            sock.bind((host, port))
-        except OSError:
-            return False
-    return True
 
 
 def _addresses(sim) -> list[tuple[str, int]]:
@@ -68,7 +58,7 @@ def test_emulated_approach_succeeds_and_logs_what_a_simulated_trial_logs(tmp_pat
     events = [(round(e["t"], 2), e["kind"], e["message"]) for e in log.events()]
     assert result.success, (result.outcome, events)
     assert result.standoff_error_m < sim.approach.standoff.success_position_m
-    assert all(_bindable(*address) for address in _addresses(sim))
+    assert all(bindable(*address) for address in _addresses(sim))
 
     # The same trial simulated (--clock sim), for a second: the same records, fields and
     # analysis come out of both logs.
@@ -132,7 +122,7 @@ def test_emulated_fault_mid_approach_stops_the_arm_and_the_log_names_it(tmp_path
     assert camera_speed < 1e-3, f"{fault}: the camera still moves at {camera_speed:.4f} m/s"
     assert mockup_speed < 1e-3, f"{fault}: the mock-up still moves at {mockup_speed:.4f} m/s"
     assert not any(p.is_alive() for p in trial.processes.values())
-    assert all(_bindable(*address) for address in _addresses(sim))
+    assert all(bindable(*address) for address in _addresses(sim))
 
 
 def test_emulated_trial_interrupted_stops_every_emulator_and_frees_its_addresses(tmp_path):
@@ -149,7 +139,7 @@ def test_emulated_trial_interrupted_stops_every_emulator_and_frees_its_addresses
     ):
         trial.run()
     assert not any(p.is_alive() for p in trial.processes.values())
-    assert all(_bindable(*address) for address in _addresses(sim))
+    assert all(bindable(*address) for address in _addresses(sim))
     messages = [e["message"] for e in TrialLog.open(log_path).events()]
     assert any("KeyboardInterrupt" in m for m in messages), messages
 
