@@ -20,6 +20,7 @@ trial would, and stops it at the end.
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import multiprocessing as mp
 import time
@@ -198,6 +199,9 @@ CHECKS: dict[str, Callable[[Any, Step], DeviceCheck]] = {
 
 
 def _child(device: str, config: Any, connection: Connection) -> None:
+    # The drivers' errors say what pymodbus would also log, less clearly, on the terminal.
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
     def step(text: str) -> None:
         connection.send(("step", text))
 
