@@ -11,9 +11,9 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from hil.analysis.bench_rig import short_trial
 from hil.cli import app
 from sim_backends.ur_emulator import free_loopback_host
-from tests.hil.runtime.emulated import short_trial
 
 runner = CliRunner()
 

@@ -1,6 +1,6 @@
 """The approach through the real drivers — URArm on ur-rtde, ModbusTrack and RobotiqGripper on
-pymodbus — against the emulated world on the wall clock (tests/hil/runtime/emulated.py: a short
-variant): it succeeds and logs what a simulated trial logs; faults injected through the
+pymodbus — against the emulated world on the wall clock (the short trial of
+hil.analysis.bench_rig): it succeeds and logs what a simulated trial logs; faults injected through the
 emulators stop the arm and are named in the log; however the trial ends, the emulators stop and
 their addresses are free again."""
 
@@ -16,6 +16,7 @@ import pytest
 from configuration.camera import load_camera
 from configuration.mockup import load_mockup
 from configuration.rig import load_rig
+from hil.analysis.bench_rig import short_trial
 from hil.analysis.report import report_json
 from hil.analysis.trial_analysis import analyse
 from hil.logs.triallog import TrialLog
@@ -25,7 +26,6 @@ from hil.runtime.wall import await_ready, start_world
 from sim_backends.loopback import bindable
 from sim_backends.start import sample_start
 from sim_backends.ur_emulator import UREmulator
-from tests.hil.runtime.emulated import short_trial
 
 pytestmark = pytest.mark.slow
 
