@@ -374,9 +374,13 @@ def build_wall(trial: Trial) -> None:
         truth=None if link is None else functools.partial(_truth, link),
         observers=trial._observers(),
     )
-    if kind != "sim":  # last: the arm's watchdog runs from its activation on
-        trial.devices.start()
     trial.realtime = stack.enter_context(RealtimePriority())
+    if kind != "sim":
+        # Last, and under SCHED_FIFO: the arm's watchdog runs from the zero twist that ends
+        # start(), so the loop's first tick must follow within the watchdog's period even on
+        # a loaded machine (at normal priority it did not, at load average 20); the drivers'
+        # own threads (ur-rtde's receive threads) inherit the priority.
+        trial.devices.start()
 
     def resources() -> dict[str, Any]:
         """Peak memory of every process (the vision process reports its own and its workers'
