@@ -52,6 +52,7 @@ def test_device_camera_process_hands_over_replayed_frames_with_their_calibration
             "backend": "replay",
             "channels": 1,
             "replay": {
+                "realtime": False,  # every frame, in order: the last one is there to hand over
                 "video": tmp_path / "video.avi",
                 "calibration": tmp_path / "calibration.json",
             },
@@ -73,7 +74,7 @@ def test_device_camera_process_hands_over_replayed_frames_with_their_calibration
         camera.activate()
         received = []
         with pytest.raises(DeviceTimeout, match="the camera process stopped"):
-            while True:  # until the replay ends (the newest only: some may be skipped)
+            while True:  # until the replay ends (the process hands the newest: some skipped)
                 received.append(camera.read(timeout_s=10.0))
         assert received and all(np.allclose(f.info.K, SMALL.K, atol=1e-4) for f in received)
         seqs = [f.seq for f in received]
