@@ -119,7 +119,7 @@ class RealDevices:
         _named("track", self.track.activate)
         _named("arm", self.arm.activate)
         # A zero twist: the arm's first command arms the controller's watchdog and is the
-        # slowest (ur-rtde waits for the script to be ready: 10–60 ms measured), better here
+        # slowest (setWatchdog, then ur-rtde waits for the script: 20–60 ms measured), better here
         # than in the loop's first tick, whose deadline the supervisor checks.
         _named("arm", lambda: self.arm.servo(ServoCommand(clock(), np.zeros(6))))
 
