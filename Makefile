@@ -32,7 +32,7 @@ demo: $(STAMP_RUN)
 	$(BIN)/satgrasp demo --out-dir $(RUNS)
 
 test: $(STAMP_DEV)
-	$(BIN)/python -m pytest -n 2 -q
+	$(BIN)/python -m pytest -n 2 --dist loadgroup -q
 
 lint: $(STAMP_DEV)
 	$(BIN)/ruff check .

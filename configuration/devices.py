@@ -1,16 +1,20 @@
-"""Configuration of the real devices' drivers (addresses, streams, replays).
+"""Configuration of the real devices' drivers (addresses, streams, replays), and which backend
+drives each device of a trial (``DevicesConfig``, the ``devices:`` section of a trial
+configuration).
 
 Every model is frozen and rejects unknown keys.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from configuration.base import Positive, Strict
+from configuration.rig import ModbusEndpoint
 from drivers.ur_rtde import URArm, URArmOptions
 
 if TYPE_CHECKING:
@@ -111,8 +115,136 @@ class URArmConfig(Strict):
     reconnect_backoff_s: Positive = _UR.reconnect_backoff_s
 
     def options(self) -> URArmOptions:
-        return URArmOptions(**self.model_dump(exclude={"host"}))
+        names = {f.name for f in dataclasses.fields(URArmOptions)}
+        return URArmOptions(**self.model_dump(include=names))
 
     def driver(self) -> URArm:
         """The (unconnected) driver this configuration describes."""
         return URArm(self.host, self.options())
+
+
+# --- which backend drives each device (the trial's ``devices:`` section) ------------------------
+
+
+class SimDevice(Strict):
+    """The simulated device of the simulated world (the default)."""
+
+    backend: Literal["sim"] = "sim"
+
+
+class URArmDevice(URArmConfig):
+    """The arm on ur-rtde (``URArm``). ``emulate``: start the UR controller emulator on
+    ``host`` (a 127.x.y.z address) in front of the simulated world's arm."""
+
+    backend: Literal["ur_rtde"]
+    emulate: bool = False
+
+
+class ModbusDevice(Strict):
+    """A device on Modbus TCP at ``host``:``port``, ``device_id`` (unit id). ``timeout_s``
+    bounds connecting and every reply: a control tick waits at most that long for a silent
+    device (keep it well below a second). ``emulate``: serve the simulated model there."""
+
+    backend: Literal["modbus"]
+    emulate: bool = False
+    host: Annotated[str, Field(min_length=1)]
+    port: Annotated[int, Field(ge=1, le=65535)] = 502
+    device_id: Annotated[int, Field(ge=0, le=247)]
+    timeout_s: Annotated[float, Field(gt=0.0, le=5.0)] = 0.1
+
+    def endpoint(self) -> ModbusEndpoint:
+        return ModbusEndpoint(
+            host=self.host, port=self.port, device_id=self.device_id, timeout_s=self.timeout_s
+        )
+
+
+class ModbusTrackDevice(ModbusDevice):
+    """The track's axis controller on Modbus TCP (``ModbusTrack``, docs/track_modbus.md)."""
+
+    device_id: Annotated[int, Field(ge=0, le=247)] = 1
+
+
+class RobotiqGripperDevice(ModbusDevice):
+    """A Robotiq 2F gripper on Modbus TCP (``RobotiqGripper``; RTU behind a gateway or the UR's
+    tool-communication bridge). Its activation (the fingers calibrate) must finish within
+    ``activation_timeout_s``."""
+
+    device_id: Annotated[int, Field(ge=0, le=247)] = 9
+    activation_timeout_s: Annotated[float, Field(gt=0.0, le=60.0)] = 10.0
+
+
+class OakCameraDevice(OakCameraConfig):
+    """An OAK camera (``oak``), or a recording replayed through the same driver (``replay``,
+    with a ``replay:`` block)."""
+
+    backend: Literal["oak", "replay"]
+
+    @model_validator(mode="after")
+    def _replay_block(self) -> OakCameraDevice:
+        if self.backend == "replay" and self.replay is None:
+            raise ValueError("backend replay needs a replay: block (video, calibration)")
+        if self.backend == "oak" and self.replay is not None:
+            raise ValueError("backend oak is the live camera: drop the replay: block")
+        return self
+
+
+ArmDevice = Annotated[SimDevice | URArmDevice, Field(discriminator="backend")]
+CameraDevice = Annotated[SimDevice | OakCameraDevice, Field(discriminator="backend")]
+TrackDevice = Annotated[SimDevice | ModbusTrackDevice, Field(discriminator="backend")]
+GripperDevice = Annotated[SimDevice | RobotiqGripperDevice, Field(discriminator="backend")]
+
+
+class DevicesConfig(Strict):
+    """Which backend drives each device. Three coherent rigs:
+
+    * ``sim`` — every device simulated (the default): the simulated world;
+    * ``emulated`` — arm ``ur_rtde``, track and gripper ``modbus``, each with ``emulate: true``:
+      the real drivers against loopback emulators in front of the simulated world; the camera
+      ``sim`` renders what the emulated arm does (or ``replay``/``oak``);
+    * ``real`` — arm ``ur_rtde``, track and gripper ``modbus`` without ``emulate``, camera
+      ``oak`` (or ``replay``): the rig.
+
+    A simulated device beside a real one, or an emulated one beside a real one, would not share
+    one world (the camera would not see what the arm does), and is refused.
+    """
+
+    arm: ArmDevice = SimDevice()
+    camera: CameraDevice = SimDevice()
+    track: TrackDevice = SimDevice()
+    gripper: GripperDevice = SimDevice()
+
+    @property
+    def kind(self) -> Literal["sim", "emulated", "real"]:
+        if isinstance(self.arm, SimDevice):
+            return "sim"
+        return "emulated" if self.arm.emulate else "real"
+
+    @model_validator(mode="after")
+    def _one_rig(self) -> DevicesConfig:
+        movers = {"arm": self.arm, "track": self.track, "gripper": self.gripper}
+        simulated = [name for name, device in movers.items() if isinstance(device, SimDevice)]
+        if simulated and len(simulated) < len(movers):
+            real = next(name for name in movers if name not in simulated)
+            raise ValueError(
+                f"{simulated[0]} is simulated but {real} is {movers[real].backend}: either "
+                "every device is sim or none of arm, track, gripper is (emulate: true runs the "
+                "real drivers against the simulated world)"
+            )
+        if simulated:
+            if not isinstance(self.camera, SimDevice):
+                raise ValueError("camera: a real camera needs the real (or emulated) arm it rides")
+            return self
+        emulated = {name: device.emulate for name, device in movers.items()}
+        if len(set(emulated.values())) > 1:
+            on = [n for n, e in emulated.items() if e]
+            off = [n for n, e in emulated.items() if not e]
+            raise ValueError(
+                f"{', '.join(on)} emulated but {', '.join(off)} not: the emulators share one "
+                "simulated world, so emulate all of arm, track and gripper or none"
+            )
+        if isinstance(self.camera, SimDevice) and not self.arm.emulate:
+            raise ValueError(
+                "camera: sim renders the simulated world, which a real arm does not move: use "
+                "backend oak (or replay)"
+            )
+        return self

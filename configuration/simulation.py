@@ -15,6 +15,7 @@ from pydantic import Field, ValidationError, field_serializer, model_validator
 
 from configuration.approach import ApproachConfig
 from configuration.base import PositiveM, Strict, Vec3
+from configuration.devices import DevicesConfig
 from configuration.files import load_config, named_in_file, resolve_config_path
 from configuration.render import NoiseConfig, RenderConfig
 from configuration.vision import CameraTiming, VisionConfig
@@ -104,6 +105,9 @@ class SimulationConfig(Strict):
     #: How the track and gripper drivers reach their simulated devices: in-process register
     #: access ("direct") or a real pymodbus server on 127.0.0.1 ("tcp").
     links: LinkKind = "direct"
+    #: Which backend drives each device: every one simulated (default), the real drivers
+    #: against loopback emulators of the simulated world, or the real rig (configuration.devices).
+    devices: DevicesConfig = DevicesConfig()
     fusion: FusionParams = Field(default_factory=FusionParams)
     approach: ApproachConfig = ApproachConfig()
     start: StartConfig = StartConfig()

@@ -2,8 +2,11 @@
 
 Lifecycle (``drivers.base``): ``connect()`` opens ur-rtde's ``RTDEReceiveInterface`` (the state
 stream) and the dashboard (status, unlocking a protective stop); ``activate()`` opens the
-``RTDEControlInterface`` — ur-rtde uploads its control script — checks that the TCP offset is
-zero and arms the controller's RTDE watchdog; ``deactivate()`` stops the arm (``speedStop``),
+``RTDEControlInterface`` — ur-rtde uploads its control script — and checks that the TCP offset
+is zero; the first ``servo()`` arms the controller's RTDE watchdog (arming it at activation
+would stop the script whenever the first command comes later than the watchdog's period —
+the time a control loop takes to start, or ur-rtde's own first command, which measured up to
+90 ms on a loaded machine); ``deactivate()`` stops the arm (``speedStop``),
 ends the script (``stopScript``) and closes the control interface; ``close()`` releases all.
 
 Frames and units: the TCP is the flange ``tool0`` — the driver requires the controller's TCP
@@ -31,11 +34,14 @@ new controller time stamp came for ``state_timeout_s``. Nothing retries silently
 ``reconnect()`` is the one, bounded, way back (ur-rtde would reconnect inside a command sent
 over a lost link; the driver checks the link before each command so that never happens).
 
-Streaming: ``servo(command)`` sends ``speedL(V_BE, acceleration, time)``; every data package
-that writes the command register refreshes the controller's watchdog, so a kick is sent only
-while the arm is held stopped (a ``kickWatchdog`` right after ``speedL`` would overwrite the
-command register before the script's next 2 ms cycle reads it — the emulator shows the speedL
-then lost; docs/ur_emulator.md).
+Streaming: ``servo(command)`` sends ``speedL(V_BE, acceleration, time)``; a stop (a stop
+command, or ``stop()``) is a zero twist ``speedL(0, deceleration)``: the arm decelerates at
+that rate while the call returns at once — a control loop must keep its period while the arm
+stops (``speedStop`` returns only at rest: 60 ms from 0.03 m/s measured, which the supervisor
+took for a missed deadline) — and every repetition feeds the controller's watchdog like any
+command (no ``kickWatchdog``: right after a ``speedL`` it overwrites the command register
+before the script's next 2 ms cycle reads it — the emulator shows the speedL then lost;
+docs/ur_emulator.md). ``deactivate()`` still ends with ``speedStop``, which waits for rest.
 """
 
 from __future__ import annotations
@@ -158,6 +164,7 @@ class URArm:
         self._last_timestamp: float | None = None
         self._fresh_at = 0.0
         self._stopped = True  # no twist streamed since the last stop
+        self._watchdog_armed = False
         self.polyscope_version = ""
 
     # --- lifecycle ------------------------------------------------------------------------------
@@ -175,7 +182,8 @@ class URArm:
             self._connect(self.options.connect_timeout_s)
 
     def activate(self) -> None:
-        """Take control: upload ur-rtde's script, check the TCP offset, arm the watchdog."""
+        """Take control: upload ur-rtde's script, check the TCP offset. The first ``servo()``
+        arms the watchdog."""
         self._require_connected("activate")
         if self._control is not None:
             return
@@ -197,6 +205,7 @@ class URArm:
             ) from None
         self._control, self._busy = control, None  # a stuck call of an old interface is moot
         self._stopped = True
+        self._watchdog_armed = False
         try:
             offset = np.asarray(self._bounded("getTCPOffset", control.getTCPOffset), dtype=float)
             if offset.shape != (6,) or np.any(np.abs(offset) > 1e-6):
@@ -205,9 +214,6 @@ class URArm:
                     "this driver reports the flange tool0 as X_BE: set the TCP to zero in the "
                     "robot's installation (the camera's hand-eye pose X_EC carries the offset)"
                 )
-            frequency = self.options.watchdog_min_frequency_hz
-            if frequency > 0 and not self._bounded("setWatchdog", control.setWatchdog, frequency):
-                raise DeviceError(f"UR {self.host}: setWatchdog({frequency:g} Hz) was refused")
         except DeviceError:
             self.deactivate()
             raise
@@ -285,6 +291,16 @@ class URArm:
             wrench_B=np.array(wrench),
         )
 
+    def controller_modes(self) -> dict[str, str]:
+        """The controller's safety mode, robot mode and program runtime state, by name (what
+        ``satgrasp check-rig`` reports)."""
+        receive = self._require_connected("controller_modes")
+        return {
+            "safety mode": name_of(SafetyMode, receive.getSafetyMode()),
+            "robot mode": name_of(RobotMode, receive.getRobotMode()),
+            "runtime state": name_of(RuntimeState, receive.getRuntimeState()),
+        }
+
     def _flags(self, receive) -> tuple[bool, bool, str | None]:
         safety = receive.getSafetyMode()
         protective = bool(receive.isProtectiveStopped()) or safety == SafetyMode.PROTECTIVE_STOP
@@ -310,6 +326,8 @@ class URArm:
             raise TypeError(f"URArm.servo expects a ServoCommand; got {type(command).__name__}")
         control = self._require_active("servo")
         self._refuse_if_faulted("servo", control)
+        if not self._watchdog_armed:
+            self._arm_watchdog(control)
         if command.stop:
             self._stop(control, self.options.stop_deceleration)
             return
@@ -322,9 +340,10 @@ class URArm:
             raise self._refusal("speedL")
 
     def stop(self, deceleration: float = 2.0) -> None:
-        """Decelerate to rest at ``deceleration`` (m/s²); returns when the arm rests. A no-op
-        while inactive (without the control script nothing of ours moves the arm) and during a
-        protective or emergency stop (the controller holds the arm already)."""
+        """Decelerate to rest at ``deceleration`` (m/s²); returns at once (``state()`` shows
+        the arm at rest when it is). A no-op while inactive or once the controller stopped the
+        control script (nothing of ours moves the arm then) and during a protective or
+        emergency stop (the controller holds the arm already)."""
         if not (math.isfinite(deceleration) and deceleration > 0):
             raise ValueError(f"URArm.stop: deceleration must be positive; got {deceleration}")
         control = self._control
@@ -333,7 +352,8 @@ class URArm:
         if not (self._receive.isConnected() and control.isConnected()):
             raise DeviceTimeout(f"UR {self.host}: stop: RTDE connection lost")
         protective, emergency, _ = self._flags(self._receive)
-        if not (protective or emergency):
+        playing = self._receive.getRuntimeState() == RuntimeState.PLAYING
+        if playing and not (protective or emergency):
             self._stop(control, deceleration)
 
     def unlock_protective_stop(self) -> None:
@@ -351,15 +371,20 @@ class URArm:
                 f"UR {self.host}: unlocking the protective stop was refused: {exc}"
             ) from None
 
+    def _arm_watchdog(self, control) -> None:
+        """From the first streamed command on, the controller stops the script when commands
+        stop coming at ``watchdog_min_frequency_hz``."""
+        frequency = self.options.watchdog_min_frequency_hz
+        if frequency > 0 and not self._bounded("setWatchdog", control.setWatchdog, frequency):
+            raise DeviceError(f"UR {self.host}: setWatchdog({frequency:g} Hz) was refused")
+        self._watchdog_armed = True
+
     def _stop(self, control, deceleration: float) -> None:
-        if self._stopped:  # already held at rest: only keep the watchdog fed
-            if not control.kickWatchdog():
-                raise self._refusal("kickWatchdog")
-            return
-        accepted = self._bounded("speedStop", control.speedStop, deceleration)
+        """A zero twist reached at ``deceleration``, without waiting (module docstring)."""
+        accepted = control.speedL([0.0] * 6, deceleration, 0.0)
         self._stopped = True
         if not accepted:
-            raise self._refusal("speedStop")
+            raise self._refusal("speedL (stop)")
 
     # --- internals ------------------------------------------------------------------------------
     def _connect(self, timeout_s: float) -> None:

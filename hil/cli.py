@@ -27,6 +27,7 @@ from configuration.simulation import ClockKind, LinkKind
 from hil import cli_campaigns
 from hil.cli_emulate import emulate_app
 from hil.cli_faults import faults_command
+from hil.cli_rig import check_rig
 
 #: The option parser's error type (click's, vendored by recent typer releases).
 _ParserError = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
@@ -70,6 +71,7 @@ app.command()(cli_campaigns.crb)
 app.command()(cli_campaigns.recover)
 app.command()(cli_campaigns.compare)
 app.command()(cli_campaigns.video)
+app.command("check-rig")(check_rig)
 
 console = Console(stderr=True, soft_wrap=True)  # never split a path across lines
 out = Console(soft_wrap=True)
@@ -710,8 +712,9 @@ def approach(
         bool, typer.Option("--report/--no-report", help="Write the report after the trial.")
     ] = True,
 ) -> None:
-    """Run one simulated approach (2.5 m → 0.5 m stand-off, grasp, retreat) with a live
-    progress line; write its trial log (MCAP) and, by default, its report.
+    """Run one approach (2.5 m → 0.5 m stand-off, grasp, retreat) with a live progress line;
+    write its trial log (MCAP) and, by default, its report. Simulated by default; the config's
+    devices: section may name the real drivers against emulators (emulated) or the rig.
 
     Ctrl-C (SIGINT) or SIGTERM stops the arm and the track within one control period, ends
     the trial with that reason, closes the log and writes the report. Exit status: 0 success;
@@ -727,7 +730,7 @@ def approach(
     stamp = time.strftime("%Y%m%d-%H%M%S")
     log_path = log_dir / f"approach_{sim.noise.preset}_seed{seed}_{stamp}.mcap"
     out.print(
-        f"simulated approach: systems {', '.join(sim.systems)}, noise {sim.noise.preset}, "
+        f"{sim.devices.kind} approach: systems {', '.join(sim.systems)}, noise {sim.noise.preset}, "
         f"seed {seed}, clock {sim.clock}"
     )
     with StopSignals() as signals:

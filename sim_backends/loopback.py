@@ -4,6 +4,7 @@ or a developer starts is reachable from the network."""
 from __future__ import annotations
 
 import ipaddress
+import socket
 
 
 def check_loopback(host: str, *, ipv4_only: bool = False) -> None:
@@ -19,3 +20,14 @@ def check_loopback(host: str, *, ipv4_only: bool = False) -> None:
         raise ValueError(
             f"simulated devices are served on loopback only: host must be {wanted}; got {host!r}"
         )
+
+
+def bindable(host: str, port: int) -> bool:
+    """Whether a TCP server could listen on ``host``:``port`` now (nothing else holds it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+        except OSError:
+            return False
+    return True

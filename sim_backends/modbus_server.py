@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Protocol, runtime_checkable
 
 from pymodbus.constants import ExcCodes
@@ -54,8 +54,13 @@ class RegisterDevice(Protocol):
         ...
 
 
-def _action_for(device: RegisterDevice):
-    """The pymodbus ``SimDevice`` action forwarding each request to ``device``."""
+#: How often a silenced device looks whether it may answer again (s).
+_SILENT_POLL_S = 0.02
+
+
+def _action_for(device: RegisterDevice, silent: Callable[[], bool] = lambda: False):
+    """The pymodbus ``SimDevice`` action forwarding each request to ``device``; while
+    ``silent()`` holds the request gets no answer (the client's reply time-out expires)."""
 
     async def action(
         function_code: int,
@@ -65,6 +70,8 @@ def _action_for(device: RegisterDevice):
         current_registers: list[int],
         set_values: list[int] | list[bool] | None,
     ) -> ExcCodes | None:
+        while silent():
+            await asyncio.sleep(_SILENT_POLL_S)
         try:
             if set_values is not None and function_code in (WRITE_SINGLE, WRITE_MULTIPLE):
                 device.write_registers(address, [int(v) for v in set_values])
@@ -81,12 +88,14 @@ def _action_for(device: RegisterDevice):
     return action
 
 
-def _sim_device(device_id: int, device: RegisterDevice) -> SimDevice:
+def _sim_device(
+    device_id: int, device: RegisterDevice, silent: Callable[[], bool] = lambda: False
+) -> SimDevice:
     blocks = [
         SimData(start, count=count, datatype=DataType.REGISTERS)
         for start, count in sorted(device.register_blocks())
     ]
-    return SimDevice(id=device_id, simdata=blocks, action=_action_for(device))
+    return SimDevice(id=device_id, simdata=blocks, action=_action_for(device, silent))
 
 
 def _absent_devices(devices: list[RegisterDevice]) -> SimDevice:
@@ -113,6 +122,8 @@ class ModbusDeviceServer:
 
     Use as a context manager, or ``start()``/``stop()``. ``port=0`` takes a free port (read it
     from ``port`` after starting); a restart reuses the port it got, so clients can reconnect.
+    ``silence(device_id)`` makes a device stop answering (fault injection: a device that hangs
+    or lost power behind a gateway) until ``silence(device_id, False)``.
     """
 
     def __init__(
@@ -134,6 +145,21 @@ class ModbusDeviceServer:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._server: ModbusTcpServer | None = None
         self._stopped: asyncio.Event | None = None
+        self._silent: set[int] = set()
+
+    def silence(self, device_id: int, silent: bool = True) -> None:
+        """Device ``device_id`` answers no request while ``silent`` (requests wait, unanswered)."""
+        if device_id not in self._devices:
+            raise ValueError(f"no device {device_id} on this server")
+        if silent:
+            self._silent.add(device_id)
+        else:
+            self._silent.discard(device_id)
+
+    def _is_silent(self, device_id: int) -> Callable[[], bool]:
+        return lambda: (
+            device_id in self._silent and not (self._stopped is not None and self._stopped.is_set())
+        )
 
     @property
     def port(self) -> int:
@@ -191,7 +217,7 @@ class ModbusDeviceServer:
     async def _main(self, ready: threading.Event, failure: list[BaseException]) -> None:
         self._stopped = asyncio.Event()
         try:
-            devices = [_sim_device(i, d) for i, d in self._devices.items()]
+            devices = [_sim_device(i, d, self._is_silent(i)) for i, d in self._devices.items()]
             if 0 not in self._devices:
                 devices.append(_absent_devices(list(self._devices.values())))
             server = ModbusTcpServer(devices, address=(self.host, self._port))

@@ -194,6 +194,7 @@ class RemoteCamera:
         self._connection = connection
         self._info = info
         self._streaming = False
+        self._ended = False  # the camera process said it stopped (after its last frame)
         self.frames_dropped = 0
 
     @property
@@ -215,15 +216,25 @@ class RemoteCamera:
     def read(self, timeout_s: float = 1.0) -> Frame:
         if not self._streaming:
             raise DeviceError("RemoteCamera.read: the camera is not streaming (call activate())")
+        if self._ended:
+            raise DeviceTimeout("the camera process stopped")
+        frame = None
         try:
             if not self._connection.poll(timeout_s):
                 raise DeviceTimeout(f"no frame within {timeout_s} s")
-            frame = self._connection.recv()
-            while self._connection.poll(0):
-                frame = self._connection.recv()
-                self.frames_dropped += 1
+            while True:
+                message = self._connection.recv()
+                if message is None:  # the end: the frame before it is still handed over
+                    self._ended = True
+                    break
+                if frame is not None:
+                    self.frames_dropped += 1
+                frame = message
+                if not self._connection.poll(0):
+                    break
         except (EOFError, OSError):
-            raise DeviceTimeout("the camera process is gone") from None
+            if frame is None:
+                raise DeviceTimeout("the camera process is gone") from None
         if frame is None:
             raise DeviceTimeout("the camera process stopped")
         return frame

@@ -205,7 +205,7 @@ class SimRig:
                 self._next_capture += 1.0 / self.timing.fps
 
     def _step(self, dt: float) -> None:
-        self.arm.step(dt)
+        self._step_arm(dt)
         self.track_model.step(dt)
         self.gripper_model.step(dt)
         self.clock.advance(dt)
@@ -232,6 +232,10 @@ class SimRig:
         force_B = X_BT.R @ np.array([0.0, 0.0, self._contact_stiffness * depth])
         lever_B = X_BT.apply(tip_T) - self.arm.T_BE[:3, 3]
         return np.concatenate([force_B, np.cross(lever_B, force_B)])
+
+    def _step_arm(self, dt: float) -> None:
+        """The arm's share of a step (an emulated controller drives it instead: emulated_world)."""
+        self.arm.step(dt)
 
     def truth(self) -> Mapping[str, Pose]:
         return {"X_WT": self.track_model.X_WT(), "X_WC": self.arm.camera_pose_W()}

@@ -71,35 +71,46 @@ def _read(read: Any, name: str, errors: dict[str, str]) -> Any:
         return None
 
 
-def snapshot(world: SimRig) -> WorldSnapshot:
+def snapshot(world: SimRig, *, states: bool = True) -> WorldSnapshot:
+    """The world now: the device states (unless ``states`` is false: a world whose devices
+    are read through real drivers elsewhere) and the ground truth."""
     errors: dict[str, str] = {}
     return WorldSnapshot(
         stamp=world.clock.now(),
-        arm=_read(world.arm.state, "arm", errors),
-        track=_read(world.track.state, "track", errors),
-        gripper=_read(world.gripper.state, "gripper", errors),
+        arm=_read(world.arm.state, "arm", errors) if states else None,
+        track=_read(world.track.state, "track", errors) if states else None,
+        gripper=_read(world.gripper.state, "gripper", errors) if states else None,
         errors=errors,
         X_WT=world.track_model.X_WT(),
         X_WC=world.arm.camera_pose_W(),
     )
 
 
-def _apply(world: SimRig, message: tuple, replies: LatestSender) -> bool:
-    """Carry out one message from the control side; False when told to stop."""
+def simulated_call(world: SimRig, kind: str, device: str, method: str, args: tuple) -> None:
+    """A device call (``CALLS``) or an injected fault (``FAULTS``) in the simulated world."""
+    allowed = (CALLS if kind == "call" else FAULTS).get(device, set())
+    target = {"arm": world.arm, "track": world.track, "gripper": world.gripper}.get(device)
+    if kind == "fault":
+        target = world.arm if device == "arm" else world.track_model
+    if method not in allowed or target is None:
+        raise DeviceError(f"{device}.{method} is not available in the simulated world")
+    getattr(target, method)(*args)
+
+
+def apply_message(
+    world: Any, message: tuple, replies: LatestSender, carry_out: Any = simulated_call
+) -> bool:
+    """Carry out one message from the control side with ``carry_out(world, kind, device,
+    method, args)``; a failure is sent back (the control side's next call raises it), never
+    fatal here. False when told to stop."""
     kind = message[0]
     if kind == "stop":
         return False
     if kind in ("call", "fault"):
         _, device, method, args = message
-        allowed = (CALLS if kind == "call" else FAULTS).get(device, set())
-        target = {"arm": world.arm, "track": world.track, "gripper": world.gripper}.get(device)
-        if kind == "fault":
-            target = world.arm if device == "arm" else world.track_model
         try:
-            if method not in allowed or target is None:
-                raise DeviceError(f"{device}.{method} is not available in the simulated world")
-            getattr(target, method)(*args)
-        except Exception as exc:  # reported to the caller's next call, never fatal here
+            carry_out(world, kind, device, method, args)
+        except Exception as exc:  # reported to the caller's next call
             replies.tell(("error", device, method, f"{type(exc).__name__}: {exc}"))
     return True
 
@@ -115,6 +126,7 @@ class LatestSender:
         self._messages: list[Any] = []
         self._ready = threading.Condition()
         self._closed = False
+        self._drain = False
         self.broken = False
         self._thread = threading.Thread(target=self._run, name="world-sender", daemon=True)
         self._thread.start()
@@ -129,9 +141,12 @@ class LatestSender:
             self._messages.append(message)
             self._ready.notify()
 
-    def close(self) -> None:
+    def close(self, *, drain: bool = False) -> None:
+        """Stop sending; with ``drain``, what is pending goes out first (a camera's last
+        frame), within the 2 s the thread is waited for."""
         with self._ready:
             self._closed = True
+            self._drain = drain
             self._ready.notify()
         self._thread.join(timeout=2.0)
 
@@ -140,7 +155,8 @@ class LatestSender:
             with self._ready:
                 while self._item is None and not self._messages and not self._closed:
                     self._ready.wait()
-                if self._closed:
+                pending = self._item is not None or bool(self._messages)
+                if self._closed and not (self._drain and pending):
                     return
                 outgoing = [*self._messages, *([self._item] if self._item is not None else [])]
                 self._messages, self._item = [], None
@@ -152,6 +168,22 @@ class LatestSender:
                 return
 
 
+def capture_requests(world: SimRig, camera: Connection | None) -> LatestSender | None:
+    """From now on, at each frame instant of ``world``, ask the camera process to render the
+    scene as it is then (newest request only: a camera behind the frame rate drops frames)."""
+    requests = LatestSender(camera) if camera is not None else None
+    seq = 0
+
+    def on_capture(stamp: float) -> None:
+        nonlocal seq
+        if requests is not None:
+            requests.put(RenderRequest(seq, stamp, world.viewpoint(), world.track_model.X_WT()))
+        seq += 1
+
+    world.on_capture = on_capture  # type: ignore[method-assign]
+    return requests
+
+
 def run_world(
     world: SimRig,
     control: Connection,
@@ -160,16 +192,7 @@ def run_world(
     step_s: float = 0.008,
 ) -> None:
     """Run ``world`` in real time until the control side says stop (or goes away)."""
-    seq = 0
-    requests = LatestSender(camera) if camera is not None else None
-
-    def on_capture(stamp: float) -> None:
-        nonlocal seq
-        if requests is not None:  # the newest only: a camera behind the frame rate drops frames
-            requests.put(RenderRequest(seq, stamp, world.viewpoint(), world.track_model.X_WT()))
-        seq += 1
-
-    world.on_capture = on_capture  # type: ignore[method-assign]
+    requests = capture_requests(world, camera)
     grid = world.grid_s
     sender = LatestSender(control)
     running = True
@@ -177,7 +200,7 @@ def run_world(
     while running and not sender.broken:
         try:
             while control.poll(0):
-                running = _apply(world, control.recv(), sender) and running
+                running = apply_message(world, control.recv(), sender) and running
         except (EOFError, OSError):
             break
         # Whole grid steps only: every model's state is then the state of the snapshot's stamp.
@@ -205,22 +228,32 @@ def realtime_priority(priority: int) -> str:
     return ""
 
 
-def world_main(build: Any, control: Connection, camera: Connection | None) -> None:
-    """The world process: build the rig with ``build(start_time)``, say ready, run, clean up.
+def world_main(
+    build: Any, control: Connection, camera: Connection | None, run: Any = run_world
+) -> None:
+    """The world process: build the rig with ``build(start_time)``, say ready, run it with
+    ``run(world, control, camera)`` (``run_world``, or the emulated rig's loop), clean up.
 
     Like a robot controller it runs at real-time priority when the system allows (below the
     control loop's): on a loaded machine a world that falls behind the wall clock would make
     the trial fail for reasons no rig has."""
     with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C goes to the control process
+        # First, so that the threads the rig starts (Modbus servers) inherit the priority.
+        priority = realtime_priority(WORLD_PRIORITY)
         # The activation in start() runs on simulated time (about a second): begin that far in
         # the past, then catch up with the present before the control side takes over.
-        world = build(start_time=time.monotonic() - 2.0)
+        try:
+            world = build(start_time=time.monotonic() - 2.0)
+        except Exception as exc:  # e.g. an emulator's address in use: say so, in one line
+            with contextlib.suppress(OSError):
+                control.send(("failed", f"{type(exc).__name__}: {exc}"))
+            return
         try:
             world.start()
             grid = world.grid_s
             world.advance(math.floor((time.monotonic() - world.clock.now()) / grid) * grid)
-            control.send(("ready", realtime_priority(WORLD_PRIORITY)))
-            run_world(world, control, camera)
+            control.send(("ready", priority))
+            run(world, control, camera)
         except Exception as exc:
             with contextlib.suppress(OSError):
                 control.send(("failed", f"{type(exc).__name__}: {exc}"))

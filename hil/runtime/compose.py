@@ -88,7 +88,7 @@ def header(
         },
         "seed": seed,
         "clock": clock,
-        "notes": f"simulated approach, clock {clock}, noise {config.noise.preset}, "
+        "notes": f"{config.devices.kind} approach, clock {clock}, noise {config.noise.preset}, "
         f"systems {', '.join(config.systems)}",
         "start": {"X_TC": start.X_TC.to_list(), "q": start.start_q.tolist()},
     }
@@ -122,6 +122,11 @@ class Trial:
         self.clock_kind = clock or config.clock
         if self.clock_kind not in get_args(ClockKind):
             raise ValueError(f"clock must be 'sim' or 'wall'; got {self.clock_kind!r}")
+        if self.clock_kind == "sim" and config.devices.kind != "sim":
+            raise ValueError(
+                f"--clock sim steps a simulated world; {config.devices.kind} devices run on the "
+                "wall clock (use --clock wall)"
+            )
         self._on_tick = on_tick
         self.mockup = mockup or load_mockup(config.mockup)
         self.camera = load_camera(config.camera)
@@ -183,18 +188,7 @@ class Trial:
 
     def rig_options(self) -> dict:
         """How the simulated rig starts and judges a grasp (``SimRig``'s keyword arguments)."""
-        config = self.config
-        return {
-            "grasp_X_TC": grasp_pose(config),
-            "start_q": self.start.start_q,
-            "links": config.links,
-            "capture_position_m": config.grasp_capture_m,
-            "capture_angle_deg": config.grasp_capture_deg,
-            "object_width": config.grasp_object_width_m,
-            "tool_reach_m": config.tool_reach_m,
-            "contact_stiffness": config.contact_stiffness,
-            "timing": config.camera_timing,
-        }
+        return rig_options(self.config, self.start)
 
     def _build_stepped(self) -> None:
         """``--clock sim``: world, pipeline and loop in this process, one simulated clock."""
@@ -316,3 +310,19 @@ def run_trial(
         signals=signals,
     ) as trial:
         return trial.run()
+
+
+def rig_options(config: SimulationConfig, start: TrialStart) -> dict:
+    """How the simulated rig of ``config`` starts (from ``start``) and judges a grasp:
+    ``SimRig``'s keyword arguments, the same for both clocks and the emulated rig."""
+    return {
+        "grasp_X_TC": grasp_pose(config),
+        "start_q": start.start_q,
+        "links": config.links,
+        "capture_position_m": config.grasp_capture_m,
+        "capture_angle_deg": config.grasp_capture_deg,
+        "object_width": config.grasp_object_width_m,
+        "tool_reach_m": config.tool_reach_m,
+        "contact_stiffness": config.contact_stiffness,
+        "timing": config.camera_timing,
+    }

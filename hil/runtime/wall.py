@@ -24,10 +24,12 @@ import logging
 import multiprocessing as mp
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection, wait
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
+from configuration.devices import SimDevice
 from configuration.vision import VisionConfig
 from drivers.base import DeviceTimeout
 from drivers.clock import RealClock
@@ -36,21 +38,32 @@ from estimators.fusion import FusionParams, PoseFusion
 from estimators.registry import build_estimator
 from estimators.target import TargetModel
 from hil.logs.foxglove import bounded_features
-from hil.logs.records import VisionRecord
+from hil.logs.records import TruthRecord, VisionRecord
+from hil.runtime.devices import RealDevices, device_camera_main, emulated_endpoints
 from hil.runtime.history import StateHistory, StateRing, StateSample
 from hil.runtime.judge import truth_record
 from hil.runtime.loop import ControlLoop
-from hil.runtime.processes import peak_rss_mib, sigint_blocked_in_children, stop_process
+from hil.runtime.processes import (
+    ProcessStartError,
+    peak_rss_mib,
+    sigint_blocked_in_children,
+    stop_process,
+)
 from hil.runtime.rig import RigGeometry
 from hil.runtime.vision import LoggedImage, VisionPipeline, VisionStatus
 from hil.runtime.workers import InlineWorkers, ProcessWorkers
 from sim_backends.camera_server import camera_main
+from sim_backends.emulated_world import EmulatedRig, run_emulated_world
 from sim_backends.remote import RemoteArm, RemoteCamera, RemoteGripper, RemoteTrack, WorldLink
 from sim_backends.world import SimRig
-from sim_backends.world_server import world_main
+from sim_backends.world_server import run_world, world_main
 
 if TYPE_CHECKING:
+    from configuration.camera import CameraConfig
+    from configuration.mockup import MockupConfig
+    from configuration.simulation import SimulationConfig
     from hil.runtime.compose import Trial
+    from sim_backends.start import TrialStart
 
 log = logging.getLogger(__name__)
 START_TIMEOUT_S = 120.0
@@ -159,11 +172,17 @@ def _lean(item: VisionRecord | LoggedImage) -> VisionRecord | LoggedImage:
 
 
 def start_vision(
-    spec: VisionSpec, frames: Connection, context: Any = None
+    spec: VisionSpec,
+    frames: Connection,
+    context: Any = None,
+    *,
+    meanwhile: Callable[[], None] | None = None,
 ) -> tuple[mp.process.BaseProcess, VisionClient]:
     """Start the vision process on the reading end ``frames`` of a camera's pipe; returns it
-    and the control side's link once it is ready (its workers built). The caller closes the
-    link (``VisionClient.stop``), which also frees the shared state ring."""
+    and the control side's link once it is ready (its workers built). ``meanwhile`` runs while
+    it starts (waiting for the other processes: one that fails is reported at once, not after
+    the estimators' start-up). The caller closes the link (``VisionClient.stop``), which also
+    frees the shared state ring."""
     context = context or mp.get_context("spawn")
     states = StateRing()
     spec = replace(spec, state_ring=states.name)
@@ -175,7 +194,9 @@ def start_vision(
         process.start()
     theirs.close()
     try:
-        _await_ready(ours, "vision", process)
+        if meanwhile is not None:
+            meanwhile()
+        await_ready(ours, "vision", process)
     except BaseException:
         stop_process(process, timeout_s=0.0)
         states.close()
@@ -239,17 +260,19 @@ class VisionClient:
 # --- building the wall-clock trial -----------------------------------------------------------
 
 
-def _await_ready(connection: Connection, what: str, process: mp.process.BaseProcess) -> None:
+def await_ready(connection: Connection, what: str, process: mp.process.BaseProcess) -> None:
     deadline = time.monotonic() + START_TIMEOUT_S
     while time.monotonic() < deadline:
         if connection.poll(0.1):
             kind, detail = connection.recv()
             if kind == "ready":
                 return
-            raise RuntimeError(f"the {what} process failed to start: {detail}")
+            raise ProcessStartError(f"the {what} process failed to start: {detail}")
         if not process.is_alive():
-            raise RuntimeError(f"the {what} process exited during start-up ({process.exitcode})")
-    raise RuntimeError(f"the {what} process did not start within {START_TIMEOUT_S:.0f} s")
+            raise ProcessStartError(
+                f"the {what} process exited during start-up ({process.exitcode})"
+            )
+    raise ProcessStartError(f"the {what} process did not start within {START_TIMEOUT_S:.0f} s")
 
 
 class RealtimePriority:
@@ -277,16 +300,22 @@ class RealtimePriority:
                 os.sched_setscheduler(0, self._previous[0], self._previous[1])
 
 
+class RigSetup(Protocol):
+    """What the world and camera processes are built from (a ``Trial`` has it all)."""
+
+    config: SimulationConfig
+    mockup: MockupConfig
+    camera: CameraConfig
+    start: TrialStart
+    seed: int
+
+
 def build_wall(trial: Trial) -> None:
-    """Start the world, camera and vision processes for ``trial`` and build its loop on them."""
-    config, start, stack = trial.config, trial.start, trial._stack
+    """Start the processes of ``trial`` — world (simulated, or emulated behind the real devices'
+    protocols) and camera, or a real camera alone; vision — build its devices and its loop."""
+    config, stack = trial.config, trial._stack
+    kind = config.devices.kind
     context = mp.get_context("spawn")
-    build = functools.partial(SimRig, start.rig, **trial.rig_options())
-    world_ours, world_theirs = context.Pipe()
-    # Pipe(duplex=False) gives (reading end, writing end).
-    requests_in, requests_out = context.Pipe(duplex=False)  # world → camera
-    frames_in, frames_out = context.Pipe(duplex=False)  # camera → vision
-    camera_ready_in, camera_ready_out = context.Pipe(duplex=False)
     processes: dict[str, mp.process.BaseProcess] = {}
 
     def stop_all() -> None:
@@ -294,56 +323,53 @@ def build_wall(trial: Trial) -> None:
             stop_process(process)
 
     stack.callback(stop_all)
-    processes["camera"] = context.Process(
-        target=camera_main,
-        args=(
-            trial.mockup,
-            trial.camera,
-            config.noise,
-            config.render,
-            config.camera_timing,
-            trial.seed,
-            requests_in,
-            frames_out,
-            camera_ready_out,
-        ),
-        name="satgrasp-camera",
-    )
-    processes["world"] = context.Process(
-        target=world_main, args=(build, world_theirs, requests_out), name="satgrasp-world"
-    )
-    with sigint_blocked_in_children():
-        for process in processes.values():
-            process.start()
-    for connection in (world_theirs, requests_out, requests_in, frames_out, camera_ready_out):
-        connection.close()
+    info = trial.camera.camera_info()
+    world_ours = None
+    if kind == "real" or not isinstance(config.devices.camera, SimDevice):
+        frames_in, camera_ready = _start_device_camera(
+            config.devices.camera, context, processes, stack
+        )
+    else:
+        frames_in, camera_ready = start_render_camera(trial, context, processes)
+    if kind != "real":
+        world_ours = start_world(trial, context, processes, camera_ready)
     spec = VisionSpec(
         tuple(config.systems),
         trial.mockup.target_model(),
-        trial.camera.camera_info(),
+        info,
         config.fusion,
         trial.geometry,
         config.vision,
     )
-    processes["vision"], vision = start_vision(spec, frames_in, context)
-    frames_in.close()
-    _await_ready(_Ready(camera_ready_in), "camera", processes["camera"])
-    _await_ready(world_ours, "world", processes["world"])
+    if isinstance(camera_ready, _DeviceCamera):
+        spec = replace(spec, info=camera_ready.await_info(processes["camera"]))
 
-    link = WorldLink(world_ours)
-    stack.callback(link.close)
-    link.wait_for_state(5.0)
+    def others_ready() -> None:
+        if world_ours is not None:
+            await_ready(world_ours, "world", processes["world"])
+        if isinstance(camera_ready, CameraReady):
+            await_ready(camera_ready, "camera", processes["camera"])
+
+    processes["vision"], vision = start_vision(spec, frames_in, context, meanwhile=others_ready)
     stack.callback(vision.stop)
+    frames_in.close()
+    link = None
+    if world_ours is not None:
+        link = WorldLink(world_ours)
+        stack.callback(link.close)
+        link.wait_for_state(5.0)
+        trial.world_link = link
     trial.vision = vision
-    trial.world_link = link
     trial.processes = processes
-    arm, track, gripper = RemoteArm(link), RemoteTrack(link), RemoteGripper(link)
-    for device in (arm, track, gripper):
-        device.connect()
-
-    def truth():
-        newest = link.newest()
-        return None if newest is None else truth_record({"X_WT": newest.X_WT, "X_WC": newest.X_WC})
+    if link is not None and kind == "sim":
+        arm, track, gripper = RemoteArm(link), RemoteTrack(link), RemoteGripper(link)
+        for device in (arm, track, gripper):
+            device.connect()
+    else:
+        devices = RealDevices.from_config(config.devices, trial.start.rig)
+        stack.callback(devices.close)
+        trial.devices = devices
+        arm, track, gripper = devices.arm, devices.track, devices.gripper
 
     trial.loop = ControlLoop(
         arm=arm,
@@ -354,10 +380,16 @@ def build_wall(trial: Trial) -> None:
         config=config.approach,
         clock=RealClock(),
         log=trial.log,
-        truth=truth,
+        truth=None if link is None else functools.partial(_truth, link),
         observers=trial._observers(),
     )
     trial.realtime = stack.enter_context(RealtimePriority())
+    if kind != "sim":
+        # Last, and under SCHED_FIFO: the arm's watchdog runs from the zero twist that ends
+        # start(), so the loop's first tick must follow within the watchdog's period even on
+        # a loaded machine (at normal priority it did not, at load average 20); the drivers'
+        # own threads (ur-rtde's receive threads) inherit the priority.
+        trial.devices.start()
 
     def resources() -> dict[str, Any]:
         """Peak memory of every process (the vision process reports its own and its workers'
@@ -375,11 +407,104 @@ def build_wall(trial: Trial) -> None:
     trial.resources = resources
 
 
-class _Ready:
-    """The camera process answers its ready pipe with a bare string."""
+def _truth(link: WorldLink) -> TruthRecord | None:
+    """The ground truth of the simulated world's newest state (a rig has none)."""
 
-    def __init__(self, connection: Connection):
+    newest = link.newest()
+    if newest is None:
+        return None
+    return truth_record({"X_WT": newest.X_WT, "X_WC": newest.X_WC})
+
+
+def start_render_camera(
+    trial: RigSetup, context: Any, processes: dict[str, mp.process.BaseProcess]
+) -> tuple[Connection, CameraReady]:
+    """The rendering camera process of ``trial``'s simulated world; returns the frames' reading
+    end and its ``CameraReady`` (which holds the world's end of the render requests)."""
+    config = trial.config
+    requests_in, requests_out = context.Pipe(duplex=False)  # world → camera
+    frames_in, frames_out = context.Pipe(duplex=False)  # camera → vision
+    ready_in, ready_out = context.Pipe(duplex=False)
+    processes["camera"] = context.Process(
+        target=camera_main,
+        args=(
+            trial.mockup,
+            trial.camera,
+            config.noise,
+            config.render,
+            config.camera_timing,
+            trial.seed,
+            requests_in,
+            frames_out,
+            ready_out,
+        ),
+        name="satgrasp-camera",
+    )
+    with sigint_blocked_in_children():
+        processes["camera"].start()
+    for connection in (requests_in, frames_out, ready_out):
+        connection.close()
+    return frames_in, CameraReady(ready_in, requests_out)
+
+
+def _start_device_camera(
+    camera: Any, context: Any, processes: dict[str, mp.process.BaseProcess], stack: Any
+) -> tuple[Connection, _DeviceCamera]:
+    """The camera process of a real camera (or a replay): ``hil.runtime.devices``."""
+    frames_in, frames_out = context.Pipe(duplex=False)
+    ours, theirs = context.Pipe()
+    processes["camera"] = context.Process(
+        target=device_camera_main, args=(camera, frames_out, theirs), name="satgrasp-camera"
+    )
+    with sigint_blocked_in_children():
+        processes["camera"].start()
+    frames_out.close()
+    theirs.close()
+    handle = _DeviceCamera(ours)
+    stack.callback(handle.stop)
+    return frames_in, handle
+
+
+def start_world(
+    trial: RigSetup,
+    context: Any,
+    processes: dict[str, mp.process.BaseProcess],
+    camera: CameraReady | _DeviceCamera | None,
+) -> Connection:
+    """The world process — simulated, or emulated behind the real devices' protocols — fed
+    with the rendering camera's request pipe when there is one; returns the control's end."""
+    config, start = trial.config, trial.start
+    from hil.runtime.compose import rig_options
+
+    options = rig_options(config, start)
+    if config.devices.kind == "emulated":
+        endpoints = emulated_endpoints(config.devices)
+        options.pop("links")  # the emulated rig's track and gripper are its Modbus servers
+        build = functools.partial(EmulatedRig, start.rig, endpoints, **options)
+        run: Any = run_emulated_world
+    else:
+        build = functools.partial(SimRig, start.rig, **options)
+        run = run_world
+    ours, theirs = context.Pipe()
+    requests = camera.requests if isinstance(camera, CameraReady) else None
+    processes["world"] = context.Process(
+        target=world_main, args=(build, theirs, requests, run), name="satgrasp-world"
+    )
+    with sigint_blocked_in_children():
+        processes["world"].start()
+    theirs.close()
+    if requests is not None:
+        requests.close()
+    return ours
+
+
+class CameraReady:
+    """The rendering camera process's ready pipe (it answers with a bare string); ``requests``:
+    the writing end of its render requests, for the world process."""
+
+    def __init__(self, connection: Connection, requests: Connection | None = None):
         self._connection = connection
+        self.requests = requests
 
     def poll(self, timeout: float) -> bool:
         return self._connection.poll(timeout)
@@ -387,3 +512,30 @@ class _Ready:
     def recv(self) -> tuple[str, Any]:
         answer = self._connection.recv()
         return ("ready", None) if answer == "ready" else ("failed", answer)
+
+
+class _DeviceCamera:
+    """The control side of a real camera's process: its ready answer carries the camera's
+    ``CameraInfo``; ``stop`` asks it to end."""
+
+    def __init__(self, connection: Connection):
+        self._connection = connection
+        self.info: CameraInfo | None = None
+
+    def poll(self, timeout: float) -> bool:
+        return self._connection.poll(timeout)
+
+    def recv(self) -> tuple[str, Any]:
+        kind, detail = self._connection.recv()
+        if kind == "ready":
+            self.info = detail
+        return kind, detail
+
+    def await_info(self, process: mp.process.BaseProcess) -> CameraInfo:
+        await_ready(self, "camera", process)
+        assert self.info is not None
+        return self.info
+
+    def stop(self) -> None:
+        with contextlib.suppress(BrokenPipeError, OSError):
+            self._connection.send("stop")

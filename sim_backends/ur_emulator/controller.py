@@ -88,6 +88,10 @@ class EmulatedController:
 
     ``clock`` is the host clock used for time stamps and the RTDE watchdog (time.monotonic);
     the controller's own ``timestamp`` (RTDE ``timestamp``) counts periods since start-up.
+
+    ``arm``: drive this simulated arm instead of one of its own — the arm of a simulated world
+    that also carries the camera and the track (``sim_backends.emulated_world``); the world then
+    owns the time and runs the controller with ``advance`` (``clock`` is then the world's).
     """
 
     def __init__(
@@ -95,15 +99,18 @@ class EmulatedController:
         arm_config: ArmConfig,
         log: CommandLog,
         *,
+        arm: SimArm | None = None,
         unlock_delay_s: float = 5.0,
         clock: Callable[[], float] = time.monotonic,
     ):
-        self.arm = SimArm(arm_config)
+        self.arm = arm if arm is not None else SimArm(arm_config)
+        arm_config = self.arm.config
         self.arm.connect()
         self.arm.activate()
         self.model = self.arm.model
         self.log = log
         self.period_s = 1.0 / arm_config.control_rate_hz
+        self._pending_s = 0.0
         self.stop_deceleration = arm_config.stop_deceleration
         self.unlock_delay_s = unlock_delay_s
         self._clock = clock
@@ -203,6 +210,14 @@ class EmulatedController:
             return  # at rest and nothing commanded: the model would not move
         self.arm.step(self.period_s)
         self._refresh_outputs()
+
+    def advance(self, dt: float) -> None:
+        """Run the controller periods that fit in ``dt`` seconds (the rest carries over): for a
+        world that owns the time and steps this controller with its other devices."""
+        self._pending_s += dt
+        while self._pending_s >= self.period_s - 1e-12:
+            self._pending_s -= self.period_s
+            self.cycle()
 
     def _drive_arm(self) -> None:
         if self.halted:

@@ -15,7 +15,6 @@ import contextlib
 import itertools
 import multiprocessing
 import os
-import socket
 import threading
 from collections.abc import Sequence
 
@@ -23,7 +22,7 @@ import numpy as np
 
 from configuration.rig import ArmConfig, load_rig
 from drivers.ur_probe import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT
-from sim_backends.loopback import check_loopback
+from sim_backends.loopback import bindable, check_loopback
 from sim_backends.ur_emulator.command_log import CommandRecord
 from sim_backends.ur_emulator.server import EmulatorSettings, EmulatorStatus, serve
 
@@ -55,19 +54,9 @@ def free_loopback_host() -> str:
     block = f"127.{1 + (pid >> 8) % 254}.{pid & 0xFF}"
     for _ in range(253):
         host = f"{block}.{2 + next(_HOSTS) % 253}"
-        if all(_bindable(host, port) for port in (DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT)):
+        if all(bindable(host, port) for port in (DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT)):
             return host
     raise EmulatorError(f"no free loopback address in {block}.0/24")
-
-
-def _bindable(host: str, port: int) -> bool:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            sock.bind((host, port))
-        except OSError:
-            return False
-    return True
 
 
 class UREmulator:

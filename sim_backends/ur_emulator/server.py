@@ -24,6 +24,7 @@ from configuration.rig import ArmConfig
 from drivers import rtde_protocol as rtde
 from drivers.ur_probe import DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORT
 from estimators.geometry import Pose
+from sim_backends.arm import SimArm
 from sim_backends.loopback import check_loopback
 from sim_backends.ur_emulator.command_log import CommandLog
 from sim_backends.ur_emulator.controller import EmulatedController
@@ -97,16 +98,33 @@ class _Client:
 
 
 class EmulatorServer:
-    """The emulated controller behind its ports (see the module docstring)."""
+    """The emulated controller behind its ports (see the module docstring).
 
-    def __init__(self, settings: EmulatorSettings, control: Connection | None = None):
+    Stand-alone (``run``/``serve_forever``) it keeps time itself on ``time.monotonic``. Inside a
+    simulated world (``sim_backends.emulated_world``) it drives the world's ``arm`` and stamps
+    with the world's ``clock``; the world then runs the controller (``controller.advance``) and
+    calls ``poll`` and ``publish`` from its own loop.
+    """
+
+    def __init__(
+        self,
+        settings: EmulatorSettings,
+        control: Connection | None = None,
+        *,
+        arm: SimArm | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ):
         check_loopback(settings.host, ipv4_only=True)
         self.settings = settings
         self.host = settings.host
         self.log = CommandLog()
-        self._clock: Callable[[], float] = time.monotonic
+        self._clock = clock
         self.controller = EmulatedController(
-            settings.arm, self.log, unlock_delay_s=settings.unlock_delay_s, clock=self._clock
+            settings.arm,
+            self.log,
+            arm=arm,
+            unlock_delay_s=settings.unlock_delay_s,
+            clock=self._clock,
         )
         self.faults = LinkFaults(seed=settings.seed)
         self.ownership = InputOwnership()
@@ -271,10 +289,9 @@ class EmulatorServer:
         publish_at: float | None = None
         while self._running:
             wake = next_tick if publish_at is None else min(next_tick, publish_at)
-            for key, _ in self._selector.select(max(wake - self._clock(), 0.0)):
-                self._dispatch(key.data, key.fileobj)
-                if not self._running:
-                    return
+            self.poll(max(wake - self._clock(), 0.0))
+            if not self._running:
+                return
             now = self._clock()
             if now >= next_tick:
                 lag = now - next_tick
@@ -289,7 +306,7 @@ class EmulatorServer:
                 if publish_at is None:
                     publish_at = now + self.faults.publish_delay()
             if publish_at is not None and self._clock() >= publish_at:
-                self._publish()
+                self.publish()
                 publish_at = None
 
     def stop(self) -> None:
@@ -305,6 +322,13 @@ class EmulatorServer:
         finally:
             self.close()
 
+    def poll(self, timeout_s: float) -> None:
+        """Answer what arrives on the ports (and the control channel) within ``timeout_s``."""
+        for key, _ in self._selector.select(timeout_s):
+            self._dispatch(key.data, key.fileobj)
+            if not self._running:
+                return
+
     def _dispatch(self, data, fileobj) -> None:
         if data == "control":
             self._serve_control()
@@ -315,7 +339,8 @@ class EmulatorServer:
             if client.sock in self._clients:
                 self._read(client)
 
-    def _publish(self) -> None:
+    def publish(self) -> None:
+        """Send every started RTDE session its data package when due (nothing while stalled)."""
         if self.faults.stalled:
             return
         sent = False
@@ -339,16 +364,20 @@ class EmulatorServer:
         except (EOFError, OSError):
             self._running = False  # the owner went away
             return
-        handler = self._handlers().get(name)
-        if handler is None:
-            reply = ("error", f"unknown emulator request {name!r}")
-        else:
-            try:
-                reply = ("ok", handler(*args, **kwargs))
-            except (ValueError, TypeError) as exc:
-                reply = ("error", str(exc))
+        try:
+            reply = ("ok", self.request(name, *args, **kwargs))
+        except (ValueError, TypeError) as exc:
+            reply = ("error", str(exc))
         with contextlib.suppress(OSError):
             self._control.send(reply)
+
+    def request(self, name: str, *args, **kwargs):
+        """Carry out the fault-injection or inspection request ``name`` (``UREmulator``'s
+        methods); ``ValueError`` for an unknown name or bad arguments."""
+        handler = self._handlers().get(name)
+        if handler is None:
+            raise ValueError(f"unknown emulator request {name!r}")
+        return handler(*args, **kwargs)
 
     def _handlers(self) -> dict[str, Callable]:
         c = self.controller

@@ -1,5 +1,8 @@
 """The Robotiq driver through the real pymodbus client against the real pymodbus server on
-127.0.0.1, serving the simulated 2F-85 (each test starts and stops its own server)."""
+127.0.0.1, serving the simulated 2F-85 (each test starts and stops its own server); and the real
+gripper when SATGRASP_GRIPPER is set (hardware)."""
+
+import time
 
 import pytest
 
@@ -8,6 +11,7 @@ from drivers.base import DeviceError, Gripper
 from drivers.gripper_robotiq import RobotiqGripper, RobotiqRegisters, command_registers, fault_name
 from sim_backends.gripper import GripperModel
 from sim_backends.modbus_server import ModbusDeviceServer
+from tests.drivers.hardware import modbus_address, needs
 from tests.drivers.register_fakes import RecordingLink
 
 CONFIG = GripperConfig(activation_s=0.5)
@@ -249,3 +253,46 @@ def test_robotiq_gripper_over_tcp_passes_speed_force_and_clock():
     gripper.grip()
     assert link.writes[-1][1][2] == (round(255 * 0.2) << 8) | round(255 * 0.4)
     assert gripper.state().stamp == 3.5
+
+
+# --- the real gripper ------------------------------------------------------------------------
+@pytest.mark.hardware
+@needs("SATGRASP_GRIPPER", "gripper's Modbus TCP address (a gateway to its RTU)")
+def test_real_gripper_answers_its_status_without_a_fault():
+    """Read-only: the gripper (through its gateway) answers status reads, no fault."""
+    host, port, unit = modbus_address("SATGRASP_GRIPPER", device_id=9)
+    gripper = RobotiqGripper.over_tcp(host, port, unit, timeout_s=0.5)
+    try:
+        gripper.connect()
+        state = gripper.state()
+    finally:
+        gripper.close()
+    assert 0.0 <= state.position <= 1.0
+    assert state.fault is None, f"the gripper reports {state.fault}"
+
+
+@pytest.mark.hardware
+@needs("SATGRASP_GRIPPER", "gripper's Modbus TCP address (a gateway to its RTU)")
+def test_real_gripper_activates_closes_and_opens():
+    """Moves the fingers (activation, close, open): keep them clear."""
+    host, port, unit = modbus_address("SATGRASP_GRIPPER", device_id=9)
+    gripper = RobotiqGripper.over_tcp(host, port, unit, timeout_s=0.5, speed=0.5, force=0.2)
+    gripper.connect()
+    try:
+        gripper.activate()
+        _wait(lambda: gripper.state().activated, 10.0, "activated")
+        for command, closed in ((gripper.grip, True), (gripper.open, False)):
+            command()
+            _wait(lambda: not gripper.state().moving, 5.0, "at rest")
+            state = gripper.state()
+            assert state.fault is None and (state.position > 0.8) == closed, state
+    finally:
+        gripper.close()
+
+
+def _wait(condition, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    time.sleep(0.1)  # the status shows the new request after the device's next cycle
+    while not condition():
+        assert time.monotonic() < deadline, f"the gripper was not {what} within {timeout_s} s"
+        time.sleep(0.05)

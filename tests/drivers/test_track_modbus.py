@@ -1,5 +1,6 @@
 """The track driver through the real pymodbus client against the real pymodbus server on
-127.0.0.1 (each test starts and stops its own server)."""
+127.0.0.1 (each test starts and stops its own server); and the real track when SATGRASP_TRACK is
+set (hardware)."""
 
 import socket
 import threading
@@ -14,6 +15,7 @@ from drivers.modbus_link import int32_to_registers
 from drivers.track_modbus import ModbusTrack, TrackRegisters, describe_faults
 from sim_backends.modbus_server import ModbusDeviceServer
 from sim_backends.track import TrackModel
+from tests.drivers.hardware import modbus_address, needs
 from tests.drivers.register_fakes import RecordingLink
 
 CONFIG = load_rig().track
@@ -383,3 +385,42 @@ def test_modbus_track_over_tcp_passes_its_clock():
     track = ModbusTrack.over_tcp("127.0.0.9", 5998, clock=lambda: 4.5)
     track._link = RecordingLink(status_image())  # the same driver on a recording link
     assert track.state().stamp == 4.5
+
+
+# --- the real track --------------------------------------------------------------------------
+@pytest.mark.hardware
+@needs("SATGRASP_TRACK", "track's Modbus TCP address")
+def test_real_track_reports_plausible_limits_and_no_fault():
+    """Read-only: the axis controller answers, its limits make sense, nothing is latched."""
+    host, port, unit = modbus_address("SATGRASP_TRACK", device_id=1)
+    track = ModbusTrack.over_tcp(host, port, unit, timeout_s=0.5)
+    try:
+        track.connect()
+        state = track.state()
+    finally:
+        track.close()
+    assert track.travel_min < track.travel_max and 0 < track.max_speed <= 2.0
+    assert track.travel_min - 0.01 <= state.position <= track.travel_max + 0.01
+    assert state.fault is None, f"the track reports {state.fault}: clear it first"
+
+
+@pytest.mark.hardware
+@needs("SATGRASP_TRACK", "track's Modbus TCP address")
+def test_real_track_moves_a_centimetre_and_back():
+    """Moves the carriage 1 cm at 2 cm/s and back: keep the track clear."""
+    host, port, unit = modbus_address("SATGRASP_TRACK", device_id=1)
+    track = ModbusTrack.over_tcp(host, port, unit, timeout_s=0.5)
+    track.connect()
+    try:
+        track.activate()
+        start = track.state().position
+        target = start + 0.01 if start + 0.01 <= track.travel_max else start - 0.01
+        for goal in (target, start):
+            track.move_to(goal, 0.02)
+            deadline = time.monotonic() + 5.0
+            while abs(track.state().position - goal) > 0.001 or track.state().moving:
+                assert time.monotonic() < deadline, f"not at {goal} m within 5 s"
+                time.sleep(0.05)
+    finally:
+        track.stop()
+        track.close()

@@ -90,14 +90,15 @@ def test_ur_arm_speedl_stream_then_stop_ends_at_rest(emulator):
         V = np.array([0.04, -0.02, 0.01, 0.0, 0.0, 0.05])
         stream(arm, V, 0.4)
         np.testing.assert_allclose(arm.state().V_BE, V, atol=2e-3)
-        arm.servo(ServoCommand.halt(time.monotonic(), "test"))  # speedStop: returns at rest
-        # ... which the state stream shows a cycle or two later (more on a loaded machine).
+        # A stop: a zero twist at the stop deceleration (2 m/s²: 20 ms from 0.04 m/s), and
+        # the call returns at once; the state stream shows the rest a little later.
+        arm.servo(ServoCommand.halt(time.monotonic(), "test"))
         deadline = time.monotonic() + 0.2
         while not np.allclose(arm.state().V_BE, 0.0) and time.monotonic() < deadline:
             time.sleep(0.002)
         assert np.allclose(arm.state().V_BE, 0.0)
         rest = arm.state().X_BE
-        stream(arm, np.zeros(6), 0.1, stop=True)  # held stopped: only kicks
+        stream(arm, np.zeros(6), 0.1, stop=True)  # held stopped: the zero twist again
         assert arm.state().X_BE.is_close(rest, atol_m=1e-9, atol_rad=1e-9)
         arm.deactivate()
         assert arm.state().fault_reason is None
@@ -106,10 +107,13 @@ def test_ur_arm_speedl_stream_then_stop_ends_at_rest(emulator):
         arm.close()
     script = [r for r in emulator.commands() if r.source == "script"]
     names = [r.name for r in script]
-    assert names[:2] == ["getTCPOffset", "setWatchdog"]
-    assert names.count("speedStop") == 1 and names[-1] == "stopScript"
+    # the watchdog is armed by the first streamed command, before it
+    assert names[:3] == ["getTCPOffset", "setWatchdog", "speedL"]
+    assert names[-1] == "stopScript"
     speedl = [r for r in script if r.name == "speedL"]
     assert speedl and speedl[0].values[6] == pytest.approx(0.8)  # the configured acceleration
+    stops = [r for r in speedl if not any(r.values[:6])]
+    assert stops and all(r.values[6] == pytest.approx(2.0) for r in stops)  # stop_deceleration
 
 
 def test_ur_arm_watchdog_stops_the_arm_when_commands_stop(emulator):

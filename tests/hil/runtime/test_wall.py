@@ -10,6 +10,7 @@ import time
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from configuration.approach import ApproachConfig
 from configuration.mockup import load_mockup
@@ -29,6 +30,10 @@ from tests.hil.runtime.loop_fakes import (
     start_X_BE,
 )
 from tests.hil.runtime.test_loop import RecordingLog
+
+# Wall-clock trials share one xdist worker (`make test`: --dist loadgroup): two at once on
+# two cores starve each other's emulators and vision processes.
+pytestmark = pytest.mark.xdist_group("wall_clock")
 
 SLEEPY = "tests.hil.fake_estimators:build_sleepy"
 
