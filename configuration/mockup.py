@@ -281,7 +281,12 @@ class MockupConfig(Strict):
             for i, (x, y) in enumerate(group.centers_xy()):
                 points.append(
                     PointFeature(
-                        f"{group.name}_{i}", np.array([x, y, z]), group.diameter, "disc", brighter
+                        f"{group.name}_{i}",
+                        np.array([x, y, z]),
+                        group.diameter,
+                        "disc",
+                        brighter,
+                        group.height,
                     )
                 )
         z_axis = np.array([0.0, 0.0, 1.0])

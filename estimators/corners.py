@@ -38,7 +38,7 @@ from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
 from estimators.measurement import Measurement
 from estimators.model_support import GradientImage, ModelSupport, Support
-from estimators.model_view import local_affine, plane_coordinates
+from estimators.model_view import head_extrusion, local_affine, plane_coordinates
 from estimators.planar_pose import (
     POSE_METHODS,
     PointObservations,
@@ -87,8 +87,9 @@ class CornerOptions:
 @dataclass(frozen=True, slots=True, eq=False)
 class FeatureLayout:
     """The model's point features as arrays: positions (N,3) in T, disc radius (m, 0 for
-    corners), whether each is a disc, brighter than its surroundings, and the fitting window
-    radius (m) that stays clear of other model structure."""
+    corners), whether each is a disc, brighter than its surroundings, the fitting window
+    radius (m) that stays clear of other model structure, and how far each disc stands proud
+    of its surface (m)."""
 
     names: tuple[str, ...]
     points_T: np.ndarray
@@ -96,6 +97,7 @@ class FeatureLayout:
     is_disc: np.ndarray
     brighter: np.ndarray
     window_m: np.ndarray
+    height_m: np.ndarray
 
     @staticmethod
     def of(target: TargetModel) -> FeatureLayout:
@@ -130,8 +132,9 @@ class FeatureLayout:
             window[i] = radius[i] + float(
                 np.clip(0.8 * clearance, 0.5 * radius[i], 1.5 * radius[i])
             )
+        height = np.array([f.height for f in features])
         return FeatureLayout(
-            tuple(f.name for f in features), points, radius, is_disc, brighter, window
+            tuple(f.name for f in features), points, radius, is_disc, brighter, window, height
         )
 
     def select(self, keep: np.ndarray) -> FeatureLayout:
@@ -143,6 +146,7 @@ class FeatureLayout:
             self.is_disc[keep],
             self.brighter[keep],
             self.window_m[keep],
+            self.height_m[keep],
         )
 
 
@@ -421,14 +425,23 @@ class CornerEstimator:
         return index, np.array(starts, dtype=float).reshape(-1, 2)
 
     def _fit_discs(
-        self, image, smoothed, labels, A, radius_px
+        self, image, smoothed, labels, A, radius_px, X_CT: Pose
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Refined disc positions: (feature indices, uv (n,2), covariance (n,2,2))."""
+        """Refined disc positions: (feature indices, uv (n,2), covariance (n,2,2)); heads
+        standing proud are fitted with their wall as ``X_CT`` shows it."""
         index, starts = self._disc_starts(smoothed, labels, radius_px)
         if len(index) == 0:
             return index, np.zeros((0, 2)), np.zeros((0, 2, 2))
+        layout = self.layout
         fits: PointFits = fit_discs(
-            image.pixels, starts, A[index], self.layout.radius_m[index], self.layout.window_m[index]
+            image.pixels,
+            starts,
+            A[index],
+            layout.radius_m[index],
+            layout.window_m[index],
+            extrusion_px=head_extrusion(
+                X_CT, layout.points_T[index], layout.height_m[index], self.camera
+            ),
         )
         moved = np.linalg.norm(fits.uv - starts, axis=1)
         sign = np.where(self.layout.brighter[index], 1.0, -1.0)
@@ -577,7 +590,7 @@ class CornerEstimator:
                 for i in np.flatnonzero(visible & self.layout.is_disc):
                     if int(i) not in measured and int(i) not in labels:
                         labels[int(i)] = pred[i]
-            new_index, new_uv, new_cov = self._fit_discs(image, smoothed, labels, A, radius_px)
+            new_index, new_uv, new_cov = self._fit_discs(image, smoothed, labels, A, radius_px, X)
             for i, p, c in zip(new_index, new_uv, new_cov, strict=True):
                 measured[int(i)] = (p, c)
             if final or len(measured) < options.min_features:

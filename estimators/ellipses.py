@@ -80,7 +80,7 @@ from estimators.ellipse_extraction import ExtractedEllipse, ExtractorSettings, e
 from estimators.frame import CameraInfo, Frame, frame_problem
 from estimators.geometry import Pose, normal_angle, skew
 from estimators.measurement import Measurement
-from estimators.model_view import local_affine
+from estimators.model_view import head_extrusion, local_affine
 from estimators.planar_pose import PointObservations, ideal_pixels
 from estimators.point_fit import fit_discs
 from estimators.target import Circle3D, TargetModel
@@ -901,7 +901,16 @@ class EllipseEstimator:
         keep = np.flatnonzero(facing & inside & (radius_px >= s.min_hole_radius_px))
         if len(keep) < s.min_holes:
             return None
-        fits = fit_discs(image.gray, uv[keep], A[keep], holes.radius_m[keep], holes.window_m[keep])
+        fits = fit_discs(
+            image.gray,
+            uv[keep],
+            A[keep],
+            holes.radius_m[keep],
+            holes.window_m[keep],
+            extrusion_px=head_extrusion(
+                X_CT, holes.points_T[keep], holes.height_m[keep], self.camera
+            ),
+        )
         moved = np.linalg.norm(fits.uv - uv[keep], axis=1)
         sign = np.where(holes.brighter[keep], 1.0, -1.0)
         good = fits.ok & (moved <= np.maximum(2.0, 0.5 * radius_px[keep]))

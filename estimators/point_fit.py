@@ -6,7 +6,12 @@ estimator that attains the Cramér–Rao bound, cf. ../shared/LIMITS.md). Two mo
 
 * a disc (bolt head or hole) of known metric radius, seen through the local affine map A
   (px per metre) of its plane: I(x) = b + (a − b)·Φ(ρ(x)/s), ρ the signed distance (px) from
-  the disc's rim, positive inside;
+  the disc's rim, positive inside. A head standing proud of its surface is a short cylinder:
+  off the optical axis its wall shows between the top disc and the base disc, whose image is
+  the top's shifted by ``extrusion`` (px). The model is then the top disc over the stadium
+  (the top swept to the base) with the wall's own grey level c:
+  I = a·Φ(ρ_top/s) + c·[Φ(ρ_stadium/s) − Φ(ρ_top/s)] + b·[1 − Φ(ρ_stadium/s)], and the fitted
+  position is the top's centre whatever the wall's shading;
 * a corner (wedge) of two straight edges through c: I(x) = b + (a − b)·Φ(d₁/s)·Φ(d₂/s), d_k the
   signed distance from edge k, positive on the inner side.
 
@@ -62,13 +67,17 @@ def fit_discs(
     radius_m: np.ndarray,
     window_m: np.ndarray,
     *,
+    extrusion_px: np.ndarray | None = None,
     iterations: int = 4,
 ) -> PointFits:
     """Refine disc centres (N,2 px) by fitting a disc of metric radius ``radius_m`` (N,) seen
     through the local affine maps ``A_px_per_m`` (N,2,2) of its plane, using the pixels within
     ``window_m`` (N,) of the centre (metres in the disc's plane; keep it clear of other
-    structure). Starts may be off by about a pixel: the first iterations use a wider edge
-    (coarse to fine). All discs are fitted together on one flat array of their pixels."""
+    structure). ``extrusion_px`` (N,2): for heads standing proud of their surface, the image
+    vector from the top's centre to the base's (the wall's grey level is then fitted too, see
+    the module docstring); None for flat discs. Starts may be off by about a pixel: the first
+    iterations use a wider edge (coarse to fine). All discs are fitted together on one flat
+    array of their pixels."""
     centers = np.asarray(centers_uv, dtype=float).reshape(-1, 2)
     n = len(centers)
     fits = _empty_fits(n)
@@ -79,19 +88,26 @@ def fit_discs(
     window = np.asarray(window_m, dtype=float).reshape(n)
     A_inv = np.linalg.inv(A)
     scale = np.sqrt(np.abs(np.linalg.det(A)))  # px per metre, geometric mean
+    extrusion = np.zeros((n, 2)) if extrusion_px is None else np.asarray(extrusion_px, float)
+    extrusion = np.nan_to_num(extrusion.reshape(n, 2))
+    e_m = np.einsum("nij,nj->ni", A_inv, extrusion)  # metres in the disc plane
+    e_m2 = np.maximum(np.sum(e_m * e_m, axis=1), 1e-30)
     h, w = pixels.shape
     # Flat pixel list: every pixel within the window (plus the start's uncertainty) of a start.
     reach = window * np.linalg.norm(A, ord=2, axis=(1, 2)) + 1.5
+    reach += np.linalg.norm(extrusion, axis=1)
     owner, u_int, v_int = _pixels_within(centers, reach, h, w)
     u = u_int.astype(float)
     v = v_int.astype(float)
     values = pixels[v_int, u_int].astype(float)
     a11, a12, a21, a22 = (A_inv[owner, i, j] for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)))
+    ex, ey, ee = e_m[owner, 0], e_m[owner, 1], e_m2[owner]
     sc = scale[owner]
     rad_px = radius[owner] * sc
     win = window[owner]
 
     def model(c: np.ndarray, s: float):
+        """Top-disc and stadium coverages, their slopes and ∂ρ/∂c, and the window mask."""
         du = u - c[owner, 0]
         dv = v - c[owner, 1]
         wx = a11 * du + a12 * dv  # metres in the disc plane
@@ -102,35 +118,56 @@ def fit_discs(
         # ∂ρ/∂c = scale · A⁻ᵀ ŵ
         gx = (a11 * wx + a21 * wy) * inv_d
         gy = (a12 * wx + a22 * wy) * inv_d
-        return ndtr(z), np.exp(-0.5 * z * z) / (_SQRT_2PI * s), gx, gy, d < win
+        # The stadium: distance to the segment from the top's centre to the base's.
+        t = np.clip((wx * ex + wy * ey) / ee, 0.0, 1.0)
+        qx, qy = wx - t * ex, wy - t * ey
+        dq = np.sqrt(qx * qx + qy * qy)
+        zq = (rad_px - dq * sc) / s
+        inv_q = sc / np.maximum(dq, 1e-12)
+        hx = (a11 * qx + a21 * qy) * inv_q
+        hy = (a12 * qx + a22 * qy) * inv_q
+        top, stadium = ndtr(z), ndtr(zq)
+        slope_top = np.exp(-0.5 * z * z) / (_SQRT_2PI * s)
+        slope_stadium = np.exp(-0.5 * zq * zq) / (_SQRT_2PI * s)
+        return top, stadium, slope_top, slope_stadium, (gx, gy), (hx, hy), d < win
 
     def sums(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
         return np.bincount(owner, x * mask, minlength=n)
 
+    def levels(top, stadium, mask):
+        """Grey levels (top a, surroundings b, wall c) by linear least squares, the wall's
+        tied to the top's by a weak prior (decisive only where the wall does not show)."""
+        basis = (top, 1.0 - stadium, stadium - top)
+        G = np.zeros((n, 3, 3))
+        t = np.zeros((n, 3))
+        for i in range(3):
+            t[:, i] = sums(basis[i] * values, mask)
+            for j in range(i, 3):
+                G[:, i, j] = G[:, j, i] = sums(basis[i] * basis[j], mask)
+        tie = 1e-3 * np.maximum(sums(np.ones_like(values), mask), 1.0)
+        G[:, 0, 0] += tie
+        G[:, 2, 2] += tie
+        G[:, 0, 2] -= tie
+        G[:, 2, 0] -= tie
+        G += 1e-12 * np.eye(3)
+        x = np.linalg.solve(G, t[..., None])[..., 0]
+        return x[:, 0], x[:, 1], x[:, 2]
+
     c = centers.copy()
     a = np.zeros(n)
     b = np.zeros(n)
+    wall = np.zeros(n)
     schedule = [(1.2, 2), (0.7, 1), (EDGE_WIDTH_PX, iterations)]
     converged = np.zeros(n, bool)
     for s, count in schedule:
         for _ in range(count):
-            inside, slope, gx, gy, mask = model(c, s)
-            # Grey levels by linear least squares at the current centre.
+            top, stadium, slope_t, slope_s, (gx, gy), (hx, hy), mask = model(c, s)
             mask = mask.astype(float)
-            other = 1.0 - inside
-            s11, s12, s22 = (
-                sums(inside * inside, mask),
-                sums(inside * other, mask),
-                sums(other * other, mask),
-            )
-            t1, t2 = sums(inside * values, mask), sums(other * values, mask)
-            det = s11 * s22 - s12 * s12
-            det = np.where(np.abs(det) < 1e-12, np.nan, det)
-            a = (s22 * t1 - s12 * t2) / det
-            b = (s11 * t2 - s12 * t1) / det
-            r = values - b[owner] - (a - b)[owner] * inside
-            contrast = (a - b)[owner] * slope
-            jx, jy = contrast * gx, contrast * gy
+            a, b, wall = levels(top, stadium, mask)
+            r = values - a[owner] * top - b[owner] * (1.0 - stadium) - wall[owner] * (stadium - top)
+            k_top = (a - wall)[owner] * slope_t
+            k_stadium = (wall - b)[owner] * slope_s
+            jx, jy = k_top * gx + k_stadium * hx, k_top * gy + k_stadium * hy
             hxx, hxy, hyy = sums(jx * jx, mask), sums(jx * jy, mask), sums(jy * jy, mask)
             gxr, gyr = sums(jx * r, mask), sums(jy * r, mask)
             det2 = hxx * hyy - hxy * hxy
@@ -141,13 +178,18 @@ def fit_discs(
             step = np.where(norm > 1.0, step / np.maximum(norm, 1e-12), step)
             c = c + step
             converged = norm[:, 0] < 0.1
-    # Statistics at the solution: full 4-parameter covariance (centre and grey levels).
-    inside, slope, gx, gy, mask = model(c, EDGE_WIDTH_PX)
+    # Statistics at the solution: covariance of centre and grey levels (and the wall's level
+    # where it shows).
+    top, stadium, slope_t, slope_s, (gx, gy), (hx, hy), mask = model(c, EDGE_WIDTH_PX)
     mask = mask.astype(float)
-    other = 1.0 - inside
-    r = values - b[owner] - (a - b)[owner] * inside
-    contrast = (a - b)[owner] * slope
-    J = np.stack([contrast * gx, contrast * gy, inside, other], axis=1)
+    r = values - a[owner] * top - b[owner] * (1.0 - stadium) - wall[owner] * (stadium - top)
+    k_top = (a - wall)[owner] * slope_t
+    k_stadium = (wall - b)[owner] * slope_s
+    walled = np.linalg.norm(extrusion, axis=1) >= 0.05
+    columns = [k_top * gx + k_stadium * hx, k_top * gy + k_stadium * hy, top, 1.0 - stadium]
+    if np.any(walled):
+        columns.append(np.where(walled[owner], stadium - top, 0.0))
+    J = np.stack(columns, axis=1)
     used = np.bincount(owner, mask, minlength=n)
     ok = converged & (used >= 12) & np.all(np.isfinite(c), axis=1) & np.isfinite(a) & np.isfinite(b)
     return _point_fits(J, r, owner, mask, used, c, a, b, ok, contrast_columns=(2, 3))

@@ -26,7 +26,9 @@ def _frozen_vector(values: np.ndarray, size: int, name: str) -> np.ndarray:
 class PointFeature:
     """A point feature: a panel corner, or the centre of a bolt head/hole disc.
 
-    ``brighter`` says whether the feature is brighter than the surface around it.
+    ``brighter`` says whether the feature is brighter than the surface around it. A disc's
+    ``p_T`` is the centre of its top; ``height`` (m) is how far it stands proud of its surface
+    (along T's z), so that its wall may show beside it.
     """
 
     name: str
@@ -34,6 +36,7 @@ class PointFeature:
     diameter: float
     kind: Literal["corner", "disc"]
     brighter: bool
+    height: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "p_T", _frozen_vector(self.p_T, 3, f"{self.name}.p_T"))
