@@ -303,6 +303,7 @@ def refine_quad(
             half_width_px=band,
             search_px=search,
             polarity=polarity,
+            noise_sigma=image.noise_sigma,
         )
         if not edges.all_found:
             return None

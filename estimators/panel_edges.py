@@ -257,11 +257,13 @@ def fit_edge(
     min_contrast_snr: float = 3.5,
     polarity: float = 1.0,
     keep: Callable[[np.ndarray], np.ndarray] | None = None,
+    noise_sigma: float = 0.0,
 ) -> FittedEdge:
     """One straight edge from its strips: step-edge points (``estimators.edge_fit``) converted
     to ideal pixels, and a robust line through them. Found when the grey levels differ with
     ``polarity`` (+1: brighter on the normals' side, −1: darker, 0: either) by
-    ``min_contrast_snr`` standard deviations and the line has at least three inliers."""
+    ``min_contrast_snr`` standard deviations and the line has at least three inliers.
+    ``noise_sigma``: the image noise, for the model of clipped pixels."""
     points = fit_edge_points(
         pixels,
         strip.centers_uv,
@@ -270,6 +272,7 @@ def fit_edge(
         half_width_px,
         search_px=search_px,
         keep=keep,
+        noise_sigma=noise_sigma,
     )
     ok = np.flatnonzero(points.ok)
     empty = FittedEdge(points, np.zeros((0, 2)), np.zeros(0), None, np.zeros(0, int))
@@ -317,6 +320,7 @@ def fit_panel_edges(
     keep: Callable[[np.ndarray], np.ndarray] | None = None,
     fallback: list[EdgeStrips] | None = None,
     fallback_search_px: float = 4.0,
+    noise_sigma: float = 0.0,
 ) -> PanelEdges:
     """Fit the four edges from their strips (``search_px`` per edge or for all). An edge
     counts as found when its grey levels differ with the model's polarity (+1: the panel is
@@ -331,6 +335,7 @@ def fit_panel_edges(
             min_contrast_snr=min_contrast_snr,
             polarity=polarity,
             keep=keep,
+            noise_sigma=noise_sigma,
         )
         edge = fit_edge(pixels, strip, camera, search_px=searches[i], **settings)
         if not edge.found and fallback is not None:
