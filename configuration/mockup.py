@@ -315,10 +315,15 @@ class MockupConfig(Strict):
 
 
 def load_mockup(name_or_path: str | Path) -> MockupConfig:
-    """Load a mock-up by path or built-in name (``default`` is ``configs/mockup.yaml``).
+    """Load a mock-up by path or built-in name (``default`` is ``configs/mockup.yaml``;
+    ``random:SEED`` is ``configuration.random_mockup.random_mockup(SEED)``).
 
     A relative ``model_file.path`` is taken relative to the YAML file that names it.
     """
+    if str(name_or_path).startswith("random:"):
+        from configuration.random_mockup import random_mockup, seed_of
+
+        return random_mockup(seed_of(str(name_or_path)))
     name = "mockup" if str(name_or_path) == "default" else name_or_path
     path = resolve_config_path(name)
     mockup = load_config(path, MockupConfig)
