@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 from configuration.mockup import MockupConfig
-from configuration.render import Lighting
+from configuration.render import HARSH_LIGHTING, Lighting
 
 PREFIX = "random:"
 #: Smallest grey-level difference between neighbouring parts a draw allows.
@@ -333,3 +333,18 @@ def random_lighting(seed: int) -> Lighting:
         sun_direction_T=tuple(round(c, 4) for c in sun),  # type: ignore[arg-type]
         shadows=bool(rng.uniform() < 0.5),
     )
+
+
+LIGHT_NAMES = ("default", "harsh", "random")
+
+
+def named_lighting(name: str, seed: int = 0) -> Lighting:
+    """A light by name: ``default`` (soft, frontal), ``harsh`` (``HARSH_LIGHTING``) or
+    ``random`` (``random_lighting(seed)``)."""
+    if name == "default":
+        return Lighting()
+    if name == "harsh":
+        return HARSH_LIGHTING
+    if name == "random":
+        return random_lighting(seed)
+    raise ValueError(f"light must be one of {', '.join(LIGHT_NAMES)}; got {name!r}")

@@ -3,7 +3,10 @@ front of the target while re-centring it from an off-centre, slightly rotated st
 
 Each frame is rendered with ground truth and fed to a ``Tracker`` (starting without a prior),
 so the run measures tracking continuity, errors along the way, and — for circle features —
-error against the fraction of the ring's circumference in view at close range.
+error against the fraction of the ring's circumference in view at close range. A frame is
+*over-confident* when it claims a pose (not flagged ambiguous) whose error lies beyond its own
+3σ (NEES above the 99.73 % χ² quantile): the measurement that would steer the arm off without
+warning (issue 13).
 """
 
 from __future__ import annotations
@@ -13,9 +16,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import chi2
 
 from configuration.camera import load_camera
 from configuration.mockup import load_mockup
+from configuration.random_mockup import is_random_name, named_lighting, seed_of
 from configuration.render import NoiseConfig, RenderConfig
 from estimators.conics import circle_points
 from estimators.frame import Frame, GroundTruth
@@ -63,6 +68,21 @@ class ApproachFrame:
     ring_visible: float  # fraction of the reference circle's circumference in view
     six_dof: bool
     time_ms: float
+    ambiguous: bool = False
+    mockup: str = ""
+
+    @property
+    def overconfident(self) -> bool:
+        """A valid, unflagged answer whose error lies beyond its own 3σ (see module docstring)."""
+        if self.status == "lost" or self.ambiguous:
+            return False
+        if self.six_dof:
+            return bool(self.error.nees_pose > THREE_SIGMA_NEES[6])
+        return bool(self.error.nees_circle > THREE_SIGMA_NEES[5])
+
+
+#: NEES beyond which an error lies outside its covariance's "3σ" (99.73 %) region.
+THREE_SIGMA_NEES = {dof: float(chi2.ppf(0.9973, dof)) for dof in (5, 6)}
 
 
 def circle_visible_fraction(X_CT: Pose, center_T, normal_T, radius: float, camera) -> float:
@@ -82,8 +102,10 @@ def run_approach(
     seed: int = 0,
     circle: str = "ring_outer",
     estimator_options: dict | None = None,
+    lighting: str = "default",
 ) -> list[ApproachFrame]:
-    """Track ``system`` along the approach; one result per frame."""
+    """Track ``system`` along the approach; one result per frame. ``lighting``: ``default``,
+    ``harsh`` or ``random`` (the mock-up's random light)."""
     path = path or ApproachPath()
     info = load_camera(camera).camera_info()
     mockup_config = load_mockup(mockup)
@@ -91,9 +113,10 @@ def run_approach(
     reference = target.circle(circle)
     tracker = Tracker(build_estimator(system, target, info, **(estimator_options or {})))
     noise_config = NoiseConfig(preset=noise)
+    light = named_lighting(lighting, seed_of(mockup) if is_random_name(mockup) else seed)
     results = []
     with MockupScene(mockup_config) as scene:
-        renderer = PybulletRenderer(scene, info, RenderConfig())
+        renderer = PybulletRenderer(scene, info, RenderConfig(lighting=light))
         for i in range(frames):
             distance, offset = path.offset(i / max(frames - 1, 1))
             X_WC, _ = camera_pose_for(distance, offset)
@@ -119,6 +142,8 @@ def run_approach(
                     ),
                     m.X_CT is not None,
                     m.time_ms,
+                    m.ambiguous,
+                    str(mockup),
                 )
             )
     return results
