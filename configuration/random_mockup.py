@@ -3,7 +3,8 @@ testing the estimators on mock-ups they were never tuned on.
 
 ``random_mockup(seed)`` draws the face (size, colour), the marman ring (size, width, height,
 colour brighter or darker than the face), the centre panel (size, thickness, polarity, on or
-off the ring's axis), fastener layouts (holes or bolts on the ring, fasteners on the panel,
+off the ring's axis; at least 0.2 m: a smaller panel alone cannot hold the corner and line
+systems' 3 m targets, ../shared/LIMITS.md), fastener layouts (holes or bolts on the ring, fasteners on the panel,
 bolts on the face, markers inside the ring; each darker or brighter than its surface), a
 thruster or none. Contrasts stay within what a camera can see (at least 0.12 on [0, 1] between
 neighbouring parts, rarely more than 0.5). The four-fold symmetry of the square panel is broken
@@ -108,12 +109,12 @@ def _draw(seed: int) -> dict:
     width, height = (float(round(v, 3)) for v in rng.uniform(1.2, 2.0, 2))
     face_luma = float(rng.uniform(0.2, 0.6))
     half = min(width, height) / 2
-    outer_r = float(rng.uniform(0.24, min(0.42, half - 0.18)))
+    outer_r = float(rng.uniform(0.26, min(0.42, half - 0.18)))
     radial = float(rng.uniform(0.03, min(0.08, 0.25 * outer_r)))
     protrusion = float(rng.uniform(0.02, 0.09))
     inner_r = outer_r - radial
     ring_luma = _contrasting(rng, face_luma, 0.2, 0.45)
-    side = float(rng.uniform(0.5, 0.85) * inner_r * math.sqrt(2.0) * 0.95)
+    side = float(max(0.2, rng.uniform(0.6, 0.85) * inner_r * math.sqrt(2.0) * 0.95))
     panel_luma = _contrasting(rng, face_luma, 0.15, 0.4)
     room = inner_r * 0.97 - side / math.sqrt(2.0)  # how far the panel may leave the axis
     center = (0.0, 0.0)

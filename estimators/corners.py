@@ -32,7 +32,15 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from estimators.acquisition import TurnChecker, coarse_gradients, pose_hypotheses
+from estimators.acquisition import (
+    TurnChecker,
+    coarse_gradients,
+    judge_turn,
+    pose_hypotheses,
+    roll_free_measurement,
+    turn_axis_circle,
+    warn_if_roll_ambiguous,
+)
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
@@ -165,6 +173,8 @@ class _Solution:
     support: Support | None = None
     reason: str = ""
     details: dict = field(default_factory=dict)
+    roll_undecided: bool = False  # no part in view tells the panel's quarter turns apart
+    from_prior: bool = False  # ... and the turn was kept from the prior
 
 
 class CornerEstimator:
@@ -183,6 +193,8 @@ class CornerEstimator:
             target.circle("ring_inner").radius if target.has_circle("ring_inner") else math.inf
         )
         self.turns = TurnChecker(target, self.support)
+        self.axis_circle = turn_axis_circle(target)
+        warn_if_roll_ambiguous(SYSTEM, target, self.turns)
 
     # --- entry point ----------------------------------------------------------------------
     def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
@@ -207,18 +219,8 @@ class CornerEstimator:
         )
 
     def _measurement(self, frame: Frame, s: _Solution, status: str, started: float) -> Measurement:
-        return Measurement(
-            system=SYSTEM,
-            status=status,  # type: ignore[arg-type]
-            stamp=frame.stamp,
-            seq=frame.seq,
-            X_CT=s.X_CT,
-            covariance=s.covariance,
-            residual_px=s.rms_px,
-            ambiguous=s.ambiguous,
-            features={"extracted": s.candidates, "labeled": s.uv},
-            time_ms=1000.0 * (time.perf_counter() - started),
-        )
+        features = {"extracted": s.candidates, "labeled": s.uv}
+        return roll_free_measurement(SYSTEM, frame, s, status, self.axis_circle, started, features)
 
     # --- acquisition ------------------------------------------------------------------------
     def _acquire(self, image: GrayImage, gradients: GradientImage) -> _Solution:
@@ -442,6 +444,7 @@ class CornerEstimator:
             extrusion_px=head_extrusion(
                 X_CT, layout.points_T[index], layout.height_m[index], self.camera
             ),
+            noise_sigma=image.noise_sigma,
         )
         moved = np.linalg.norm(fits.uv - starts, axis=1)
         sign = np.where(self.layout.brighter[index], 1.0, -1.0)
@@ -491,7 +494,14 @@ class CornerEstimator:
             ok &= np.all(gap > disc_r + margin_m, axis=1)
             return ok
 
-        fits = fit_corners(image.pixels, pred[index], np.array(directions), np.array(windows), keep)
+        fits = fit_corners(
+            image.pixels,
+            pred[index],
+            np.array(directions),
+            np.array(windows),
+            keep,
+            noise_sigma=image.noise_sigma,
+        )
         polarity = 1.0 if self.layout.brighter[index[0]] else -1.0
         moved = np.linalg.norm(fits.uv - pred[index], axis=1)
         good = fits.ok & (moved <= 2.5) & (polarity * fits.contrast_snr >= 4.0)
@@ -627,6 +637,7 @@ class CornerEstimator:
         fit = choice.fit
         support = self.support.score(gradients, fit.X_CT)
         reason = self._validate(fit, int(keep.sum()), support)
+        roll_undecided = from_prior = False
         if not reason:
             # The panel and a symmetric fastener layout look the same after a quarter turn;
             # the model's asymmetric parts (the thruster) decide, in tracking too, so that a
@@ -645,9 +656,16 @@ class CornerEstimator:
                     retry=False,
                 )
             # The hypothesis came with its turn already chosen: confirming it needs less margin.
-            needed = options.confirm_margin if turn.best == 0 else options.turn_margin
-            if not tracking and self.turns.decidable and not turn.margin >= needed:
-                reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
+            # Undecided (nothing asymmetric in view, or too faint): in tracking the turn is the
+            # prior's (a lock only if the prior's was decided: the Tracker knows); without a
+            # prior the pose is reported without its roll.
+            if judge_turn(turn, options.turn_margin, options.confirm_margin) == "undecided":
+                if tracking:
+                    from_prior = True
+                elif self.axis_circle is not None:
+                    roll_undecided = True
+                else:
+                    reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
         return _Solution(
             fit.X_CT,
             fit.covariance,
@@ -659,6 +677,8 @@ class CornerEstimator:
             candidates,
             support,
             reason,
+            roll_undecided=roll_undecided,
+            from_prior=from_prior,
         )
 
     def _validate(self, fit, count: int, support: Support) -> str:
@@ -674,8 +694,13 @@ class CornerEstimator:
         if len(panel) < 4 or min(panel) < options.min_edge_support:
             weakest = min(panel) if panel else float("nan")
             return f"a reprojected panel edge has no edge support (z {weakest:.1f})"
+        # Another part of the mock-up (ring, outline, thruster) must confirm the panel: a quad
+        # taken for the panel at a wrong scale (the face's outline as the panel) puts them
+        # all out of view.
         others = support.others()
-        if others and max(others.values()) < options.min_edge_support:
+        if not others:
+            return "no other part of the mock-up in view to confirm the panel"
+        if max(others.values()) < options.min_edge_support:
             return "the reprojected ring/thruster have no edge support"
         return ""
 

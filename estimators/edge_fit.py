@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
-from estimators.imaging import CLIP_TOLERANCE, clipped_likelihood_terms
+from estimators.imaging import clipped_likelihood_terms, clipped_moments
 from estimators.point_fit import EDGE_WIDTH_PX
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
@@ -231,15 +231,17 @@ def fit_edge_points(
     noise2 = float(r @ r / max(len(values) - k - 2, 1))
     J = (a - b) * np.exp(-0.5 * z * z) / (_SQRT_2PI * s)
     # Per-pixel information: from the residuals' own variance; with a clipping model, the
-    # clipped likelihood's (a clipped pixel tells less than one that is not), on the scale of
-    # the residuals of the pixels that are not clipped.
+    # clipped likelihood's (a clipped pixel tells less than an unclipped one), on the scale of
+    # the noise σ raised by how much the residuals exceed what clipped noise leaves (clipping
+    # shrinks the residuals' own spread, which would make the points look too precise).
     weight = np.full(len(values), 1.0 / max(noise2, 1e-12))
     if noise_sigma > 0:
-        _, clipped_info = clipped_likelihood_terms(values, b + (a - b) * step_shape, noise_sigma)
-        free = (values > CLIP_TOLERANCE) & (values < 1.0 - CLIP_TOLERANCE)
-        if free.sum() > k + 2:
-            spread2 = float(r[free] @ r[free] / (free.sum() - k - 2))
-            weight = clipped_info * noise_sigma**2 / max(spread2, 1e-12)
+        intensity = b + (a - b) * step_shape
+        _, clipped_info = clipped_likelihood_terms(values, intensity, noise_sigma)
+        mean, variance, _ = clipped_moments(intensity, noise_sigma)
+        excess = float((values - mean) @ (values - mean)) / max(float(variance.sum()), 1e-12)
+        excess *= len(values) / max(len(values) - k - 2, 1)
+        weight = clipped_info / max(excess, 1.0)
     info = np.bincount(strip, weight * J * J, minlength=k)
     sigma = 1.0 / np.sqrt(np.maximum(info, 1e-12))
     # Grey-level uncertainty from the linear part: Var(a − b) = σ²·[1 −1](AᵀA)⁻¹[1 −1]ᵀ

@@ -56,7 +56,6 @@ from estimators.circle_pose import CirclePose, circle_poses_from_conic
 from estimators.conics import (
     circle_cone,
     circle_image_conic,
-    circle_plane_basis,
     circle_points,
     fit_ellipse_direct,
     sampson_distances,
@@ -79,7 +78,7 @@ from estimators.ellipse_detection import (
 from estimators.ellipse_extraction import ExtractedEllipse, ExtractorSettings, extract_ellipses
 from estimators.frame import CameraInfo, Frame, frame_problem
 from estimators.geometry import Pose, normal_angle, skew
-from estimators.measurement import Measurement
+from estimators.measurement import Measurement, circle_covariance_from_pose
 from estimators.model_view import head_extrusion, local_affine
 from estimators.planar_pose import PointObservations, ideal_pixels
 from estimators.point_fit import fit_discs
@@ -243,10 +242,16 @@ class EllipseEstimator:
                 else "no ellipse extracted"
             )
             return Measurement.lost(SYSTEM, frame, reason, started=started)
-        fit, ambiguous = found
+        fit, ambiguous, from_prior = found
         fit, decided = self._with_holes(image, fit)
         ambiguous = ambiguous and not decided
-        return self._measurement(frame, status, fit, ambiguous, prior_X_CT, extracted, started)
+        from_prior = from_prior and not decided
+        alternative = self._mirror_pose(fit) if ambiguous or from_prior else None
+        if alternative is None:  # the two poses are one (near head-on): nothing to choose
+            ambiguous = from_prior = False
+        return self._measurement(
+            frame, status, fit, (ambiguous, from_prior, alternative), prior_X_CT, extracted, started
+        )
 
     # --- tracking -------------------------------------------------------------------------
     def _track(self, image: _Image, prior: Pose):
@@ -286,16 +291,29 @@ class EllipseEstimator:
             if ring is None:
                 return None
             fit = self._find_thruster(image, ring, prior) or ring
-        if fit.X_CT is None:  # the ring alone: keep the pose nearer the prior's normal
-            prior_normal = prior.R @ self.outer.normal_T
-            mirror_pose = self._mirror_pose(fit)
-            if mirror_pose is not None and normal_angle(
-                mirror_pose.normal_C, prior_normal
-            ) < normal_angle(fit.ring.normal_C, prior_normal):
-                mirror = self._mirror(image, fit)
-                if mirror is not None:
-                    fit = self._find_thruster(image, mirror, None) or mirror
-        return fit, False
+        if fit.X_CT is None:
+            return self._choose_mirror(image, fit, prior)
+        return fit, False, False
+
+    def _choose_mirror(self, image: _Image, fit: _Fit, prior: Pose):
+        """The ring alone while tracking: its two poses, and which the frame supports. The
+        image decides when the other pose does not fit it (or is the same pose, near head-on),
+        shows the thruster, or costs clearly more (15 %); otherwise the pose nearer the prior's
+        normal is kept *because of the prior* (``from_prior``: a lock only if the prior's
+        choice was itself decided, which the Tracker knows — issue 13: a mirror taken at
+        acquisition must not become a confident track). Returns (fit, ambiguous, from_prior)."""
+        mirror = self._mirror(image, fit)
+        if mirror is None:
+            return fit, False, False
+        mirror = self._find_thruster(image, mirror, None) or mirror
+        if mirror.X_CT is not None:  # the thruster found on the other pose decides
+            return mirror, False, False
+        best, second = sorted((fit, mirror), key=lambda f: f.cost)
+        if second.cost > 1.15 * best.cost:
+            return best, False, False
+        prior_normal = prior.R @ self.outer.normal_T
+        nearer = min((fit, mirror), key=lambda f: normal_angle(f.ring.normal_C, prior_normal))
+        return nearer, False, True
 
     def _track_by_extraction(self, image: _Image, prior: Pose, ring0: CirclePose, predicted):
         """Extract ellipses around the prediction, label them against the predicted ring edges
@@ -367,7 +385,7 @@ class EllipseEstimator:
                 if ring is not None:
                     break
             if ring is not None:
-                return self._resolve(image, ring)
+                return (*self._resolve(image, ring), False)
         return None
 
     def _closed_form(self, labeled: ExtractedEllipse, circle: Circle3D) -> list[CirclePose]:
@@ -419,7 +437,7 @@ class EllipseEstimator:
         """Whether two fits' normals agree within 3σ (and 1°)."""
         separation = max(np.radians(1.0), 3.0 * _normal_sigma(a.result.covariance[:5, :5]))
         if a.X_CT is not None:
-            cov5 = _five_from_six(a.result.covariance, a.X_CT, self.outer)
+            cov5 = circle_covariance_from_pose(a.result.covariance, a.X_CT, self.outer)
             separation = max(np.radians(1.0), 3.0 * _normal_sigma(cov5))
         return normal_angle(a.ring.normal_C, b.ring.normal_C) < separation
 
@@ -436,7 +454,7 @@ class EllipseEstimator:
         other = max(candidates, key=lambda c: normal_angle(c.normal_C, ring.ring.normal_C))
         covariance = ring.result.covariance
         if ring.X_CT is not None:
-            covariance = _five_from_six(covariance, ring.X_CT, self.outer)
+            covariance = circle_covariance_from_pose(covariance, ring.X_CT, self.outer)
         separation = max(np.radians(1.0), 3.0 * _normal_sigma(covariance))
         if normal_angle(other.normal_C, ring.ring.normal_C) < separation:
             return None
@@ -910,6 +928,7 @@ class EllipseEstimator:
             extrusion_px=head_extrusion(
                 X_CT, holes.points_T[keep], holes.height_m[keep], self.camera
             ),
+            noise_sigma=image.noise,
         )
         moved = np.linalg.norm(fits.uv - uv[keep], axis=1)
         sign = np.where(holes.brighter[keep], 1.0, -1.0)
@@ -946,7 +965,7 @@ class EllipseEstimator:
                 R = turn @ fit.X_CT.R
                 X0 = Pose(R, center - R @ self.outer.center_T)
                 cov0 = covariance_at(sets, fit.result, X0, self.camera.K, points=fit.holes)
-                sigma0 = _normal_sigma(_five_from_six(cov0, X0, self.outer), weak=True)
+                sigma0 = _normal_sigma(circle_covariance_from_pose(cov0, X0, self.outer), weak=True)
             else:
                 cov0 = covariance_at(
                     sets,
@@ -969,13 +988,15 @@ class EllipseEstimator:
         frame: Frame,
         status: str,
         fit: _Fit,
-        ambiguous: bool,
+        choice: tuple[bool, bool, CirclePose | None],
         prior: Pose | None,
         extracted: list[ExtractedEllipse],
         started: float,
     ) -> Measurement:
         """5-DOF always (the ring's centre and normal); 6-DOF ``X_CT`` when the thruster was
-        found; otherwise a full-pose hint with the roll carried over from the prior."""
+        found; otherwise a full-pose hint with the roll carried over from the prior. ``choice``:
+        (ambiguous, from_prior, the ring's other pose when either)."""
+        ambiguous, from_prior, alternative = choice
         inflation = self.settings.covariance_scale
         if fit.holes is None:  # (a fit with holes weighed its edge samples' correlation already)
             inflation *= _correlation_inflation(fit.sigma_px, fit.spacing_px)
@@ -983,7 +1004,7 @@ class EllipseEstimator:
         if fit.X_CT is not None:
             X_CT = fit.X_CT
             covariance = self._honest_covariance(fit, inflation)
-            cov5 = _five_from_six(covariance, X_CT, self.outer)
+            cov5 = circle_covariance_from_pose(covariance, X_CT, self.outer)
         else:
             cov5 = self._honest_covariance(fit, inflation)
             roll = roll_of(prior, fit.ring, self.outer) if prior is not None else 0.0
@@ -1006,6 +1027,9 @@ class EllipseEstimator:
             X_CT_hint=hint,
             residual_px=fit.result.rms_px,
             ambiguous=ambiguous,
+            from_prior=from_prior,
+            alternative_center_C=None if alternative is None else alternative.center_C,
+            alternative_normal_C=None if alternative is None else alternative.normal_C,
             features={
                 "extracted": _subsample(extracted_points, 400),
                 "labeled": _subsample(labeled, 160),
@@ -1078,22 +1102,6 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.eye(3)  # (b = −a does not occur here: both face the camera)
     vx = skew(v)
     return np.eye(3) + vx + vx @ vx / (1.0 + c)
-
-
-def _five_from_six(covariance: np.ndarray, X_CT: Pose, circle: Circle3D) -> np.ndarray:
-    """5×5 covariance of a circle's (centre, normal) from the 6×6 covariance of X_CT.
-
-    With R_true = Exp(δθ)·R and p_true = p + δp: δc = δp − [R·c_T]ₓ·δθ and δn = δθ × n, whose
-    components on (u, v) = circle_plane_basis(n) are (α, β)."""
-    n = X_CT.R @ circle.normal_T
-    u, v = circle_plane_basis(n)
-    J = np.zeros((5, 6))
-    J[:3, :3] = -skew(X_CT.R @ circle.center_T)
-    J[:3, 3:] = np.eye(3)
-    J[3, :3] = u @ -skew(n)  # δθ × n = −[n]ₓ δθ
-    J[4, :3] = v @ -skew(n)
-    out = J @ covariance @ J.T
-    return 0.5 * (out + out.T)
 
 
 def _correlation_inflation(sigma_px: float, spacing_px: float) -> float:

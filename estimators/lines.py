@@ -34,7 +34,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from estimators.acquisition import TurnChecker, coarse_gradients, pose_hypotheses
+from estimators.acquisition import (
+    TurnChecker,
+    coarse_gradients,
+    judge_turn,
+    pose_hypotheses,
+    roll_free_measurement,
+    turn_axis_circle,
+    warn_if_roll_ambiguous,
+)
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
@@ -140,6 +148,8 @@ class _Solution:
     edge_points: np.ndarray  # (M,2) image px
     corners_uv: np.ndarray  # (4,2) image px
     reason: str = ""
+    roll_undecided: bool = False  # no part in view tells the panel's quarter turns apart
+    from_prior: bool = False  # ... and the turn was kept from the prior
 
 
 #: A joint fit is taken as found when it used this share of the outline's strips in view.
@@ -188,6 +198,8 @@ class LineEstimator:
             target.circle("ring_inner").radius if target.has_circle("ring_inner") else math.inf
         )
         self.turns = TurnChecker(target, self.support)
+        self.axis_circle = turn_axis_circle(target)
+        warn_if_roll_ambiguous(SYSTEM, target, self.turns)
         self._outline_ends = outline_edge_ends(target) if options.use_outline else None
         self._panel_ends = panel_edge_ends(target)
         # Parts that may stand in front of the outline's edges (fasteners, circles and their
@@ -230,22 +242,12 @@ class LineEstimator:
         )
 
     def _measurement(self, frame: Frame, s: _Solution, status: str, started: float) -> Measurement:
-        return Measurement(
-            system=SYSTEM,
-            status=status,  # type: ignore[arg-type]
-            stamp=frame.stamp,
-            seq=frame.seq,
-            X_CT=s.X_CT,
-            covariance=s.covariance,
-            residual_px=s.rms_px,
-            ambiguous=s.ambiguous,
-            features={
-                "extracted": s.segments.reshape(-1, 2),
-                "labeled": s.edge_points,
-                "corners": s.corners_uv,
-            },
-            time_ms=1000.0 * (time.perf_counter() - started),
-        )
+        features = {
+            "extracted": s.segments.reshape(-1, 2),
+            "labeled": s.edge_points,
+            "corners": s.corners_uv,
+        }
+        return roll_free_measurement(SYSTEM, frame, s, status, self.axis_circle, started, features)
 
     @staticmethod
     def _failure(reason: str, segments: np.ndarray | None = None) -> _Solution:
@@ -396,6 +398,7 @@ class LineEstimator:
         X0: Pose,
         *,
         tracking: bool,
+        retry: bool = True,
     ) -> _Solution:
         options = self.options
         strips = strips_from_pose(X0, self.camera, self.target, options.strip_px)
@@ -450,6 +453,7 @@ class LineEstimator:
                 fit, support = choice.alternative, other
         X = fit.X_CT
         reason = self._validate(fit.reduced_chi2, support)
+        roll_undecided = from_prior = False
         if not reason:
             # The square panel looks the same after a quarter turn: the model's asymmetric
             # parts (the thruster) decide — in tracking too, so that a wrong lock cannot last.
@@ -458,17 +462,33 @@ class LineEstimator:
             # — unless the outline fixed the tilt (then a search only lets noise compete).
             rough = not tracking and outline is None
             turn = self.turns.check(gradients, X, search_px=6.0 if rough else 0.0)
-            if turn.best != 0 and turn.margin >= options.turn_margin:
+            # The hypothesis came with its turn already chosen (on smoother gradients, from the
+            # quad): confirming it needs less margin than overturning it. Undecided (nothing
+            # asymmetric in view, or too faint): in tracking the turn is the prior's (a lock
+            # only if the prior's was decided: the Tracker knows); without a prior the pose is
+            # reported without its roll.
+            judged = judge_turn(turn, options.turn_margin, options.confirm_margin)
+            if judged == "other":
                 if tracking:
                     reason = "a quarter turn of the pose fits the image better"
+                elif retry:
+                    # Measured again from the turned pose: a face that is not square, fitted
+                    # at the wrong turn, does not fit at the right one.
+                    return self._solve(
+                        image,
+                        gradients,
+                        X @ self.turns.turns[turn.best],
+                        tracking=False,
+                        retry=False,
+                    )
                 else:
-                    X = X @ self.turns.turns[turn.best]
-                    support = self.support.score(gradients, X)
-            elif not tracking and self.turns.decidable:
-                # The hypothesis came with its turn already chosen (on smoother gradients, from
-                # the quad): confirming it needs less margin than overturning it.
-                needed = options.confirm_margin if turn.best == 0 else options.turn_margin
-                if not turn.margin >= needed:
+                    reason = "a quarter turn of the pose fits the image better"
+            elif judged == "undecided":
+                if tracking:
+                    from_prior = True
+                elif self.axis_circle is not None:
+                    roll_undecided = True
+                else:
                     reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
         corners_image = self.camera.project(X.apply(self.target.panel_corners_T))
         points = edges.image_points()
@@ -483,6 +503,8 @@ class LineEstimator:
             points,
             corners_image,
             reason,
+            roll_undecided,
+            from_prior,
         )
 
     def _observations(
@@ -750,8 +772,13 @@ class LineEstimator:
         if len(panel) < 4 or min(panel) < options.min_edge_support:
             weakest = min(panel) if panel else float("nan")
             return f"a reprojected panel edge has no edge support (z {weakest:.1f})"
+        # Another part of the mock-up (ring, outline, thruster) must confirm the panel: a quad
+        # taken for the panel at a wrong scale (the face's outline as the panel) puts them
+        # all out of view.
         others = support.others()
-        if others and max(others.values()) < options.min_edge_support:
+        if not others:
+            return "no other part of the mock-up in view to confirm the panel"
+        if max(others.values()) < options.min_edge_support:
             return "the reprojected ring/thruster have no edge support"
         return ""
 
