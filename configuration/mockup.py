@@ -311,6 +311,7 @@ class MockupConfig(Strict):
             outline_corners_T=outline,
             point_features=tuple(points),
             circles=tuple(circles),
+            panel_thickness=panel.thickness,
         )
 
 

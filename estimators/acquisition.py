@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 from estimators.frame import CameraInfo, Frame
-from estimators.geometry import Pose
+from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GrayImage, smooth
 from estimators.measurement import Measurement, circle_of_pose
 from estimators.model_support import GradientImage, ModelSupport, Support
@@ -157,6 +157,55 @@ def judge_turn(turn: TurnCheck, turn_margin: float, confirm_margin: float) -> st
     if turn.best == 0 and turn.margin >= confirm_margin:
         return "kept"
     return "undecided"
+
+
+#: Support (z units) by which a pose or its planar flip must beat the other to be decided.
+FLIP_MARGIN = 6.0
+
+
+def planar_flip(X_CT: Pose, target: TargetModel, camera: CameraInfo) -> Pose | None:
+    """The panel's other planar pose (IPPE, Collins & Bartoli 2014): the one that images the
+    panel's corners where ``X_CT`` does, when it differs from ``X_CT`` by more than a degree
+    (near head-on the two are one)."""
+    uv = project_ideal(X_CT, target.panel_corners_T, camera.K)
+    others = [
+        X
+        for X in ippe_poses(target.panel_corners_T, uv, camera.K)
+        if rotation_error_geodesic(X, X_CT) > math.radians(1.0)
+    ]
+    return max(others, key=lambda X: rotation_error_geodesic(X, X_CT)) if others else None
+
+
+def judge_flip(
+    support: ModelSupport,
+    gradients: GradientImage,
+    X_CT: Pose,
+    target: TargetModel,
+    covariance: np.ndarray,
+) -> tuple[str, Pose | None]:
+    """Whether the whole model (the ring standing in front of the panel, the face's outline,
+    the thruster, the discs) supports a pose better than its planar flip — the panel's
+    edges alone may favour the wrong one when the panel is small or faint and nothing else
+    was fitted: ``kept`` (or no flip beyond 5σ of the pose's own rotation ``covariance``,
+    6×6: the two are then one answer), ``other`` (the flip, returned, is clearly better) or
+    ``undecided`` (within ``FLIP_MARGIN``)."""
+    flip = planar_flip(X_CT, target, support.camera)
+    if flip is None:
+        return "kept", None
+    turn = Pose(flip.R @ X_CT.R.T, np.zeros(3)).rotvec
+    try:
+        if float(turn @ np.linalg.solve(covariance[:3, :3], turn)) < 25.0:
+            return "kept", None
+    except np.linalg.LinAlgError:
+        pass
+    # Both judged with the same tolerance: the flip is not refined on the image.
+    own = support.score(gradients, X_CT, shift_px=2.0).total
+    other = support.score(gradients, flip, shift_px=2.0).total
+    if own - other >= FLIP_MARGIN:
+        return "kept", flip
+    if other - own >= FLIP_MARGIN:
+        return "other", flip
+    return "undecided", flip
 
 
 def turn_axis_circle(target: TargetModel) -> Circle3D | None:

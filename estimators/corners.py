@@ -35,6 +35,7 @@ import numpy as np
 from estimators.acquisition import (
     TurnChecker,
     coarse_gradients,
+    judge_flip,
     judge_turn,
     pose_hypotheses,
     roll_free_measurement,
@@ -637,7 +638,21 @@ class CornerEstimator:
         fit = choice.fit
         support = self.support.score(gradients, fit.X_CT)
         reason = self._validate(fit, int(keep.sum()), support)
-        roll_undecided = from_prior = False
+        roll_undecided = False
+        # The planar flip: decided by the residuals, or taken from the prior (a lock only if
+        # the prior's was decided: the Tracker knows), or undecided.
+        ambiguous = choice.decided_by == "lower_residual"
+        from_prior = choice.decided_by == "prior"
+        if not reason and not tracking:
+            # Few or faint features may favour the wrong flip even decisively: the whole
+            # model (the ring standing in front of the panel, the outline) judges it.
+            flip, flipped = judge_flip(
+                self.support, gradients, fit.X_CT, self.target, fit.covariance
+            )
+            if flip == "other" and retry:
+                return self._solve(image, gradients, flipped, tracking=False, retry=False)
+            if flip != "kept":
+                ambiguous = True
         if not reason:
             # The panel and a symmetric fastener layout look the same after a quarter turn;
             # the model's asymmetric parts (the thruster) decide, in tracking too, so that a
@@ -673,7 +688,7 @@ class CornerEstimator:
             fit.reduced_chi2,
             index[keep],
             uv[keep],
-            choice.ambiguous,
+            ambiguous,
             candidates,
             support,
             reason,

@@ -76,25 +76,50 @@ def _levels(values: np.ndarray, step: np.ndarray) -> tuple[float, float]:
     return (s22 * t1 - s12 * t2) / det, (s11 * t2 - s12 * t1) / det
 
 
-def _clipped_levels(
-    values: np.ndarray, step: np.ndarray, a: float, b: float, sigma: float
-) -> tuple[float, float]:
-    """Grey levels (a, b) of values ≈ a·step + b·(1 − step): linear least squares without
-    clipping, Newton steps on the clipped likelihood from (a, b) with it."""
-    if sigma <= 0:
-        return _levels(values, step)
-    for _ in range(8):
-        score, info = clipped_likelihood_terms(values, b + (a - b) * step, sigma)
-        ja, jb = step, 1.0 - step
-        H = np.array([[ja @ (info * ja), ja @ (info * jb)], [ja @ (info * jb), jb @ (info * jb)]])
+def _profile(d: np.ndarray, delta: np.ndarray, wall: np.ndarray, s: float):
+    """Basis (M,3) of a step edge at ``delta`` with a wall ``wall`` px wide showing outside it
+    (on the side the normals point away from): inside Φ((d − δ)/s), outside 1 − Φ((d − δ + w)/s)
+    and the wall between them; and their derivatives in δ (M,3). Levels · basis = intensity."""
+    z1 = (d - delta) / s
+    z2 = (d - delta + wall) / s
+    f1, f2 = ndtr(z1), ndtr(z2)
+    p1 = np.exp(-0.5 * z1 * z1) / (_SQRT_2PI * s)
+    p2 = np.exp(-0.5 * z2 * z2) / (_SQRT_2PI * s)
+    basis = np.column_stack([f1, 1.0 - f2, f2 - f1])
+    slopes = np.column_stack([-p1, p2, p1 - p2])
+    return basis, slopes
+
+
+def _profile_levels(
+    values: np.ndarray, basis: np.ndarray, levels: np.ndarray, sigma: float
+) -> np.ndarray:
+    """Grey levels (inside, outside, wall) of values ≈ basis · levels: linear least squares,
+    or scoring steps on the clipped likelihood from ``levels`` given the noise σ; the wall's
+    level is tied to the outside's by a weak prior (it decides only where no wall shows)."""
+    levels = np.array(levels, dtype=float)
+    tie = 1e-3 * len(values)
+    for _ in range(8 if sigma > 0 else 1):
+        if sigma > 0:
+            score, info = clipped_likelihood_terms(values, basis @ levels, sigma)
+            start = levels
+        else:
+            score, info, start = values, np.ones_like(values), np.zeros(3)
+        H = basis.T @ (info[:, None] * basis)
+        g = basis.T @ score
+        H[1, 1] += tie
+        H[2, 2] += tie
+        H[1, 2] -= tie
+        H[2, 1] -= tie
+        g[1] -= tie * (start[1] - start[2])
+        g[2] += tie * (start[1] - start[2])
         try:
-            da, db = np.linalg.solve(H, [ja @ score, jb @ score])
+            step = np.linalg.solve(H + 1e-12 * np.eye(3), g)
         except np.linalg.LinAlgError:
-            return math.nan, math.nan
-        a, b = a + float(da), b + float(db)
-        if abs(da) + abs(db) < 1e-4:
+            return np.full(3, np.nan)
+        levels = start + step
+        if np.sum(np.abs(levels - start)) < 1e-4 and sigma > 0:
             break
-    return a, b
+    return levels
 
 
 #: Strips per chunk when collecting a band's pixels: one bounding box per chunk, so that a
@@ -159,6 +184,7 @@ def fit_edge_points(
     search_px: float = 0.0,
     keep: Callable[[np.ndarray], np.ndarray] | None = None,
     noise_sigma: float = 0.0,
+    wall_px: np.ndarray | None = None,
 ) -> EdgePoints:
     """Fit one straight edge in strips.
 
@@ -204,48 +230,52 @@ def fit_edge_points(
     counts = np.bincount(strip, minlength=k)
 
     # 2. Per-strip offsets within ±max_shift of the common one, coarse to fine, with shared
-    # grey levels refreshed between scales (a Gauss–Newton step on the clipped model).
+    # grey levels refreshed between scales (a scoring step on the clipped likelihood).
     max_shift = max(1.0, half_width_px - 1.5)
     delta = np.full(k, delta0)
-    a, b = _clipped_levels(values, ndtr((d - delta0) / 1.2), a, b, noise_sigma)
-    if not math.isfinite(a):
+    wall = np.zeros(k) if wall_px is None else np.clip(np.nan_to_num(wall_px), 0.0, 3.0)
+    w = wall[strip]
+    walled = bool(np.any(wall >= 0.05))
+    levels = np.array([a, b, b])  # inside, outside, the wall's
+    levels = _profile_levels(values, _profile(d, delta[strip], w, 1.2)[0], levels, noise_sigma)
+    if not np.all(np.isfinite(levels)):
         return _no_points(k)
     for s, count in ((1.2, 2), (0.7, 2), (EDGE_WIDTH_PX, 3)):
         for _ in range(count):
-            z = (d - delta[strip]) / s
-            score, info = clipped_likelihood_terms(values, b + (a - b) * ndtr(z), noise_sigma)
-            J = -(a - b) * np.exp(-0.5 * z * z) / (_SQRT_2PI * s)  # ∂model/∂δ
+            basis, slopes = _profile(d, delta[strip], w, s)
+            score, info = clipped_likelihood_terms(values, basis @ levels, noise_sigma)
+            J = slopes @ levels  # ∂model/∂δ
             jj = np.bincount(strip, info * J * J, minlength=k)
             jr = np.bincount(strip, J * score, minlength=k)
             step = np.clip(jr / np.maximum(jj, 1e-12), -0.5, 0.5)
             delta = np.clip(delta + step, delta0 - max_shift, delta0 + max_shift)
-        a, b = _clipped_levels(values, ndtr((d - delta[strip]) / s), a, b, noise_sigma)
-        if not math.isfinite(a):
+        levels = _profile_levels(values, _profile(d, delta[strip], w, s)[0], levels, noise_sigma)
+        if not np.all(np.isfinite(levels)):
             return _no_points(k)
+    a, b = float(levels[0]), float(levels[1])
 
     # 3. Statistics at the solution.
-    s = EDGE_WIDTH_PX
-    z = (d - delta[strip]) / s
-    step_shape = ndtr(z)
-    r = values - b - (a - b) * step_shape
-    noise2 = float(r @ r / max(len(values) - k - 2, 1))
-    J = (a - b) * np.exp(-0.5 * z * z) / (_SQRT_2PI * s)
+    basis, slopes = _profile(d, delta[strip], w, EDGE_WIDTH_PX)
+    intensity = basis @ levels
+    r = values - intensity
+    free = 3 if walled else 2
+    noise2 = float(r @ r / max(len(values) - k - free, 1))
+    J = -(slopes @ levels)
     # Per-pixel information: from the residuals' own variance; with a clipping model, the
     # clipped likelihood's (a clipped pixel tells less than an unclipped one), on the scale of
     # the noise σ raised by how much the residuals exceed what clipped noise leaves (clipping
     # shrinks the residuals' own spread, which would make the points look too precise).
     weight = np.full(len(values), 1.0 / max(noise2, 1e-12))
     if noise_sigma > 0:
-        intensity = b + (a - b) * step_shape
         _, clipped_info = clipped_likelihood_terms(values, intensity, noise_sigma)
         mean, variance, _ = clipped_moments(intensity, noise_sigma)
         excess = float((values - mean) @ (values - mean)) / max(float(variance.sum()), 1e-12)
-        excess *= len(values) / max(len(values) - k - 2, 1)
+        excess *= len(values) / max(len(values) - k - free, 1)
         weight = clipped_info / max(excess, 1.0)
     info = np.bincount(strip, weight * J * J, minlength=k)
     sigma = 1.0 / np.sqrt(np.maximum(info, 1e-12))
     # Grey-level uncertainty from the linear part: Var(a − b) = σ²·[1 −1](AᵀA)⁻¹[1 −1]ᵀ
-    inside, other = step_shape, 1.0 - step_shape
+    inside, other = basis[:, 0], basis[:, 1] + basis[:, 2]
     AtA = np.array([[inside @ inside, inside @ other], [inside @ other, other @ other]])
     try:
         cov_ab = np.linalg.inv(AtA) * noise2

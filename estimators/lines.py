@@ -37,6 +37,7 @@ import numpy as np
 from estimators.acquisition import (
     TurnChecker,
     coarse_gradients,
+    judge_flip,
     judge_turn,
     pose_hypotheses,
     roll_free_measurement,
@@ -174,6 +175,25 @@ class _Joint:
         return self.outline.points >= _GOOD_OUTLINE_SHARE * self.outline.expected
 
 
+def _outline_turns(target: TargetModel, turns: tuple[Pose, ...]) -> list[int]:
+    """The panel's quarter turns under which the face's outline lands differently (only 0
+    for a square face centred on the panel's axis; 0 and 1 for a centred rectangle)."""
+    outline = target.outline_corners_T
+    if outline is None:
+        return [0]
+    distinct: list[int] = []
+    seen: list[np.ndarray] = []
+    for k, turn in enumerate(turns):
+        moved = turn.apply(outline)
+        if not any(
+            np.max(np.min(np.linalg.norm(moved[:, None] - other[None], axis=2), axis=1)) < 0.01
+            for other in seen
+        ):
+            distinct.append(k)
+            seen.append(moved)
+    return distinct
+
+
 def _polarity(target: TargetModel) -> float:
     corners = [f for f in target.point_features if f.kind == "corner"]
     return 1.0 if (not corners or corners[0].brighter) else -1.0
@@ -201,6 +221,7 @@ class LineEstimator:
         self.axis_circle = turn_axis_circle(target)
         warn_if_roll_ambiguous(SYSTEM, target, self.turns)
         self._outline_ends = outline_edge_ends(target) if options.use_outline else None
+        self._outline_turns = _outline_turns(target, self.turns.turns)
         self._panel_ends = panel_edge_ends(target)
         # Parts that may stand in front of the outline's edges (fasteners, circles and their
         # feet on the face): their images are masked out of the outline's edge fits.
@@ -444,7 +465,10 @@ class LineEstimator:
             choice, outline = panel, None
         fit = choice.fit
         support = self.support.score(gradients, fit.X_CT)
-        ambiguous = choice.ambiguous
+        # The planar flip: decided by the residuals, or taken from the prior (a lock only if
+        # the prior's was decided: the Tracker knows), or undecided.
+        ambiguous = choice.decided_by == "lower_residual"
+        from_prior = choice.decided_by == "prior"
         if not tracking and choice.ambiguous and choice.alternative is not None:
             # The residuals did not decide the planar flip: the ring, standing in front of the
             # panel, moves differently in the two poses — the whole model's support decides.
@@ -453,7 +477,16 @@ class LineEstimator:
                 fit, support = choice.alternative, other
         X = fit.X_CT
         reason = self._validate(fit.reduced_chi2, support)
-        roll_undecided = from_prior = False
+        roll_undecided = False
+        if not reason and not tracking:
+            # Without the outline the panel's edges alone may favour the wrong flip (a small
+            # or faint panel, an edge partly on clutter) even decisively: the whole model
+            # judges the pose against its flip.
+            flip, flipped = judge_flip(self.support, gradients, X, self.target, fit.covariance)
+            if flip == "other" and retry:
+                return self._solve(image, gradients, flipped, tracking=False, retry=False)
+            if flip != "kept":
+                ambiguous = True
         if not reason:
             # The square panel looks the same after a quarter turn: the model's asymmetric
             # parts (the thruster) decide — in tracking too, so that a wrong lock cannot last.
@@ -597,15 +630,30 @@ class LineEstimator:
         )
         prior = X0 if tracking else None
         predictions = [fit.X_CT] + ([X_tilt] if X_tilt is not None and not tracking else [])
-        for X_pred in predictions:
+        if not tracking:
+            # Which of the outline's edges is which depends on the panel's quarter turn, still
+            # undecided here when the face is not square: each distinct turn predicts it (with
+            # the panel's edges measured again under that turn's labels), and the one that
+            # explains more of the outline wins — a single edge fitted as the wrong one drags
+            # the tilt by degrees.
+            predictions = [(X, edges) for X in predictions]
+            for k in self._outline_turns[1:]:
+                turned = fit.X_CT @ self.turns.turns[k]
+                relabeled = self._panel_edges_at(image, turned)
+                if relabeled is not None:
+                    predictions.append((turned, relabeled))
+        else:
+            predictions = [(X, edges) for X in predictions]
+        for X_pred, panel_edges in predictions:
             corners = self._outline_image(X_pred)
             if any(np.max(np.abs(corners - c)) < 2.0 for c in tried):
                 continue
             tried.append(corners)
-            joint = self._joint_fit(image, edges, X_pred, fit.covariance, flip, prior)
+            starts = flip if panel_edges is edges else []
+            joint = self._joint_fit(image, panel_edges, X_pred, fit.covariance, starts, prior)
             if joint is not None and (best is None or joint.points > best.points):
                 best = joint
-            if best is not None and best.good:
+            if best is not None and best.good and len(self._outline_turns) == 1:
                 break
         return best
 

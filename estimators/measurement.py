@@ -304,11 +304,14 @@ class Tracker:
         return measurement
 
     def _honest(self, m: Measurement) -> Measurement:
-        """A measurement that took its undecided part from a prior that had not decided it."""
+        """A measurement that took its undecided part from a prior that had not decided it:
+        an undecided normal (a circle's mirror, a plate's planar flip) stays ambiguous; a roll
+        kept from a prior that had none is dropped (5-DOF) — or flagged when there is no
+        circle to keep."""
+        if not self.circle_decided:
+            return replace(m, ambiguous=True)
         if m.X_CT is not None and not self.roll_decided:
             if m.center_C is not None:
                 return without_roll(m)
-            return replace(m, ambiguous=True)
-        if m.X_CT is None and not self.circle_decided:
             return replace(m, ambiguous=True)
         return m

@@ -73,6 +73,8 @@ class TargetModel:
     ``thruster_exit`` and ``thruster_inner``. ``outline_corners_T`` (4,3), optional: the
     corners of the face the panel sits on (the mock-up's outline against the background), in
     the panel's corner order — a large, high-contrast rectangle that helps find the target.
+    ``panel_thickness`` (m): how far the panel's front stands proud of the face behind it (its
+    sides show beside its edges when seen from the side).
     """
 
     name: str
@@ -80,6 +82,7 @@ class TargetModel:
     point_features: tuple[PointFeature, ...]
     circles: tuple[Circle3D, ...]
     outline_corners_T: np.ndarray | None = None
+    panel_thickness: float = 0.0
 
     def __post_init__(self) -> None:
         corners = np.array(self.panel_corners_T, dtype=float)

@@ -183,9 +183,19 @@ def test_tracker_never_turns_a_roll_taken_from_an_undecided_prior_into_a_pose():
     # Acquired without its roll (5-DOF), then tracked with the roll "kept from the prior": the
     # prior's roll was a guess, so the answers stay 5-DOF — until a frame decides the roll.
     kept = dict(from_prior=True)
-    out = _run([dict(pose=False), kept, kept, dict(), kept, None, kept])
-    assert [m.X_CT is not None for m in out] == [False, False, False, True, True, False, False]
+    out = _run([dict(pose=False), kept, kept, dict(), kept, None, dict(pose=False), kept])
+    assert [m.X_CT is not None for m in out] == [
+        False,
+        False,
+        False,
+        True,
+        True,
+        False,
+        False,
+        False,
+    ]
     assert all(m.center_C is not None for m in out if m.valid)
+    assert not any(m.ambiguous for m in out)
     assert all(not m.from_prior for m in out[:3])  # what was kept is no longer claimed
     assert out[1].X_CT_hint is not None and out[5].status == "lost"
 
