@@ -324,7 +324,7 @@ def find_panel_quads(
     gradients: GradientImage,
     target: TargetModel,
     *,
-    levels: int = 9,
+    levels: int = 13,
     min_side_px: float = 10.0,
     min_support: float = 2.5,
     max_quads: int = 6,
@@ -340,7 +340,7 @@ def find_panel_quads(
     # around it at some level between its grey and its surroundings', wherever those lie — a
     # range taken from the brighter part of the image would miss a dark panel when the black
     # background fills most of the frame.
-    low, high = np.percentile(small[::2, ::2], [0.5, 99.5])
+    low, high = np.percentile(small, [0.1, 99.9])
     if polarity < 0:
         small, low, high = 1.0 - small, 1.0 - high, 1.0 - low
     min_area = (min_side_px / factor) ** 2
@@ -370,16 +370,17 @@ def find_panel_quads(
             if sides.min() < min_side_px or sides.max() > 4.0 * sides.min():
                 continue
             found.append(quad)
-    unique: list[np.ndarray] = []
-    for quad in found:
-        scale = np.linalg.norm(quad - quad.mean(axis=0), axis=1).mean()
-        if all(_quad_distance(quad, other) > 0.15 * scale for other in unique):
-            unique.append(quad)
-    quads = []
-    for quad in unique:
-        support = _side_support(gradients, quad, polarity)
-        if support >= min_support:
-            quads.append(Quad(quad, support))
+    # The same region cut at several levels gives near-copies of one quad: the best
+    # supported copy stands for them (the first level to cut it out may have cut it badly).
+    scored = [Quad(quad, _side_support(gradients, quad, polarity)) for quad in found]
+    scored.sort(key=lambda q: -q.support)
+    quads: list[Quad] = []
+    for quad in scored:
+        scale = np.linalg.norm(quad.corners_uv - quad.corners_uv.mean(axis=0), axis=1).mean()
+        if quad.support >= min_support and all(
+            _quad_distance(quad.corners_uv, other.corners_uv) > 0.15 * scale for other in quads
+        ):
+            quads.append(quad)
     quads.sort(key=lambda q: -q.support)
     return quads[:max_quads]
 
