@@ -312,6 +312,7 @@ class MockupConfig(Strict):
             point_features=tuple(points),
             circles=tuple(circles),
             panel_thickness=panel.thickness,
+            ring_brighter=gray(ring.color) > gray(self.bus_face.color),
         )
 
 

@@ -63,7 +63,7 @@ from estimators.conics import (
 from estimators.corners import FeatureLayout
 from estimators.edge_search import (
     GradientField,
-    estimate_noise_sigma,
+    shown_noise_sigma,
     smoothed_gradient,
     to_gray_float,
 )
@@ -78,6 +78,7 @@ from estimators.ellipse_detection import (
 from estimators.ellipse_extraction import ExtractedEllipse, ExtractorSettings, extract_ellipses
 from estimators.frame import CameraInfo, Frame, frame_problem
 from estimators.geometry import Pose, normal_angle, skew
+from estimators.imaging import estimate_noise_sigma
 from estimators.measurement import Measurement, circle_covariance_from_pose
 from estimators.model_view import head_extrusion, local_affine
 from estimators.planar_pose import PointObservations, ideal_pixels
@@ -100,6 +101,10 @@ class EllipseSettings:
 
     extractor: ExtractorSettings = field(default_factory=ExtractorSettings)
     coarse_sigma_px: float = 2.0
+    #: SNR an edge sample must reach (its gradient over the noise the pixels show).
+    min_edge_snr: float = 3.0
+    #: Smoothing scales tried in turn (every stage's σ times each) until the ring is found.
+    smoothing_scales: tuple[float, ...] = (1.0, 2.0)
     #: Smoothing of the final edge search: this at low noise, growing with the noise (σ_n × 5)
     #: up to ``fine_sigma_max_px`` so that edges stay well above the noise.
     fine_sigma_px: float = 1.0
@@ -144,6 +149,8 @@ class _Image:
     camera: CameraInfo
     fine_sigma: float
     fields: dict = field(default_factory=dict)
+    scale: float = 1.0  # smoothing of every stage, relative to the settings' (low contrast: > 1)
+    clip_sigma: float = 0.0  # the noise σ before clipping (``noise`` is what the pixels show)
 
     def field(self, sigma_px: float, roi=None) -> GradientField:
         """The smoothed gradient at ``sigma_px`` over ``roi`` (x0, y0, x1, y1) or the frame."""
@@ -172,6 +179,7 @@ class _Fit:
     sigma_px: float  # smoothing of the final edge search
     spacing_px: float  # spacing of the reference circle's edge samples
     holes: PointObservations | None = None  # ring holes in the fit, if any
+    sets: tuple[EdgeSet, ...] = ()  # the edge sets of the fit (``result`` is in their order)
 
     @property
     def polarities(self) -> dict[str, int]:
@@ -196,6 +204,14 @@ class EllipseEstimator:
         if self.inner is not None and not _coaxial(self.inner, self.outer):
             raise ValueError("target circle 'ring_inner' must be coaxial with 'ring_outer'")
         self.off_axis = tuple(c for c in target.circles if not _coaxial(c, self.outer))
+        self.foot = _ring_foot(target, self.outer, self.inner)
+        # The outer edge's polarity when the model knows which side is brighter (an edge
+        # search's polarity is −1 where the image darkens outward): a light that darkens or
+        # lights the ring's surroundings unevenly must not make the image choose it.
+        self._outer_polarity = (
+            None if target.ring_brighter is None else (-1 if target.ring_brighter else 1)
+        )
+        self._circles = {c.name: c for c in (*target.circles, self.foot) if c is not None}
         self.holes = ring_hole_layout(target, self.outer, self.inner)
         self._K_inv = np.linalg.inv(camera.K)
         self._field_radius = camera_field_radius(camera)  # a property of the camera
@@ -216,25 +232,39 @@ class EllipseEstimator:
                 started=started,
             )
         gray = to_gray_float(frame.image)
-        noise = estimate_noise_sigma(gray)
+        noise = shown_noise_sigma(gray)
         if _blank(gray, noise):
             return Measurement.lost(SYSTEM, frame, "blank image (no contrast)", started=started)
         noise = max(noise, 0.5 / 255.0)
+        clip_sigma = estimate_noise_sigma(gray)  # the noise before the sensor clipped it
         s = self.settings
         fine_sigma = float(np.clip(5.0 * noise, s.fine_sigma_px, s.fine_sigma_max_px))
-        image = _Image(gray, noise, self.camera, fine_sigma)
-        found = self._track(image, prior_X_CT) if prior_X_CT is not None else None
-        status = "tracking"
-        extracted: list[ExtractedEllipse] = []
-        if found is None:
-            status = "acquired"
-            extracted = extract_ellipses(
-                gray,
-                image.noise,
-                settings=self.settings.extractor,
-                field=image.field(image.fine_sigma),
+        # The smoothing suits a ring of the usual contrast (≈ 0.4 at this noise). A ring that
+        # shows far less — a low sun from the side leaves 0.15 — has its edges below the
+        # search's SNR sample by sample: every stage is tried again smoothed more (an edge's
+        # SNR grows with the smoothing).
+        for scale in s.smoothing_scales:
+            image = _Image(
+                gray, noise, self.camera, fine_sigma * scale, scale=scale, clip_sigma=clip_sigma
             )
-            found = self._acquire(image, extracted)
+            found = self._track(image, prior_X_CT) if prior_X_CT is not None else None
+            status = "tracking"
+            extracted: list[ExtractedEllipse] = []
+            if found is None:
+                status = "acquired"
+                extractor = s.extractor
+                if scale != 1.0:
+                    extractor = replace(
+                        extractor,
+                        sigma_px=extractor.sigma_px * scale,
+                        fine_sigma_px=extractor.fine_sigma_px * scale,
+                    )
+                extracted = extract_ellipses(
+                    gray, image.noise, settings=extractor, field=image.field(image.fine_sigma)
+                )
+                found = self._acquire(image, extracted)
+            if found is not None:
+                break
         if found is None:
             reason = (
                 f"no ring among {len(extracted)} extracted ellipses"
@@ -377,6 +407,8 @@ class EllipseEstimator:
             polarities = {}
             if hypothesis.outer is not None:
                 polarities[self.outer.name] = hypothesis.outer.polarity
+                if self._outer_polarity not in (None, hypothesis.outer.polarity):
+                    continue  # the ring the model describes is the other way round
             if hypothesis.inner is not None and self.inner is not None:
                 polarities[self.inner.name] = hypothesis.inner.polarity
             ring = None
@@ -491,7 +523,7 @@ class EllipseEstimator:
             stages = ((image.fine_sigma, s.fine_half_width_px + 1.0),)
         else:
             stages = (
-                (s.coarse_sigma_px, coarse_half_width),
+                (s.coarse_sigma_px * image.scale, coarse_half_width),
                 (image.fine_sigma, s.fine_half_width_px),
             )
         X_CT = pose_with_roll(ring, self.outer, 0.0)
@@ -521,7 +553,7 @@ class EllipseEstimator:
             stages = ((image.fine_sigma, s.fine_half_width_px + 2.0),)
         else:
             stages = (
-                (s.coarse_sigma_px, coarse_half_width),
+                (s.coarse_sigma_px * image.scale, coarse_half_width),
                 (image.fine_sigma, s.fine_half_width_px),
             )
         refined = self._refine(
@@ -542,9 +574,9 @@ class EllipseEstimator:
         ]
         if not supported:
             return None
-        free = [e.circle.name for e in self._edge_sets(refined.edges) if e.free_radius]
+        free = [e.circle.name for e in refined.sets if e.free_radius]
         for name, offset in zip(free, refined.result.radius_offsets, strict=True):
-            if abs(offset) > 0.3 * self.target.circle(name).radius:
+            if abs(offset) > 0.3 * self._circles[name].radius:
                 return None
         return refined
 
@@ -561,13 +593,19 @@ class EllipseEstimator:
     ) -> _Fit | None:
         """Search every circle's edges at each (σ, window) stage and refit the pose."""
         polarities = dict(polarities or {})
+        if self._outer_polarity is not None:
+            if polarities.get(self.outer.name, self._outer_polarity) != self._outer_polarity:
+                return None  # an edge of the other polarity is not the ring's outer edge
+            polarities[self.outer.name] = self._outer_polarity
         edges: dict[str, CircleEdges] = {}
         result = None
         ring = CirclePose(X_CT.apply(self.outer.center_T), X_CT.R @ self.outer.normal_T)
         for sigma, width in stages:
             edges = {}
-            if self.inner is not None and not polarities:
-                polarities.update(self._ring_polarities(image, X_CT, sigma, width))
+            if self.inner is not None and self.inner.name not in polarities:
+                ring_polarities = self._ring_polarities(image, X_CT, sigma, width)
+                for name, polarity in ring_polarities.items():
+                    polarities.setdefault(name, polarity)
             for circle in circles:
                 circle_width = width
                 if circle in self.off_axis:
@@ -586,7 +624,7 @@ class EllipseEstimator:
             edges = self._drop_blurred(edges, X_CT, sigma)
             if self.outer.name not in edges or edges[self.outer.name].hits.count < 12:
                 return None
-            sets = self._edge_sets(edges)
+            sets = self._edge_sets(edges, X_CT)
             try:
                 # The first stage only needs to land within the second's window.
                 iterations = 2 if (sigma, width) != stages[-1] else 5
@@ -617,6 +655,7 @@ class EllipseEstimator:
             self._cost(edges, X_CT),
             stages[-1][0],
             edges[self.outer.name].samples.spacing_px,
+            sets=tuple(sets),
         )
 
     def _ring_polarities(
@@ -625,8 +664,10 @@ class EllipseEstimator:
         """The ring's edge polarities when unknown: the two edges of an annulus have opposite
         ones, so both assignments are scored together (edge strength on a few samples of each
         edge) — a window wide enough to hold both edges cannot then take one for the other."""
-        strengths = {}
         assert self.inner is not None
+        if self._outer_polarity is not None:
+            return {self.outer.name: self._outer_polarity, self.inner.name: -self._outer_polarity}
+        strengths = {}
         for p in (1, -1):
             total = 0.0
             for circle, polarity in ((self.outer, p), (self.inner, -p)):
@@ -671,21 +712,51 @@ class EllipseEstimator:
                     drop.add(weaker)
         return {name: e for name, e in edges.items() if name not in drop}
 
-    def _edge_sets(self, edges: dict[str, CircleEdges]) -> list[EdgeSet]:
+    def _edge_sets(self, edges: dict[str, CircleEdges], X_CT: Pose | None) -> list[EdgeSet]:
         """Edge sets for the fit: the ring's outer edge fixes the scale; the others (inner
         edge, thruster) have free radii — their apparent size is biased by neighbours (the
         ring's inner wall, the nozzle's thin lip) while their position and shape are not. The
-        inner edge joins only when it is far enough inside the outer one (see the settings)."""
+        inner edge joins only when it is far enough inside the outer one (see the settings).
+
+        The bore's wall shows between the ring's inner rim and its foot on the face behind, and
+        the edge found there is whichever of the two stands out: the rim where the wall is dark,
+        the foot where a low sun lights the wall. With a pose (``X_CT``) each inner sample is
+        fitted to the nearer of the two circles (they lie at different depths: taken for one,
+        the other tilts the ring by degrees)."""
         use_inner = False
         if self.inner is not None and self.inner.name in edges:
             outer = edges[self.outer.name].samples
             inner = edges[self.inner.name].samples
             gap = 0.5 * (outer.perimeter_px - inner.perimeter_px) / np.pi
             use_inner = gap >= self.settings.inner_edge_min_gap_px
+        sets = []
+        for name, e in edges.items():
+            if len(e.uv_ideal) < 8:
+                continue
+            if self.inner is not None and name == self.inner.name:
+                if use_inner:
+                    sets += self._inner_sets(e.uv_ideal, X_CT)
+                continue
+            sets.append(
+                EdgeSet(self._circles[name], e.uv_ideal, free_radius=name != self.outer.name)
+            )
+        return sets
+
+    def _inner_sets(self, uv: np.ndarray, X_CT: Pose | None) -> list[EdgeSet]:
+        """The inner edge's samples as edge sets of the rim and of the foot (see
+        ``_edge_sets``)."""
+        assert self.inner is not None
+        if self.foot is None or X_CT is None:
+            return [EdgeSet(self.inner, uv, free_radius=True)]
+        distances = []
+        for circle in (self.inner, self.foot):
+            cone = circle_cone(X_CT.apply(circle.center_T), X_CT.R @ circle.normal_T, circle.radius)
+            distances.append(np.abs(sampson_distances(self._K_inv.T @ cone @ self._K_inv, uv)))
+        on_foot = distances[1] < distances[0]
         return [
-            EdgeSet(self.target.circle(name), e.uv_ideal, free_radius=name != self.outer.name)
-            for name, e in edges.items()
-            if len(e.uv_ideal) >= 8 and (self.inner is None or name != self.inner.name or use_inner)
+            EdgeSet(circle, uv[chosen], free_radius=True)
+            for circle, chosen in ((self.inner, ~on_foot), (self.foot, on_foot))
+            if chosen.sum() >= 8
         ]
 
     def _cost(self, edges: dict[str, CircleEdges], X_CT: Pose) -> float:
@@ -744,6 +815,7 @@ class EllipseEstimator:
             self.camera,
             polarity=polarity,
             half_width_px=half_width,
+            min_snr=self.settings.min_edge_snr,
             prior_sigma_px=max(half_width / 2.0, 1.5),
         )
 
@@ -802,7 +874,9 @@ class EllipseEstimator:
             # Smooth and search in proportion to the circle's image: a small one must not be
             # blurred away, a large one is displaced by the ring's tilt error times its lever.
             # (Two scales only, so the fields are shared with the other stages.)
-            sigma = self.settings.coarse_sigma_px * (1.0 if radius_px <= 20.0 else 2.0)
+            sigma = (
+                self.settings.coarse_sigma_px * (1.0 if radius_px <= 20.0 else 2.0) * image.scale
+            )
             width = float(max(2.5, 0.3 * radius_px))
             grad = image.field(sigma, None)
             # Near the prior's roll first (when there is one), else all the way round.
@@ -869,7 +943,7 @@ class EllipseEstimator:
         if mirror is not None:
             starts.append(pose_with_roll(mirror, self.outer, roll_of(fit.X_CT, mirror, self.outer)))
         edge_weight = 1.0 / _correlation_inflation(fit.sigma_px, fit.spacing_px)
-        sets = self._edge_sets(fit.edges)
+        sets = list(fit.sets)
         tried: list[tuple[float, _Fit]] = []
         for X_start in starts:
             try:
@@ -928,7 +1002,7 @@ class EllipseEstimator:
             extrusion_px=head_extrusion(
                 X_CT, holes.points_T[keep], holes.height_m[keep], self.camera
             ),
-            noise_sigma=image.noise,
+            noise_sigma=image.clip_sigma,
         )
         moved = np.linalg.norm(fits.uv - uv[keep], axis=1)
         sign = np.where(holes.brighter[keep], 1.0, -1.0)
@@ -955,7 +1029,7 @@ class EllipseEstimator:
         covariance when the tilt is clearly measured and moves to the head-on one when the
         estimate cannot be told from head-on (noise pushes such estimates away from it).
         """
-        sets = self._edge_sets(fit.edges)
+        sets = list(fit.sets)
         center = fit.ring.center_C
         head_on = -center / np.linalg.norm(center)
         tilt = normal_angle(fit.ring.normal_C, head_on)
@@ -1043,12 +1117,14 @@ class EllipseEstimator:
 
 def _blank(gray: np.ndarray, noise: float) -> bool:
     """True when the frame holds nothing but noise: 16×16 block means vary no more than the
-    noise averaged over a block would make them."""
+    noise averaged over a block would make them (σ/16; their spread is measured over a
+    thousand blocks, so 1.5× that is far out of reach of noise alone — a dark target under a
+    low sun, 0.15 on black, is not blank)."""
     h, w = gray.shape
     if h < 32 or w < 32:
         return True
     blocks = cv2.resize(gray, (w // 16, h // 16), interpolation=cv2.INTER_AREA)
-    return float(blocks.std()) < max(3.0 * noise / 16.0, 0.004)
+    return float(blocks.std()) < max(1.5 * noise / 16.0, 0.004)
 
 
 def _joint_cost(result: FitResult, edge_sigmas: tuple[float, ...]) -> float:
@@ -1075,6 +1151,19 @@ def ring_hole_layout(target: TargetModel, outer: Circle3D, inner: Circle3D | Non
         & (radial + layout.radius_m < outer.radius)
     )
     return layout.select(on_face)
+
+
+def _ring_foot(target: TargetModel, outer: Circle3D, inner: Circle3D | None) -> Circle3D | None:
+    """Where the bore's wall meets the face behind the ring: the inner circle moved back to
+    the face's plane (the outline's), or None when the model does not say where that is."""
+    if inner is None or target.outline_corners_T is None:
+        return None
+    depth = float((target.outline_corners_T.mean(axis=0) - inner.center_T) @ inner.normal_T)
+    if depth >= -1e-4:
+        return None
+    return Circle3D(
+        "ring_foot", inner.center_T + depth * inner.normal_T, inner.normal_T, inner.radius
+    )
 
 
 def _coaxial(circle: Circle3D, reference: Circle3D) -> bool:

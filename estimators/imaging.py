@@ -139,6 +139,8 @@ def estimate_noise_sigma(pixels: np.ndarray) -> float:
     those pixels' levels (``clipped_moments``), gives what was measured.
     """
     mask = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32)
+    if min(pixels.shape[:2]) < 6:
+        return 0.0
     # Every third pixel each way is plenty for a global statistic.
     response = np.abs(cv2.filter2D(pixels, cv2.CV_32F, mask))[1:-1:3, 1:-1:3]
     level = cv2.blur(pixels, (5, 5))[1:-1:3, 1:-1:3]

@@ -74,7 +74,8 @@ class TargetModel:
     corners of the face the panel sits on (the mock-up's outline against the background), in
     the panel's corner order — a large, high-contrast rectangle that helps find the target.
     ``panel_thickness`` (m): how far the panel's front stands proud of the face behind it (its
-    sides show beside its edges when seen from the side).
+    sides show beside its edges when seen from the side). ``ring_brighter``: whether the
+    ring's front is brighter than the face around it (from the colours; None: not known).
     """
 
     name: str
@@ -83,6 +84,7 @@ class TargetModel:
     circles: tuple[Circle3D, ...]
     outline_corners_T: np.ndarray | None = None
     panel_thickness: float = 0.0
+    ring_brighter: bool | None = None
 
     def __post_init__(self) -> None:
         corners = np.array(self.panel_corners_T, dtype=float)
