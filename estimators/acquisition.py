@@ -461,7 +461,7 @@ def refine_quad(
             half_width_px=band,
             search_px=search,
             polarity=polarity,
-            noise_sigma=image.noise_sigma,
+            noise_sigma=image.clip_sigma,
         )
         if not edges.all_found:
             return None

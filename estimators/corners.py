@@ -445,7 +445,7 @@ class CornerEstimator:
             extrusion_px=head_extrusion(
                 X_CT, layout.points_T[index], layout.height_m[index], self.camera
             ),
-            noise_sigma=image.noise_sigma,
+            noise_sigma=image.clip_sigma,
         )
         moved = np.linalg.norm(fits.uv - starts, axis=1)
         sign = np.where(self.layout.brighter[index], 1.0, -1.0)
@@ -501,7 +501,7 @@ class CornerEstimator:
             np.array(directions),
             np.array(windows),
             keep,
-            noise_sigma=image.noise_sigma,
+            noise_sigma=image.clip_sigma,
         )
         polarity = 1.0 if self.layout.brighter[index[0]] else -1.0
         moved = np.linalg.norm(fits.uv - pred[index], axis=1)

@@ -94,24 +94,24 @@ def _profile_levels(
     values: np.ndarray, basis: np.ndarray, levels: np.ndarray, sigma: float
 ) -> np.ndarray:
     """Grey levels (inside, outside, wall) of values ≈ basis · levels: linear least squares,
-    or scoring steps on the clipped likelihood from ``levels`` given the noise σ; the wall's
-    level is tied to the outside's by a weak prior (it decides only where no wall shows)."""
+    or scoring steps on the clipped likelihood from ``levels`` given the noise σ. The wall's
+    level: with σ, a prior N((inside + outside)/2, (|inside − outside|/2)²) — a wall narrower
+    than a pixel barely shows its own grey, and a free one would trade with the edge's place
+    at high noise; without σ, a weak tie to the outside's (it decides only where no wall
+    shows)."""
     levels = np.array(levels, dtype=float)
     tie = 1e-3 * len(values)
     for _ in range(8 if sigma > 0 else 1):
         if sigma > 0:
             score, info = clipped_likelihood_terms(values, basis @ levels, sigma)
             start = levels
+            spread = max(abs(start[0] - start[1]) / 2.0, 1e-3)
+            tie_vector = np.array([-0.5, -0.5, 1.0]) / spread
         else:
             score, info, start = values, np.ones_like(values), np.zeros(3)
-        H = basis.T @ (info[:, None] * basis)
-        g = basis.T @ score
-        H[1, 1] += tie
-        H[2, 2] += tie
-        H[1, 2] -= tie
-        H[2, 1] -= tie
-        g[1] -= tie * (start[1] - start[2])
-        g[2] += tie * (start[1] - start[2])
+            tie_vector = np.array([0.0, -1.0, 1.0]) * np.sqrt(tie)
+        H = basis.T @ (info[:, None] * basis) + np.outer(tie_vector, tie_vector)
+        g = basis.T @ score - tie_vector * float(tie_vector @ start)
         try:
             step = np.linalg.solve(H + 1e-12 * np.eye(3), g)
         except np.linalg.LinAlgError:

@@ -26,12 +26,15 @@ MIN_INTENSITY_SPREAD = 0.03
 class GrayImage:
     """A frame as float32 intensities on [0, 1] (HxW) with its estimated noise level.
 
-    ``noise_sigma`` is the standard deviation of the pixel noise (same units), from
-    ``estimate_noise_sigma``.
+    ``noise_sigma`` is the standard deviation of the pixel noise as the pixels show it (same
+    units; what edge strengths and smoothing are judged against), ``clip_sigma`` that of the
+    noise before the sensor clipped it (for likelihoods of clipped pixels); both from
+    ``noise_levels``.
     """
 
     pixels: np.ndarray
     noise_sigma: float
+    clip_sigma: float = 0.0
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -62,7 +65,8 @@ def gray_image(frame: Frame) -> GrayImage | str:
     if high - low < MIN_INTENSITY_SPREAD:
         level = "black" if high < 0.1 else "saturated" if low > 0.9 else "uniform"
         return f"image has no contrast ({level}: 1–99 % intensities {low:.2f}–{high:.2f})"
-    return GrayImage(pixels, estimate_noise_sigma(pixels))
+    shown, sigma = noise_levels(pixels)
+    return GrayImage(pixels, shown, sigma)
 
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
@@ -127,7 +131,14 @@ def clipped_likelihood_terms(
 
 
 def estimate_noise_sigma(pixels: np.ndarray) -> float:
-    """Standard deviation of additive white noise in an image, from its Laplacian.
+    """Standard deviation of the additive white noise of an image before the sensor clipped
+    it (``noise_levels``)."""
+    return noise_levels(pixels)[1]
+
+
+def noise_levels(pixels: np.ndarray) -> tuple[float, float]:
+    """Standard deviation of the additive white noise of an image as its pixels show it, and
+    before the sensor clipped it, from its Laplacian.
 
     J. Immerkær, "Fast noise variance estimation", Computer Vision and Image Understanding
     64(2), 1996: the mask [[1,-2,1],[-2,4,-2],[1,-2,1]] cancels smooth image structure and
@@ -140,7 +151,7 @@ def estimate_noise_sigma(pixels: np.ndarray) -> float:
     """
     mask = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32)
     if min(pixels.shape[:2]) < 6:
-        return 0.0
+        return 0.0, 0.0
     # Every third pixel each way is plenty for a global statistic.
     response = np.abs(cv2.filter2D(pixels, cv2.CV_32F, mask))[1:-1:3, 1:-1:3]
     level = cv2.blur(pixels, (5, 5))[1:-1:3, 1:-1:3]
@@ -160,7 +171,7 @@ def estimate_noise_sigma(pixels: np.ndarray) -> float:
         _, variance, _ = clipped_moments(levels, sigma)
         shown = math.sqrt(float(variance.mean())) / sigma
         sigma = measured / max(shown, 0.5)
-    return float(sigma)
+    return float(measured), float(sigma)
 
 
 def smoothing_sigma_px(noise_sigma: float, *, contrast: float = 0.3, base_px: float = 0.8) -> float:

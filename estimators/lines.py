@@ -450,7 +450,7 @@ class LineEstimator:
             keep=self._keep_mask(X0),
             fallback=strips,  # a wrong segment must not hide an edge the prior predicts
             fallback_search_px=min(gate_px, 2.0 * options.band_px),
-            noise_sigma=image.noise_sigma,
+            noise_sigma=image.clip_sigma,
         )
         if not edges.all_found:
             missing = [i for i, e in enumerate(edges.edges) if not e.found]
@@ -720,7 +720,7 @@ class LineEstimator:
                 max_search_px=options.max_outline_search_px,
                 max_strips=options.outline_strips,
                 keep=self._outline_keep(X_pred),
-                noise_sigma=image.noise_sigma,
+                noise_sigma=image.clip_sigma,
             )
             joint = None
             while outline.found:
@@ -771,7 +771,7 @@ class LineEstimator:
             min_contrast_snr=self.options.min_contrast_snr,
             polarity=self.polarity,
             keep=self._keep_mask(X_CT),
-            noise_sigma=image.noise_sigma,
+            noise_sigma=image.clip_sigma,
         )
         return edges if edges.all_found else None
 

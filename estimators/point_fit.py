@@ -144,8 +144,10 @@ def fit_discs(
 
     def levels(top, stadium, mask, current=None):
         """Grey levels (top a, surroundings b, wall c) by linear least squares — or, from
-        ``current`` with a noise σ, a scoring step on the clipped likelihood — the wall's tied
-        to the top's by a weak prior (decisive only where the wall does not show)."""
+        ``current`` with a noise σ, a scoring step on the clipped likelihood. The wall's level
+        is tied to the top's (the same material): weakly without σ (decisive only where the
+        wall does not show); with σ by a prior of sd |a − b|/2 — a wall a fraction of a pixel
+        wide barely shows its own grey, and a free one trades with the centre at high noise."""
         basis = (top, 1.0 - stadium, stadium - top)
         if current is None or noise_sigma <= 0:
             score, info = values, np.ones_like(values)
@@ -161,6 +163,8 @@ def fit_discs(
             for j in range(i, 3):
                 G[:, i, j] = G[:, j, i] = sums(info * basis[i] * basis[j], mask)
         tie = 1e-3 * np.maximum(sums(info, mask), 1e-9)
+        if current is not None and noise_sigma > 0:
+            tie = 1.0 / np.maximum((start[:, 0] - start[:, 1]) / 2.0, 1e-3) ** 2
         t[:, 0] -= tie * (start[:, 0] - start[:, 2])
         t[:, 2] += tie * (start[:, 0] - start[:, 2])
         G[:, 0, 0] += tie
