@@ -263,7 +263,7 @@ def fit_edge_points(
     J = -(slopes @ levels)
     # Per-pixel information: from the residuals' own variance; with a clipping model, the
     # clipped likelihood's (a clipped pixel tells less than an unclipped one), on the scale of
-    # the noise σ raised by how much the residuals exceed what clipped noise leaves (clipping
+    # the noise σ scaled by how the residuals compare with what clipped noise leaves (clipping
     # shrinks the residuals' own spread, which would make the points look too precise).
     weight = np.full(len(values), 1.0 / max(noise2, 1e-12))
     if noise_sigma > 0:
@@ -271,7 +271,7 @@ def fit_edge_points(
         mean, variance, _ = clipped_moments(intensity, noise_sigma)
         excess = float((values - mean) @ (values - mean)) / max(float(variance.sum()), 1e-12)
         excess *= len(values) / max(len(values) - k - free, 1)
-        weight = clipped_info / max(excess, 1.0)
+        weight = clipped_info / max(excess, 0.5)
     info = np.bincount(strip, weight * J * J, minlength=k)
     sigma = 1.0 / np.sqrt(np.maximum(info, 1e-12))
     # Grey-level uncertainty from the linear part: Var(a − b) = σ²·[1 −1](AᵀA)⁻¹[1 −1]ᵀ
