@@ -180,6 +180,9 @@ class _Fit:
     spacing_px: float  # spacing of the reference circle's edge samples
     holes: PointObservations | None = None  # ring holes in the fit, if any
     sets: tuple[EdgeSet, ...] = ()  # the edge sets of the fit (``result`` is in their order)
+    roll_known: bool = (
+        True  # X_CT's roll is measured (False: the holes' pattern's, up to its symmetry)
+    )
 
     @property
     def polarities(self) -> dict[str, int]:
@@ -213,6 +216,7 @@ class EllipseEstimator:
         )
         self._circles = {c.name: c for c in (*target.circles, self.foot) if c is not None}
         self.holes = ring_hole_layout(target, self.outer, self.inner)
+        self._holes_symmetric = _rotationally_symmetric(self.holes, self.outer)
         self._K_inv = np.linalg.inv(camera.K)
         self._field_radius = camera_field_radius(camera)  # a property of the camera
 
@@ -274,6 +278,16 @@ class EllipseEstimator:
             return Measurement.lost(SYSTEM, frame, reason, started=started)
         fit, ambiguous, from_prior = found
         fit, decided = self._with_holes(image, fit)
+        if fit.X_CT is None and self.inner is not None:
+            # The ring alone — no thruster, no holes to label: near head-on its outer edge holds
+            # its tilt only to second order, and the one first-order measure left is the
+            # perspective offset between its two concentric edges (issue 13, point 6). At long
+            # range the inner edge is otherwise left out (the bore's wall, unresolved, may bias
+            # it), but without it the normal is several times worse (random mock-ups at 3 m:
+            # median 4° → 1.4°).
+            with_inner = self._refine_ring(image, fit.ring, fit.polarities, inner_always=True)
+            if with_inner is not None:
+                fit = with_inner
         ambiguous = ambiguous and not decided
         from_prior = from_prior and not decided
         alternative = self._mirror_pose(fit) if ambiguous or from_prior else None
@@ -515,9 +529,11 @@ class EllipseEstimator:
         polarities: dict[str, int] | None,
         *,
         coarse_half_width: float | None = None,
+        inner_always: bool = False,
     ) -> _Fit | None:
         """5-DOF: edge search around the projected ring edges and fit, coarse-to-fine when the
-        start may be several pixels off; None unless both edges are supported."""
+        start may be several pixels off; None unless both edges are supported. ``inner_always``
+        fits the inner edge whatever its distance from the outer one."""
         s = self.settings
         if coarse_half_width is None:  # a start from a fitted ellipse: within a pixel or two
             stages = ((image.fine_sigma, s.fine_half_width_px + 1.0),)
@@ -527,7 +543,15 @@ class EllipseEstimator:
                 (image.fine_sigma, s.fine_half_width_px),
             )
         X_CT = pose_with_roll(ring, self.outer, 0.0)
-        refined = self._refine(image, X_CT, self._ring_circles(), stages, polarities, full=False)
+        refined = self._refine(
+            image,
+            X_CT,
+            self._ring_circles(),
+            stages,
+            polarities,
+            full=False,
+            inner_always=inner_always,
+        )
         if refined is None or not self._ring_supported(refined.edges):
             return None
         return refined
@@ -590,6 +614,7 @@ class EllipseEstimator:
         *,
         full: bool,
         off_axis_width: float | None = None,
+        inner_always: bool = False,
     ) -> _Fit | None:
         """Search every circle's edges at each (σ, window) stage and refit the pose."""
         polarities = dict(polarities or {})
@@ -624,7 +649,7 @@ class EllipseEstimator:
             edges = self._drop_blurred(edges, X_CT, sigma)
             if self.outer.name not in edges or edges[self.outer.name].hits.count < 12:
                 return None
-            sets = self._edge_sets(edges, X_CT)
+            sets = self._edge_sets(edges, X_CT, inner_always=inner_always)
             try:
                 # The first stage only needs to land within the second's window.
                 iterations = 2 if (sigma, width) != stages[-1] else 5
@@ -712,7 +737,9 @@ class EllipseEstimator:
                     drop.add(weaker)
         return {name: e for name, e in edges.items() if name not in drop}
 
-    def _edge_sets(self, edges: dict[str, CircleEdges], X_CT: Pose | None) -> list[EdgeSet]:
+    def _edge_sets(
+        self, edges: dict[str, CircleEdges], X_CT: Pose | None, *, inner_always: bool = False
+    ) -> list[EdgeSet]:
         """Edge sets for the fit: the ring's outer edge fixes the scale; the others (inner
         edge, thruster) have free radii — their apparent size is biased by neighbours (the
         ring's inner wall, the nozzle's thin lip) while their position and shape are not. The
@@ -728,7 +755,7 @@ class EllipseEstimator:
             outer = edges[self.outer.name].samples
             inner = edges[self.inner.name].samples
             gap = 0.5 * (outer.perimeter_px - inner.perimeter_px) / np.pi
-            use_inner = gap >= self.settings.inner_edge_min_gap_px
+            use_inner = inner_always or gap >= self.settings.inner_edge_min_gap_px
         sets = []
         for name, e in edges.items():
             if len(e.uv_ideal) < 8:
@@ -933,15 +960,18 @@ class EllipseEstimator:
         the joint fit starts from both and keeps the one that explains edges and holes better;
         the holes decide when the other's truncated χ² is higher by ``_HOLES_DECIDE_CHI2``.
         """
-        if fit.X_CT is None:
+        roll_known = fit.X_CT is not None
+        X_holes = fit.X_CT if roll_known else self._roll_of_holes(image, fit)
+        if X_holes is None:
             return fit, False
-        observed = self._find_holes(image, fit.X_CT)
+        observed = self._find_holes(image, X_holes)
         if observed is None:
             return fit, False
-        starts = [fit.X_CT]
+        starts = [X_holes]
         mirror = self._mirror_pose(fit)
         if mirror is not None:
-            starts.append(pose_with_roll(mirror, self.outer, roll_of(fit.X_CT, mirror, self.outer)))
+            starts.append(pose_with_roll(mirror, self.outer, roll_of(X_holes, mirror, self.outer)))
+        roll_known = roll_known or not self._holes_symmetric
         edge_weight = 1.0 / _correlation_inflation(fit.sigma_px, fit.spacing_px)
         sets = list(fit.sets)
         tried: list[tuple[float, _Fit]] = []
@@ -961,7 +991,9 @@ class EllipseEstimator:
             if not np.all(np.isfinite(X_CT.p)) or not np.all(np.isfinite(result.covariance)):
                 continue
             ring = CirclePose(X_CT.apply(self.outer.center_T), X_CT.R @ self.outer.normal_T)
-            refit = replace(fit, ring=ring, X_CT=X_CT, result=result, holes=observed)
+            refit = replace(
+                fit, ring=ring, X_CT=X_CT, result=result, holes=observed, roll_known=roll_known
+            )
             tried.append((_joint_cost(result, fit.result.sigma_px), refit))
         if not tried:
             return fit, False
@@ -973,6 +1005,62 @@ class EllipseEstimator:
         # leave no second minimum).
         decided = other_cost - cost > _HOLES_DECIDE_CHI2 or self._same_normal(best, other)
         return best, decided
+
+    def _roll_of_holes(self, image: _Image, fit: _Fit) -> Pose | None:
+        """The ring alone (no thruster: roll unknown): the roll about its axis at which the
+        ring's holes stand where the image shows discs of their polarity — a 1-D search (1°,
+        then 0.1° about the best) of their summed matched-filter response, as the thruster's
+        roll is searched. Once labeled, the holes measure the ring's tilt to first order, which
+        its edges alone barely do near head-on (issue 13: faint or not, holes on a ring without
+        a thruster went unused). The roll found is the pattern's, up to its symmetry. None when
+        no roll's summed response reaches z 5 (each hole's disc fit is then tested too)."""
+        s = self.settings
+        holes = self.holes
+        if not s.ring_holes or len(holes.names) < s.min_holes:
+            return None
+        zero = pose_with_roll(fit.ring, self.outer, 0.0)
+        radius_px = float(np.median(holes.radius_m) * self.camera.K[0, 0] / max(zero.p[2], 1e-3))
+        if radius_px < s.min_hole_radius_px:
+            return None
+        sigma = max(1.0, 0.6 * radius_px)
+        smoothed = cv2.GaussianBlur(image.gray, (0, 0), sigma)
+        noise = image.noise / (2.0 * np.sqrt(np.pi) * sigma) * np.sqrt(1.125) + 1e-4
+        ring_r = 2.2 * radius_px + 1.0
+        angles = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
+        around = ring_r * np.column_stack([np.cos(angles), np.sin(angles)])
+        signs = np.where(holes.brighter, 1.0, -1.0)
+        h, w = image.gray.shape
+
+        def scores(rolls: np.ndarray) -> np.ndarray:
+            out = np.zeros(len(rolls))
+            for k, roll in enumerate(rolls):
+                P = pose_with_roll(fit.ring, self.outer, float(roll)).apply(holes.points_T)
+                if np.any(P[:, 2] <= 1e-3):
+                    continue
+                uv = self.camera.project(P)
+                inside = np.all((uv > ring_r + 1) & (uv < [w - ring_r - 2, h - ring_r - 2]), 1)
+                if inside.sum() < s.min_holes:
+                    continue
+                points = np.concatenate([uv[inside], (uv[inside, None, :] + around).reshape(-1, 2)])
+                values = cv2.remap(
+                    smoothed, points.astype(np.float32)[None], None, cv2.INTER_LINEAR
+                )[0]
+                centre = values[: inside.sum()]
+                ring = values[inside.sum() :].reshape(-1, 8).mean(axis=1)
+                out[k] = float(np.sum(signs[inside] * (centre - ring))) / (
+                    noise * np.sqrt(inside.sum())
+                )
+            return out
+
+        coarse = np.radians(np.arange(0.0, 360.0, 1.0))
+        coarse_scores = scores(coarse)
+        best = int(np.argmax(coarse_scores))
+        z = coarse_scores[best]
+        if z < 5.0:  # (a pattern of many holes has as many peaks: no "distinct" test)
+            return None
+        fine = coarse[best] + np.radians(np.arange(-1.0, 1.01, 0.1))
+        roll = float(fine[int(np.argmax(scores(fine)))])
+        return pose_with_roll(fit.ring, self.outer, roll)
 
     def _find_holes(self, image: _Image, X_CT: Pose) -> PointObservations | None:
         """The ring's holes fitted as discs around their projections under ``X_CT``, in ideal
@@ -1075,10 +1163,18 @@ class EllipseEstimator:
         if fit.holes is None:  # (a fit with holes weighed its edge samples' correlation already)
             inflation *= _correlation_inflation(fit.sigma_px, fit.spacing_px)
         X_CT = covariance = hint = None
-        if fit.X_CT is not None:
+        if fit.X_CT is not None and fit.roll_known:
             X_CT = fit.X_CT
             covariance = self._honest_covariance(fit, inflation)
             cov5 = circle_covariance_from_pose(covariance, X_CT, self.outer)
+        elif fit.X_CT is not None:
+            # Tilt from the holes, roll only up to their pattern's symmetry: the circle is the
+            # measurement, the pose a hint (with the prior's roll among the pattern's turns).
+            cov5 = circle_covariance_from_pose(
+                self._honest_covariance(fit, inflation), fit.X_CT, self.outer
+            )
+            roll = roll_of(prior, fit.ring, self.outer) if prior is not None else 0.0
+            hint = pose_with_roll(fit.ring, self.outer, roll)
         else:
             cov5 = self._honest_covariance(fit, inflation)
             roll = roll_of(prior, fit.ring, self.outer) if prior is not None else 0.0
@@ -1151,6 +1247,24 @@ def ring_hole_layout(target: TargetModel, outer: Circle3D, inner: Circle3D | Non
         & (radial + layout.radius_m < outer.radius)
     )
     return layout.select(on_face)
+
+
+def _rotationally_symmetric(holes: FeatureLayout, outer: Circle3D) -> bool:
+    """Whether a turn about the ring's axis (other than a full one) maps the holes onto
+    holes like them: their roll is then known only up to it."""
+    if len(holes.names) < 2:
+        return len(holes.names) == 1 and False
+    centre = outer.center_T
+    for k in range(2, len(holes.names) + 1):
+        turn = Pose.from_rotvec(outer.normal_T * 2 * np.pi / k, np.zeros(3))
+        moved = (holes.points_T - centre) @ turn.R.T + centre
+        match = np.linalg.norm(moved[:, None] - holes.points_T[None], axis=2) < 1e-3
+        same = (holes.brighter[:, None] == holes.brighter[None]) & (
+            np.abs(holes.radius_m[:, None] - holes.radius_m[None]) < 1e-4
+        )
+        if np.all(np.any(match & same, axis=1)):
+            return True
+    return False
 
 
 def _ring_foot(target: TargetModel, outer: Circle3D, inner: Circle3D | None) -> Circle3D | None:
