@@ -1031,26 +1031,29 @@ class EllipseEstimator:
         signs = np.where(holes.brighter, 1.0, -1.0)
         h, w = image.gray.shape
 
+        # The holes turned about the ring's axis n through its centre: R_n(θ)·v = v cos θ +
+        # (n × v) sin θ + n (n·v)(1 − cos θ), for every roll at once.
+        n = fit.ring.normal_C
+        v = (holes.points_T - self.outer.center_T) @ zero.R.T
+        n_cross_v = np.cross(n, v)
+        n_dot_v = v @ n
+
         def scores(rolls: np.ndarray) -> np.ndarray:
-            out = np.zeros(len(rolls))
-            for k, roll in enumerate(rolls):
-                P = pose_with_roll(fit.ring, self.outer, float(roll)).apply(holes.points_T)
-                if np.any(P[:, 2] <= 1e-3):
-                    continue
-                uv = self.camera.project(P)
-                inside = np.all((uv > ring_r + 1) & (uv < [w - ring_r - 2, h - ring_r - 2]), 1)
-                if inside.sum() < s.min_holes:
-                    continue
-                points = np.concatenate([uv[inside], (uv[inside, None, :] + around).reshape(-1, 2)])
-                values = cv2.remap(
-                    smoothed, points.astype(np.float32)[None], None, cv2.INTER_LINEAR
-                )[0]
-                centre = values[: inside.sum()]
-                ring = values[inside.sum() :].reshape(-1, 8).mean(axis=1)
-                out[k] = float(np.sum(signs[inside] * (centre - ring))) / (
-                    noise * np.sqrt(inside.sum())
-                )
-            return out
+            c, si = np.cos(rolls)[:, None, None], np.sin(rolls)[:, None, None]
+            P = fit.ring.center_C + v * c + n_cross_v * si + (n_dot_v[:, None] * n) * (1 - c)
+            front = np.all(P[..., 2] > 1e-3, axis=1)
+            uv = np.full(P.shape[:2] + (2,), -1e6)
+            uv[front] = self.camera.project(P[front].reshape(-1, 3)).reshape(-1, len(v), 2)
+            inside = np.all((uv > ring_r + 1) & (uv < [w - ring_r - 2, h - ring_r - 2]), axis=2)
+            points = np.concatenate([uv[..., None, :], uv[..., None, :] + around], axis=2)
+            safe = np.where(inside[..., None, None], points, 0.0).astype(np.float32)
+            # (rows of nine samples: a remap map must stay under 32767 wide)
+            values = cv2.remap(smoothed, safe.reshape(-1, 9, 2), None, cv2.INTER_LINEAR)
+            values = values.reshape(len(rolls), len(v), 9)
+            response = signs * (values[..., 0] - values[..., 1:].mean(axis=2)) * inside
+            count = inside.sum(axis=1)
+            out = response.sum(axis=1) / (noise * np.sqrt(np.maximum(count, 1)))
+            return np.where(count >= s.min_holes, out, 0.0)
 
         coarse = np.radians(np.arange(0.0, 360.0, 1.0))
         coarse_scores = scores(coarse)
