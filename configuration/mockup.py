@@ -2,8 +2,11 @@
 
 Mock-up geometry, in the target frame T (DESIGN.md): origin at the centre of the marman ring's
 front (interface) face, z out of the face. The bus face lies at z = −ring.protrusion; the centre
-panel sits on it inside the ring; the thruster stands on it outside the ring. Sizes are metres,
-colours linear RGB reflectances in [0, 1].
+panel sits on it inside the ring (centred on the ring's axis, or off it); the thruster stands on
+it outside the ring; fasteners and markers (small discs) sit on the ring, the panel or anywhere
+on the bus face — inside the ring too — where nothing else stands. Sizes are metres, colours
+linear RGB reflectances in [0, 1]; what the estimators expect to see (which part is brighter
+than which) is derived from the colours, never assumed.
 
 Every model is frozen and rejects unknown keys.
 """
@@ -65,11 +68,19 @@ class MarmanRing(Strict):
 
 
 class CentrePanel(Strict):
-    """A square plate on the bus face, centred on the ring axis, edges along T's x and y."""
+    """A square plate on the bus face inside the ring, edges along T's x and y, its centre at
+    ``center`` (x, y) — on the ring's axis by default; off it, it breaks the mock-up's
+    four-fold symmetry."""
 
     side: PositiveM = 0.30
     thickness: PositiveM = 0.008
     color: RGB = (0.66, 0.66, 0.66)
+    center: XY = (0.0, 0.0)
+
+    def contains(self, x: float, y: float, margin: float = 0.0) -> bool:
+        """Whether (x, y) lies on the panel at least ``margin`` inside its edges."""
+        cx, cy = self.center
+        return max(abs(x - cx), abs(y - cy)) + margin < self.side / 2
 
 
 class CirclePattern(Strict):
@@ -79,7 +90,11 @@ class CirclePattern(Strict):
 
 
 class FastenerGroup(Strict):
-    """Bolt heads or holes: small discs on a surface — point features for the corner system."""
+    """Bolt heads, holes or painted markers: small discs on a surface — point features for the
+    corner system (and, on the ring's face, for the ellipse system). On ``bus`` they may stand
+    anywhere on the face that the ring, the panel and the thruster leave free, inside the ring
+    included. ``height``: how far the disc stands proud of its surface (a marker: a fraction of
+    a millimetre)."""
 
     name: str
     surface: Literal["ring", "panel", "bus"]
@@ -152,10 +167,14 @@ class MockupConfig(Strict):
     @model_validator(mode="after")
     def _geometry_consistent(self) -> MockupConfig:
         ring, panel, face = self.marman_ring, self.centre_panel, self.bus_face
-        if panel.side / math.sqrt(2) >= ring.inner_radius:
+        h = panel.side / 2
+        cx, cy = panel.center
+        if max(math.hypot(cx + sx * h, cy + sy * h) for sx in (-1, 1) for sy in (-1, 1)) >= (
+            ring.inner_radius
+        ):
             raise ValueError(
-                f"centre_panel.side {panel.side} m: the panel's corners must lie inside the "
-                f"ring's inner radius {ring.inner_radius:.3f} m"
+                f"centre_panel.side {panel.side} m at {panel.center}: the panel's corners must "
+                f"lie inside the ring's inner radius {ring.inner_radius:.3f} m"
             )
         if panel.thickness >= ring.protrusion:
             raise ValueError("centre_panel.thickness must be less than marman_ring.protrusion")
@@ -171,6 +190,7 @@ class MockupConfig(Strict):
                 raise ValueError("thruster.center: the nozzle overlaps the marman ring")
         for i, group in enumerate(self.fasteners):
             self._check_fastener_group(i, group)
+        self._check_fasteners_apart()
         if sum(len(g.centers_xy()) for g in self.fasteners) < 8:
             raise ValueError("fasteners: at least 8 point features are needed")
         return self
@@ -178,21 +198,47 @@ class MockupConfig(Strict):
     def _check_fastener_group(self, index: int, group: FastenerGroup) -> None:
         r = group.diameter / 2
         where = f"fasteners.{index} ({group.name})"
+        ring, panel = self.marman_ring, self.centre_panel
         for x, y in group.centers_xy():
             rho = math.hypot(x, y)
             if group.surface == "ring":
-                ring = self.marman_ring
                 ok = ring.inner_radius + r < rho < ring.outer_radius - r
+                problem = "off its ring"
             elif group.surface == "panel":
-                ok = max(abs(x), abs(y)) + r < self.centre_panel.side / 2
+                ok = panel.contains(x, y, r)
+                problem = "off its panel"
             else:
                 face = self.bus_face
                 on_face = abs(x) + r < face.width / 2 and abs(y) + r < face.height / 2
-                ok = on_face and rho - r > self.marman_ring.outer_radius
-            if not ok:
-                raise ValueError(
-                    f"{where}: a fastener at ({x:.3f}, {y:.3f}) is off its {group.surface}"
+                # Free face: inside the ring's bore or outside it, never under the panel or
+                # the thruster.
+                free = rho + r < ring.inner_radius or rho - r > ring.outer_radius
+                free &= not panel.contains(x, y, -r)
+                if self.thruster is not None:
+                    t = self.thruster
+                    reach = max(t.exit_diameter, t.base_diameter) / 2 + r
+                    free &= math.hypot(x - t.center[0], y - t.center[1]) > reach
+                ok = on_face and free
+                problem = (
+                    "off its bus" if not on_face else "on the bus under the ring, panel or thruster"
                 )
+            if not ok:
+                raise ValueError(f"{where}: a fastener at ({x:.3f}, {y:.3f}) is {problem}")
+
+    def _check_fasteners_apart(self) -> None:
+        """Two fasteners on one surface must not overlap (they would image as one blob)."""
+        placed: list[tuple[str, float, float, float, str]] = []
+        for i, group in enumerate(self.fasteners):
+            for x, y in group.centers_xy():
+                for other, ox, oy, o_r, surface in placed:
+                    if surface == group.surface and math.hypot(x - ox, y - oy) < (
+                        group.diameter / 2 + o_r
+                    ):
+                        raise ValueError(
+                            f"fasteners.{i} ({group.name}): a fastener at ({x:.3f}, {y:.3f}) "
+                            f"overlaps one of {other}"
+                        )
+                placed.append((group.name, x, y, group.diameter / 2, group.surface))
 
     # --- derived geometry in T ----------------------------------------------------------
     @property
@@ -212,7 +258,15 @@ class MockupConfig(Strict):
         ring, panel = self.marman_ring, self.centre_panel
         h = panel.side / 2
         z_panel = self.surface_z("panel")
-        corners = np.array([[h, h, z_panel], [-h, h, z_panel], [-h, -h, z_panel], [h, -h, z_panel]])
+        cx, cy = panel.center
+        corners = np.array(
+            [
+                [cx + h, cy + h, z_panel],
+                [cx - h, cy + h, z_panel],
+                [cx - h, cy - h, z_panel],
+                [cx + h, cy - h, z_panel],
+            ]
+        )
         panel_gray = gray(panel.color)
         points = [
             PointFeature(
@@ -227,7 +281,12 @@ class MockupConfig(Strict):
             for i, (x, y) in enumerate(group.centers_xy()):
                 points.append(
                     PointFeature(
-                        f"{group.name}_{i}", np.array([x, y, z]), group.diameter, "disc", brighter
+                        f"{group.name}_{i}",
+                        np.array([x, y, z]),
+                        group.diameter,
+                        "disc",
+                        brighter,
+                        group.height,
                     )
                 )
         z_axis = np.array([0.0, 0.0, 1.0])
@@ -252,14 +311,21 @@ class MockupConfig(Strict):
             outline_corners_T=outline,
             point_features=tuple(points),
             circles=tuple(circles),
+            panel_thickness=panel.thickness,
+            ring_brighter=gray(ring.color) > gray(self.bus_face.color),
         )
 
 
 def load_mockup(name_or_path: str | Path) -> MockupConfig:
-    """Load a mock-up by path or built-in name (``default`` is ``configs/mockup.yaml``).
+    """Load a mock-up by path or built-in name (``default`` is ``configs/mockup.yaml``;
+    ``random:SEED`` is ``configuration.random_mockup.random_mockup(SEED)``).
 
     A relative ``model_file.path`` is taken relative to the YAML file that names it.
     """
+    if str(name_or_path).startswith("random:"):
+        from configuration.random_mockup import random_mockup, seed_of
+
+        return random_mockup(seed_of(str(name_or_path)))
     name = "mockup" if str(name_or_path) == "default" else name_or_path
     path = resolve_config_path(name)
     mockup = load_config(path, MockupConfig)

@@ -23,6 +23,12 @@ class Lighting(Strict):
     shadows: bool = False
 
 
+#: Issue 13's harsh light: a low sun from the side, as on orbit or under a facility's sun lamp.
+HARSH_LIGHTING = Lighting(
+    ambient=0.08, diffuse=0.92, specular=0.5, sun_direction_T=(0.9, -0.3, 0.35), shadows=True
+)
+
+
 class NoiseConfig(Strict):
     """Image noise. ``preset`` gives the reference study's additive Gaussian levels
     (variance 0 / 0.05 / 0.1 on [0,1] intensities, clipped); ``sensor`` adds shot and read

@@ -20,19 +20,24 @@ features and validates the result.
 
 from __future__ import annotations
 
+import logging
 import math
+import time
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from estimators.frame import CameraInfo
-from estimators.geometry import Pose
+from estimators.frame import CameraInfo, Frame
+from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GrayImage, smooth
+from estimators.measurement import Measurement, circle_of_pose
 from estimators.model_support import GradientImage, ModelSupport, Support
 from estimators.panel_edges import fit_panel_edges, strips_from_quad
 from estimators.planar_pose import ippe_poses, project_ideal
-from estimators.target import TargetModel
+from estimators.target import Circle3D, TargetModel
+
+_log = logging.getLogger(__name__)
 
 #: Distances (m) at which a panel may plausibly be found.
 DISTANCE_RANGE_M = (0.15, 20.0)
@@ -66,50 +71,198 @@ def quarter_turns(target: TargetModel) -> tuple[Pose, ...]:
 @dataclass(frozen=True, slots=True)
 class TurnCheck:
     """Support of the four quarter turns of a pose from the parts of the model that tell them
-    apart: the best turn (0 = the pose itself) and by how much its support beats the
-    runner-up (z units; infinite when only one turn is possible, NaN when no part can tell)."""
+    apart: the best turn (0 = the pose itself), by how much its support beats the runner-up
+    (z units; NaN when nothing that could tell them apart is in view), and whether anything
+    that could was in view."""
 
     best: int
     margin: float
+    seen: bool = True
 
 
 class TurnChecker:
-    """Decides the panel's quarter turn with the model's asymmetric parts (the thruster, an
-    irregular fastener layout). For a rough pose (a few degrees of tilt error) pass gradients
-    of a more strongly smoothed image (``coarse_gradients``): its edges are wide enough to be
-    met by a contour a few pixels off."""
+    """Decides the panel's quarter turn with the model's asymmetric parts: contours that a
+    quarter turn does not map onto the model's own (a thruster, a face that is not square, a
+    ring when the panel is off its axis) and discs whose turned places hold no disc like them
+    (an irregular fastener layout, a marker). Discs that the turns map onto equal discs say
+    the same for every turn and are left out: they would only add their noise. For a rough
+    pose (a few degrees of tilt error) pass gradients of a more strongly smoothed image
+    (``coarse_gradients``): its edges are wide enough to be met by a contour a few pixels
+    off."""
 
     def __init__(self, target: TargetModel, support: ModelSupport):
         self.turns = quarter_turns(target)
         self.support = support
-        symmetric, discs_symmetric = support.symmetric_under(self.turns[1])
+        symmetric, _ = support.symmetric_under(self.turns[1])
         self.parts = frozenset(n for n in support.names if n not in symmetric)
-        self.use_discs = not discs_symmetric
+        self.discs = _informative_discs(support, self.turns)
 
     @property
     def decidable(self) -> bool:
-        return bool(self.parts) or self.use_discs
+        """Whether the model has anything that tells the quarter turns apart."""
+        return bool(self.parts) or len(self.discs) > 0
 
     def check(self, gradients: GradientImage, X_CT: Pose, *, search_px: float = 0.0) -> TurnCheck:
-        """Compare the quarter turns of ``X_CT``; with ``search_px`` each turn's parts take
-        their best image offset within that many pixels (for a pose whose tilt is uncertain:
-        the parts lie far from the panel, where a tilt error moves them most)."""
+        """Compare the quarter turns of ``X_CT`` by the summed z-scores of the informative
+        contours and discs in view; with ``search_px`` each turn's parts take their best image
+        offset within that many pixels (for a pose whose tilt is uncertain: the parts lie far
+        from the panel, where a tilt error moves them most)."""
         if not self.decidable:
-            return TurnCheck(0, math.nan)
-        totals = np.array(
-            [
-                self.support.score(
-                    gradients,
-                    X_CT @ turn,
-                    only=self.parts,
-                    discs=self.use_discs,
-                    shift_px=search_px,
-                ).total
-                for turn in self.turns
-            ]
-        )
+            return TurnCheck(0, math.nan, False)
+        totals = np.zeros(len(self.turns))
+        seen = False
+        for k, turn in enumerate(self.turns):
+            X = X_CT @ turn
+            if self.parts:
+                support = self.support.score(
+                    gradients, X, only=self.parts, discs=False, shift_px=search_px
+                )
+                totals[k] += sum(support.contours.values())
+                seen |= bool(support.contours)
+            if len(self.discs):
+                z = self.support.disc_responses(gradients, X, self.discs, shift_px=search_px)
+                totals[k] += float(np.nansum(z))
+                seen |= bool(np.any(np.isfinite(z)))
+        if not seen:
+            return TurnCheck(0, math.nan, False)
         order = np.argsort(-totals)
-        return TurnCheck(int(order[0]), float(totals[order[0]] - totals[order[1]]))
+        return TurnCheck(int(order[0]), float(totals[order[0]] - totals[order[1]]), True)
+
+
+def _informative_discs(support: ModelSupport, turns: tuple[Pose, ...]) -> np.ndarray:
+    """Indices of the model's discs whose quarter-turned places do not all hold a disc of the
+    same size and polarity."""
+    centres, radii, signs = support.disc_centres_T, support.disc_radius_m, support.disc_signs
+    informative = []
+    for i in range(len(centres)):
+        for turn in turns[1:]:
+            moved = turn.apply(centres[i][None])[0]
+            match = (
+                (np.linalg.norm(centres - moved, axis=1) < 1e-3)
+                & (np.abs(radii - radii[i]) < 1e-3)
+                & (signs == signs[i])
+            )
+            if not np.any(match):
+                informative.append(i)
+                break
+    return np.array(informative, dtype=int)
+
+
+def judge_turn(turn: TurnCheck, turn_margin: float, confirm_margin: float) -> str:
+    """``other`` when another quarter turn explains the image clearly better (by
+    ``turn_margin``), ``kept`` when the pose's own turn is confirmed (by ``confirm_margin``),
+    ``undecided`` otherwise — nothing that tells the turns apart in view, or too faint."""
+    if turn.best != 0 and turn.margin >= turn_margin:
+        return "other"
+    if turn.best == 0 and turn.margin >= confirm_margin:
+        return "kept"
+    return "undecided"
+
+
+#: Support (z units) by which a pose or its planar flip must beat the other to be decided.
+FLIP_MARGIN = 6.0
+
+
+def planar_flip(X_CT: Pose, target: TargetModel, camera: CameraInfo) -> Pose | None:
+    """The panel's other planar pose (IPPE, Collins & Bartoli 2014): the one that images the
+    panel's corners where ``X_CT`` does, when it differs from ``X_CT`` by more than a degree
+    (near head-on the two are one)."""
+    uv = project_ideal(X_CT, target.panel_corners_T, camera.K)
+    others = [
+        X
+        for X in ippe_poses(target.panel_corners_T, uv, camera.K)
+        if rotation_error_geodesic(X, X_CT) > math.radians(1.0)
+    ]
+    return max(others, key=lambda X: rotation_error_geodesic(X, X_CT)) if others else None
+
+
+def judge_flip(
+    support: ModelSupport,
+    gradients: GradientImage,
+    X_CT: Pose,
+    target: TargetModel,
+    covariance: np.ndarray,
+) -> tuple[str, Pose | None]:
+    """Whether the whole model (the ring standing in front of the panel, the face's outline,
+    the thruster, the discs) supports a pose better than its planar flip — the panel's
+    edges alone may favour the wrong one when the panel is small or faint and nothing else
+    was fitted: ``kept`` (or no flip beyond 5σ of the pose's own rotation ``covariance``,
+    6×6: the two are then one answer), ``other`` (the flip, returned, is clearly better) or
+    ``undecided`` (within ``FLIP_MARGIN``)."""
+    flip = planar_flip(X_CT, target, support.camera)
+    if flip is None:
+        return "kept", None
+    turn = Pose(flip.R @ X_CT.R.T, np.zeros(3)).rotvec
+    try:
+        if float(turn @ np.linalg.solve(covariance[:3, :3], turn)) < 25.0:
+            return "kept", None
+    except np.linalg.LinAlgError:
+        pass
+    # Both judged with the same tolerance: the flip is not refined on the image.
+    own = support.score(gradients, X_CT, shift_px=2.0).total
+    other = support.score(gradients, flip, shift_px=2.0).total
+    if own - other >= FLIP_MARGIN:
+        return "kept", flip
+    if other - own >= FLIP_MARGIN:
+        return "other", flip
+    return "undecided", flip
+
+
+def turn_axis_circle(target: TargetModel) -> Circle3D | None:
+    """The ring's outer circle when its axis is the panel's quarter-turn axis (the panel
+    centred on the ring): every quarter turn leaves it in place, so a pose whose turn is
+    undecided still measures it — centre and normal, 5-DOF. None otherwise."""
+    if not target.has_circle("ring_outer"):
+        return None
+    ring = target.circle("ring_outer")
+    corners = target.panel_corners_T
+    normal = np.cross(corners[1] - corners[0], corners[2] - corners[1])
+    normal /= np.linalg.norm(normal)
+    offset = corners.mean(axis=0) - ring.center_T
+    lateral = offset - (offset @ ring.normal_T) * ring.normal_T
+    if np.linalg.norm(lateral) > 1e-6 or abs(float(normal @ ring.normal_T)) < 1.0 - 1e-9:
+        return None
+    return ring
+
+
+def warn_if_roll_ambiguous(system: str, target: TargetModel, turns: TurnChecker) -> None:
+    """Say once, when an estimator is built, that its model cannot decide the panel's roll."""
+    if not turns.decidable:
+        _log.warning(
+            "%s: nothing on mock-up %r tells the panel's quarter turns apart: its roll is "
+            "ambiguous by 90°, so poses are reported 5-DOF (the ring's centre and normal)",
+            system,
+            target.name,
+        )
+
+
+def roll_free_measurement(
+    system: str, frame: Frame, s, status: str, circle, started: float, features: dict
+) -> Measurement:
+    """A corner or line solution as a measurement: 6-DOF, or 5-DOF (the circle about the
+    panel's turn axis, the pose as hint) when its roll is undecided; a pose whose turn was
+    kept from the prior carries its circle too, for a tracker that must drop the roll."""
+    circle_part: dict = {}
+    if circle is not None and (s.roll_undecided or s.from_prior):
+        center, normal, cov5 = circle_of_pose(s.X_CT, s.covariance, circle)
+        circle_part = dict(
+            circle=circle.name, center_C=center, normal_C=normal, covariance_5dof=cov5
+        )
+    pose: dict = dict(X_CT=s.X_CT, covariance=s.covariance, from_prior=s.from_prior)
+    if s.roll_undecided:
+        pose = dict(X_CT_hint=s.X_CT)
+    return Measurement(
+        system=system,
+        status=status,  # type: ignore[arg-type]
+        stamp=frame.stamp,
+        seq=frame.seq,
+        residual_px=s.rms_px,
+        ambiguous=s.ambiguous,
+        features=features,
+        time_ms=1000.0 * (time.perf_counter() - started),
+        **pose,
+        **circle_part,
+    )
 
 
 #: Smoothing (px) of the gradients that judge rough hypotheses.
@@ -171,7 +324,7 @@ def find_panel_quads(
     gradients: GradientImage,
     target: TargetModel,
     *,
-    levels: int = 7,
+    levels: int = 13,
     min_side_px: float = 10.0,
     min_support: float = 2.5,
     max_quads: int = 6,
@@ -183,9 +336,13 @@ def find_panel_quads(
     small = cv2.resize(pixels, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
     small = smooth(small, 1.0)
     polarity = _polarity(target)
+    # Levels spread over the image's whole range: the panel is brighter (or darker) than all
+    # around it at some level between its grey and its surroundings', wherever those lie — a
+    # range taken from the brighter part of the image would miss a dark panel when the black
+    # background fills most of the frame.
+    low, high = np.percentile(small, [0.1, 99.9])
     if polarity < 0:
-        small = 1.0 - small
-    low, high = np.percentile(small[::2, ::2], [30.0, 99.5])
+        small, low, high = 1.0 - small, 1.0 - high, 1.0 - low
     min_area = (min_side_px / factor) ** 2
     max_area = 0.6 * small.size
     found: list[np.ndarray] = []
@@ -213,16 +370,17 @@ def find_panel_quads(
             if sides.min() < min_side_px or sides.max() > 4.0 * sides.min():
                 continue
             found.append(quad)
-    unique: list[np.ndarray] = []
-    for quad in found:
-        scale = np.linalg.norm(quad - quad.mean(axis=0), axis=1).mean()
-        if all(_quad_distance(quad, other) > 0.15 * scale for other in unique):
-            unique.append(quad)
-    quads = []
-    for quad in unique:
-        support = _side_support(gradients, quad, polarity)
-        if support >= min_support:
-            quads.append(Quad(quad, support))
+    # The same region cut at several levels gives near-copies of one quad: the best
+    # supported copy stands for them (the first level to cut it out may have cut it badly).
+    scored = [Quad(quad, _side_support(gradients, quad, polarity)) for quad in found]
+    scored.sort(key=lambda q: -q.support)
+    quads: list[Quad] = []
+    for quad in scored:
+        scale = np.linalg.norm(quad.corners_uv - quad.corners_uv.mean(axis=0), axis=1).mean()
+        if quad.support >= min_support and all(
+            _quad_distance(quad.corners_uv, other.corners_uv) > 0.15 * scale for other in quads
+        ):
+            quads.append(quad)
     quads.sort(key=lambda q: -q.support)
     return quads[:max_quads]
 
@@ -303,6 +461,7 @@ def refine_quad(
             half_width_px=band,
             search_px=search,
             polarity=polarity,
+            noise_sigma=image.clip_sigma,
         )
         if not edges.all_found:
             return None

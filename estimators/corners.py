@@ -32,13 +32,22 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from estimators.acquisition import TurnChecker, coarse_gradients, pose_hypotheses
+from estimators.acquisition import (
+    TurnChecker,
+    coarse_gradients,
+    judge_flip,
+    judge_turn,
+    pose_hypotheses,
+    roll_free_measurement,
+    turn_axis_circle,
+    warn_if_roll_ambiguous,
+)
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
 from estimators.measurement import Measurement
 from estimators.model_support import GradientImage, ModelSupport, Support
-from estimators.model_view import local_affine, plane_coordinates
+from estimators.model_view import head_extrusion, local_affine, plane_coordinates
 from estimators.planar_pose import (
     POSE_METHODS,
     PointObservations,
@@ -87,8 +96,9 @@ class CornerOptions:
 @dataclass(frozen=True, slots=True, eq=False)
 class FeatureLayout:
     """The model's point features as arrays: positions (N,3) in T, disc radius (m, 0 for
-    corners), whether each is a disc, brighter than its surroundings, and the fitting window
-    radius (m) that stays clear of other model structure."""
+    corners), whether each is a disc, brighter than its surroundings, the fitting window
+    radius (m) that stays clear of other model structure, and how far each disc stands proud
+    of its surface (m)."""
 
     names: tuple[str, ...]
     points_T: np.ndarray
@@ -96,6 +106,7 @@ class FeatureLayout:
     is_disc: np.ndarray
     brighter: np.ndarray
     window_m: np.ndarray
+    height_m: np.ndarray
 
     @staticmethod
     def of(target: TargetModel) -> FeatureLayout:
@@ -130,8 +141,9 @@ class FeatureLayout:
             window[i] = radius[i] + float(
                 np.clip(0.8 * clearance, 0.5 * radius[i], 1.5 * radius[i])
             )
+        height = np.array([f.height for f in features])
         return FeatureLayout(
-            tuple(f.name for f in features), points, radius, is_disc, brighter, window
+            tuple(f.name for f in features), points, radius, is_disc, brighter, window, height
         )
 
     def select(self, keep: np.ndarray) -> FeatureLayout:
@@ -143,6 +155,7 @@ class FeatureLayout:
             self.is_disc[keep],
             self.brighter[keep],
             self.window_m[keep],
+            self.height_m[keep],
         )
 
 
@@ -161,6 +174,8 @@ class _Solution:
     support: Support | None = None
     reason: str = ""
     details: dict = field(default_factory=dict)
+    roll_undecided: bool = False  # no part in view tells the panel's quarter turns apart
+    from_prior: bool = False  # ... and the turn was kept from the prior
 
 
 class CornerEstimator:
@@ -179,6 +194,8 @@ class CornerEstimator:
             target.circle("ring_inner").radius if target.has_circle("ring_inner") else math.inf
         )
         self.turns = TurnChecker(target, self.support)
+        self.axis_circle = turn_axis_circle(target)
+        warn_if_roll_ambiguous(SYSTEM, target, self.turns)
 
     # --- entry point ----------------------------------------------------------------------
     def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
@@ -203,18 +220,8 @@ class CornerEstimator:
         )
 
     def _measurement(self, frame: Frame, s: _Solution, status: str, started: float) -> Measurement:
-        return Measurement(
-            system=SYSTEM,
-            status=status,  # type: ignore[arg-type]
-            stamp=frame.stamp,
-            seq=frame.seq,
-            X_CT=s.X_CT,
-            covariance=s.covariance,
-            residual_px=s.rms_px,
-            ambiguous=s.ambiguous,
-            features={"extracted": s.candidates, "labeled": s.uv},
-            time_ms=1000.0 * (time.perf_counter() - started),
-        )
+        features = {"extracted": s.candidates, "labeled": s.uv}
+        return roll_free_measurement(SYSTEM, frame, s, status, self.axis_circle, started, features)
 
     # --- acquisition ------------------------------------------------------------------------
     def _acquire(self, image: GrayImage, gradients: GradientImage) -> _Solution:
@@ -421,14 +428,24 @@ class CornerEstimator:
         return index, np.array(starts, dtype=float).reshape(-1, 2)
 
     def _fit_discs(
-        self, image, smoothed, labels, A, radius_px
+        self, image, smoothed, labels, A, radius_px, X_CT: Pose
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Refined disc positions: (feature indices, uv (n,2), covariance (n,2,2))."""
+        """Refined disc positions: (feature indices, uv (n,2), covariance (n,2,2)); heads
+        standing proud are fitted with their wall as ``X_CT`` shows it."""
         index, starts = self._disc_starts(smoothed, labels, radius_px)
         if len(index) == 0:
             return index, np.zeros((0, 2)), np.zeros((0, 2, 2))
+        layout = self.layout
         fits: PointFits = fit_discs(
-            image.pixels, starts, A[index], self.layout.radius_m[index], self.layout.window_m[index]
+            image.pixels,
+            starts,
+            A[index],
+            layout.radius_m[index],
+            layout.window_m[index],
+            extrusion_px=head_extrusion(
+                X_CT, layout.points_T[index], layout.height_m[index], self.camera
+            ),
+            noise_sigma=image.clip_sigma,
         )
         moved = np.linalg.norm(fits.uv - starts, axis=1)
         sign = np.where(self.layout.brighter[index], 1.0, -1.0)
@@ -478,7 +495,14 @@ class CornerEstimator:
             ok &= np.all(gap > disc_r + margin_m, axis=1)
             return ok
 
-        fits = fit_corners(image.pixels, pred[index], np.array(directions), np.array(windows), keep)
+        fits = fit_corners(
+            image.pixels,
+            pred[index],
+            np.array(directions),
+            np.array(windows),
+            keep,
+            noise_sigma=image.clip_sigma,
+        )
         polarity = 1.0 if self.layout.brighter[index[0]] else -1.0
         moved = np.linalg.norm(fits.uv - pred[index], axis=1)
         good = fits.ok & (moved <= 2.5) & (polarity * fits.contrast_snr >= 4.0)
@@ -577,7 +601,7 @@ class CornerEstimator:
                 for i in np.flatnonzero(visible & self.layout.is_disc):
                     if int(i) not in measured and int(i) not in labels:
                         labels[int(i)] = pred[i]
-            new_index, new_uv, new_cov = self._fit_discs(image, smoothed, labels, A, radius_px)
+            new_index, new_uv, new_cov = self._fit_discs(image, smoothed, labels, A, radius_px, X)
             for i, p, c in zip(new_index, new_uv, new_cov, strict=True):
                 measured[int(i)] = (p, c)
             if final or len(measured) < options.min_features:
@@ -614,6 +638,21 @@ class CornerEstimator:
         fit = choice.fit
         support = self.support.score(gradients, fit.X_CT)
         reason = self._validate(fit, int(keep.sum()), support)
+        roll_undecided = False
+        # The planar flip: decided by the residuals, or taken from the prior (a lock only if
+        # the prior's was decided: the Tracker knows), or undecided.
+        ambiguous = choice.decided_by == "lower_residual"
+        from_prior = choice.decided_by == "prior"
+        if not reason and not tracking:
+            # Few or faint features may favour the wrong flip even decisively: the whole
+            # model (the ring standing in front of the panel, the outline) judges it.
+            flip, flipped = judge_flip(
+                self.support, gradients, fit.X_CT, self.target, fit.covariance
+            )
+            if flip == "other" and retry:
+                return self._solve(image, gradients, flipped, tracking=False, retry=False)
+            if flip != "kept":
+                ambiguous = True
         if not reason:
             # The panel and a symmetric fastener layout look the same after a quarter turn;
             # the model's asymmetric parts (the thruster) decide, in tracking too, so that a
@@ -632,9 +671,16 @@ class CornerEstimator:
                     retry=False,
                 )
             # The hypothesis came with its turn already chosen: confirming it needs less margin.
-            needed = options.confirm_margin if turn.best == 0 else options.turn_margin
-            if not tracking and self.turns.decidable and not turn.margin >= needed:
-                reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
+            # Undecided (nothing asymmetric in view, or too faint): in tracking the turn is the
+            # prior's (a lock only if the prior's was decided: the Tracker knows); without a
+            # prior the pose is reported without its roll.
+            if judge_turn(turn, options.turn_margin, options.confirm_margin) == "undecided":
+                if tracking:
+                    from_prior = True
+                elif self.axis_circle is not None:
+                    roll_undecided = True
+                else:
+                    reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
         return _Solution(
             fit.X_CT,
             fit.covariance,
@@ -642,10 +688,12 @@ class CornerEstimator:
             fit.reduced_chi2,
             index[keep],
             uv[keep],
-            choice.ambiguous,
+            ambiguous,
             candidates,
             support,
             reason,
+            roll_undecided=roll_undecided,
+            from_prior=from_prior,
         )
 
     def _validate(self, fit, count: int, support: Support) -> str:
@@ -661,8 +709,13 @@ class CornerEstimator:
         if len(panel) < 4 or min(panel) < options.min_edge_support:
             weakest = min(panel) if panel else float("nan")
             return f"a reprojected panel edge has no edge support (z {weakest:.1f})"
+        # Another part of the mock-up (ring, outline, thruster) must confirm the panel: a quad
+        # taken for the panel at a wrong scale (the face's outline as the panel) puts them
+        # all out of view.
         others = support.others()
-        if others and max(others.values()) < options.min_edge_support:
+        if not others:
+            return "no other part of the mock-up in view to confirm the panel"
+        if max(others.values()) < options.min_edge_support:
             return "the reprojected ring/thruster have no edge support"
         return ""
 

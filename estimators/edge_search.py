@@ -40,13 +40,15 @@ def to_gray_float(image: np.ndarray) -> np.ndarray:
     return np.asarray(array, dtype=np.float32)
 
 
-def estimate_noise_sigma(gray: np.ndarray) -> float:
-    """Standard deviation of additive white noise in a mono image in [0, 1], by Immerkær's
-    method (σ = √(π/2) · mean|I ∗ N| / 6), robust to edges and shading.
+def shown_noise_sigma(gray: np.ndarray) -> float:
+    """Spread of the noise as the pixels of a mono image in [0, 1] show it, by Immerkær's
+    method (σ = √(π/2) · mean|I ∗ N| / 6), robust to edges and shading — the scale an edge
+    search's SNR thresholds are measured against.
 
     Pixels near black or white are left out: there the noise was clipped by the sensor, and a
     dark background would otherwise make the noise look several times smaller than it is on
-    the target."""
+    the target. Clipping still shrinks what the pixels kept show (20 % at σ = 0.32): the noise
+    σ itself, for likelihoods of clipped pixels, is ``estimators.imaging.estimate_noise_sigma``."""
     if gray.shape[0] < 6 or gray.shape[1] < 6:
         return 0.0
     # Every fourth row is enough for a stable estimate (tens of thousands of pixels).

@@ -56,7 +56,6 @@ from estimators.circle_pose import CirclePose, circle_poses_from_conic
 from estimators.conics import (
     circle_cone,
     circle_image_conic,
-    circle_plane_basis,
     circle_points,
     fit_ellipse_direct,
     sampson_distances,
@@ -64,7 +63,7 @@ from estimators.conics import (
 from estimators.corners import FeatureLayout
 from estimators.edge_search import (
     GradientField,
-    estimate_noise_sigma,
+    shown_noise_sigma,
     smoothed_gradient,
     to_gray_float,
 )
@@ -79,8 +78,9 @@ from estimators.ellipse_detection import (
 from estimators.ellipse_extraction import ExtractedEllipse, ExtractorSettings, extract_ellipses
 from estimators.frame import CameraInfo, Frame, frame_problem
 from estimators.geometry import Pose, normal_angle, skew
-from estimators.measurement import Measurement
-from estimators.model_view import local_affine
+from estimators.imaging import estimate_noise_sigma
+from estimators.measurement import Measurement, circle_covariance_from_pose
+from estimators.model_view import head_extrusion, local_affine
 from estimators.planar_pose import PointObservations, ideal_pixels
 from estimators.point_fit import fit_discs
 from estimators.target import Circle3D, TargetModel
@@ -101,6 +101,10 @@ class EllipseSettings:
 
     extractor: ExtractorSettings = field(default_factory=ExtractorSettings)
     coarse_sigma_px: float = 2.0
+    #: SNR an edge sample must reach (its gradient over the noise the pixels show).
+    min_edge_snr: float = 3.0
+    #: Smoothing scales tried in turn (every stage's σ times each) until the ring is found.
+    smoothing_scales: tuple[float, ...] = (1.0, 2.0)
     #: Smoothing of the final edge search: this at low noise, growing with the noise (σ_n × 5)
     #: up to ``fine_sigma_max_px`` so that edges stay well above the noise.
     fine_sigma_px: float = 1.0
@@ -145,6 +149,8 @@ class _Image:
     camera: CameraInfo
     fine_sigma: float
     fields: dict = field(default_factory=dict)
+    scale: float = 1.0  # smoothing of every stage, relative to the settings' (low contrast: > 1)
+    clip_sigma: float = 0.0  # the noise σ before clipping (``noise`` is what the pixels show)
 
     def field(self, sigma_px: float, roi=None) -> GradientField:
         """The smoothed gradient at ``sigma_px`` over ``roi`` (x0, y0, x1, y1) or the frame."""
@@ -173,6 +179,10 @@ class _Fit:
     sigma_px: float  # smoothing of the final edge search
     spacing_px: float  # spacing of the reference circle's edge samples
     holes: PointObservations | None = None  # ring holes in the fit, if any
+    sets: tuple[EdgeSet, ...] = ()  # the edge sets of the fit (``result`` is in their order)
+    roll_known: bool = (
+        True  # X_CT's roll is measured (False: the holes' pattern's, up to its symmetry)
+    )
 
     @property
     def polarities(self) -> dict[str, int]:
@@ -197,7 +207,16 @@ class EllipseEstimator:
         if self.inner is not None and not _coaxial(self.inner, self.outer):
             raise ValueError("target circle 'ring_inner' must be coaxial with 'ring_outer'")
         self.off_axis = tuple(c for c in target.circles if not _coaxial(c, self.outer))
+        self.foot = _ring_foot(target, self.outer, self.inner)
+        # The outer edge's polarity when the model knows which side is brighter (an edge
+        # search's polarity is −1 where the image darkens outward): a light that darkens or
+        # lights the ring's surroundings unevenly must not make the image choose it.
+        self._outer_polarity = (
+            None if target.ring_brighter is None else (-1 if target.ring_brighter else 1)
+        )
+        self._circles = {c.name: c for c in (*target.circles, self.foot) if c is not None}
         self.holes = ring_hole_layout(target, self.outer, self.inner)
+        self._holes_symmetric = _rotationally_symmetric(self.holes, self.outer)
         self._K_inv = np.linalg.inv(camera.K)
         self._field_radius = camera_field_radius(camera)  # a property of the camera
 
@@ -210,25 +229,39 @@ class EllipseEstimator:
         # estimators.registry builds one estimator per CameraInfo: another camera here is a bug.
         assert frame.info.key == self.camera.key, "frame intrinsics differ from the estimator's"
         gray = to_gray_float(frame.image)
-        noise = estimate_noise_sigma(gray)
+        noise = shown_noise_sigma(gray)
         if _blank(gray, noise):
             return Measurement.lost(SYSTEM, frame, "blank image (no contrast)", started=started)
         noise = max(noise, 0.5 / 255.0)
+        clip_sigma = estimate_noise_sigma(gray)  # the noise before the sensor clipped it
         s = self.settings
         fine_sigma = float(np.clip(5.0 * noise, s.fine_sigma_px, s.fine_sigma_max_px))
-        image = _Image(gray, noise, self.camera, fine_sigma)
-        found = self._track(image, prior_X_CT) if prior_X_CT is not None else None
-        status = "tracking"
-        extracted: list[ExtractedEllipse] = []
-        if found is None:
-            status = "acquired"
-            extracted = extract_ellipses(
-                gray,
-                image.noise,
-                settings=self.settings.extractor,
-                field=image.field(image.fine_sigma),
+        # The smoothing suits a ring of the usual contrast (≈ 0.4 at this noise). A ring that
+        # shows far less — a low sun from the side leaves 0.15 — has its edges below the
+        # search's SNR sample by sample: every stage is tried again smoothed more (an edge's
+        # SNR grows with the smoothing).
+        for scale in s.smoothing_scales:
+            image = _Image(
+                gray, noise, self.camera, fine_sigma * scale, scale=scale, clip_sigma=clip_sigma
             )
-            found = self._acquire(image, extracted)
+            found = self._track(image, prior_X_CT) if prior_X_CT is not None else None
+            status = "tracking"
+            extracted: list[ExtractedEllipse] = []
+            if found is None:
+                status = "acquired"
+                extractor = s.extractor
+                if scale != 1.0:
+                    extractor = replace(
+                        extractor,
+                        sigma_px=extractor.sigma_px * scale,
+                        fine_sigma_px=extractor.fine_sigma_px * scale,
+                    )
+                extracted = extract_ellipses(
+                    gray, image.noise, settings=extractor, field=image.field(image.fine_sigma)
+                )
+                found = self._acquire(image, extracted)
+            if found is not None:
+                break
         if found is None:
             reason = (
                 f"no ring among {len(extracted)} extracted ellipses"
@@ -236,10 +269,26 @@ class EllipseEstimator:
                 else "no ellipse extracted"
             )
             return Measurement.lost(SYSTEM, frame, reason, started=started)
-        fit, ambiguous = found
+        fit, ambiguous, from_prior = found
         fit, decided = self._with_holes(image, fit)
+        if fit.X_CT is None and self.inner is not None:
+            # The ring alone — no thruster, no holes to label: near head-on its outer edge holds
+            # its tilt only to second order, and the one first-order measure left is the
+            # perspective offset between its two concentric edges (issue 13, point 6). At long
+            # range the inner edge is otherwise left out (the bore's wall, unresolved, may bias
+            # it), but without it the normal is several times worse (random mock-ups at 3 m:
+            # median 4° → 1.4°).
+            with_inner = self._refine_ring(image, fit.ring, fit.polarities, inner_always=True)
+            if with_inner is not None:
+                fit = with_inner
         ambiguous = ambiguous and not decided
-        return self._measurement(frame, status, fit, ambiguous, prior_X_CT, extracted, started)
+        from_prior = from_prior and not decided
+        alternative = self._mirror_pose(fit) if ambiguous or from_prior else None
+        if alternative is None:  # the two poses are one (near head-on): nothing to choose
+            ambiguous = from_prior = False
+        return self._measurement(
+            frame, status, fit, (ambiguous, from_prior, alternative), prior_X_CT, extracted, started
+        )
 
     # --- tracking -------------------------------------------------------------------------
     def _track(self, image: _Image, prior: Pose):
@@ -279,16 +328,29 @@ class EllipseEstimator:
             if ring is None:
                 return None
             fit = self._find_thruster(image, ring, prior) or ring
-        if fit.X_CT is None:  # the ring alone: keep the pose nearer the prior's normal
-            prior_normal = prior.R @ self.outer.normal_T
-            mirror_pose = self._mirror_pose(fit)
-            if mirror_pose is not None and normal_angle(
-                mirror_pose.normal_C, prior_normal
-            ) < normal_angle(fit.ring.normal_C, prior_normal):
-                mirror = self._mirror(image, fit)
-                if mirror is not None:
-                    fit = self._find_thruster(image, mirror, None) or mirror
-        return fit, False
+        if fit.X_CT is None:
+            return self._choose_mirror(image, fit, prior)
+        return fit, False, False
+
+    def _choose_mirror(self, image: _Image, fit: _Fit, prior: Pose):
+        """The ring alone while tracking: its two poses, and which the frame supports. The
+        image decides when the other pose does not fit it (or is the same pose, near head-on),
+        shows the thruster, or costs clearly more (15 %); otherwise the pose nearer the prior's
+        normal is kept *because of the prior* (``from_prior``: a lock only if the prior's
+        choice was itself decided, which the Tracker knows — issue 13: a mirror taken at
+        acquisition must not become a confident track). Returns (fit, ambiguous, from_prior)."""
+        mirror = self._mirror(image, fit)
+        if mirror is None:
+            return fit, False, False
+        mirror = self._find_thruster(image, mirror, None) or mirror
+        if mirror.X_CT is not None:  # the thruster found on the other pose decides
+            return mirror, False, False
+        best, second = sorted((fit, mirror), key=lambda f: f.cost)
+        if second.cost > 1.15 * best.cost:
+            return best, False, False
+        prior_normal = prior.R @ self.outer.normal_T
+        nearer = min((fit, mirror), key=lambda f: normal_angle(f.ring.normal_C, prior_normal))
+        return nearer, False, True
 
     def _track_by_extraction(self, image: _Image, prior: Pose, ring0: CirclePose, predicted):
         """Extract ellipses around the prediction, label them against the predicted ring edges
@@ -352,6 +414,8 @@ class EllipseEstimator:
             polarities = {}
             if hypothesis.outer is not None:
                 polarities[self.outer.name] = hypothesis.outer.polarity
+                if self._outer_polarity not in (None, hypothesis.outer.polarity):
+                    continue  # the ring the model describes is the other way round
             if hypothesis.inner is not None and self.inner is not None:
                 polarities[self.inner.name] = hypothesis.inner.polarity
             ring = None
@@ -360,7 +424,7 @@ class EllipseEstimator:
                 if ring is not None:
                     break
             if ring is not None:
-                return self._resolve(image, ring)
+                return (*self._resolve(image, ring), False)
         return None
 
     def _closed_form(self, labeled: ExtractedEllipse, circle: Circle3D) -> list[CirclePose]:
@@ -412,7 +476,7 @@ class EllipseEstimator:
         """Whether two fits' normals agree within 3σ (and 1°)."""
         separation = max(np.radians(1.0), 3.0 * _normal_sigma(a.result.covariance[:5, :5]))
         if a.X_CT is not None:
-            cov5 = _five_from_six(a.result.covariance, a.X_CT, self.outer)
+            cov5 = circle_covariance_from_pose(a.result.covariance, a.X_CT, self.outer)
             separation = max(np.radians(1.0), 3.0 * _normal_sigma(cov5))
         return normal_angle(a.ring.normal_C, b.ring.normal_C) < separation
 
@@ -429,7 +493,7 @@ class EllipseEstimator:
         other = max(candidates, key=lambda c: normal_angle(c.normal_C, ring.ring.normal_C))
         covariance = ring.result.covariance
         if ring.X_CT is not None:
-            covariance = _five_from_six(covariance, ring.X_CT, self.outer)
+            covariance = circle_covariance_from_pose(covariance, ring.X_CT, self.outer)
         separation = max(np.radians(1.0), 3.0 * _normal_sigma(covariance))
         if normal_angle(other.normal_C, ring.ring.normal_C) < separation:
             return None
@@ -458,19 +522,29 @@ class EllipseEstimator:
         polarities: dict[str, int] | None,
         *,
         coarse_half_width: float | None = None,
+        inner_always: bool = False,
     ) -> _Fit | None:
         """5-DOF: edge search around the projected ring edges and fit, coarse-to-fine when the
-        start may be several pixels off; None unless both edges are supported."""
+        start may be several pixels off; None unless both edges are supported. ``inner_always``
+        fits the inner edge whatever its distance from the outer one."""
         s = self.settings
         if coarse_half_width is None:  # a start from a fitted ellipse: within a pixel or two
             stages = ((image.fine_sigma, s.fine_half_width_px + 1.0),)
         else:
             stages = (
-                (s.coarse_sigma_px, coarse_half_width),
+                (s.coarse_sigma_px * image.scale, coarse_half_width),
                 (image.fine_sigma, s.fine_half_width_px),
             )
         X_CT = pose_with_roll(ring, self.outer, 0.0)
-        refined = self._refine(image, X_CT, self._ring_circles(), stages, polarities, full=False)
+        refined = self._refine(
+            image,
+            X_CT,
+            self._ring_circles(),
+            stages,
+            polarities,
+            full=False,
+            inner_always=inner_always,
+        )
         if refined is None or not self._ring_supported(refined.edges):
             return None
         return refined
@@ -496,7 +570,7 @@ class EllipseEstimator:
             stages = ((image.fine_sigma, s.fine_half_width_px + 2.0),)
         else:
             stages = (
-                (s.coarse_sigma_px, coarse_half_width),
+                (s.coarse_sigma_px * image.scale, coarse_half_width),
                 (image.fine_sigma, s.fine_half_width_px),
             )
         refined = self._refine(
@@ -517,9 +591,9 @@ class EllipseEstimator:
         ]
         if not supported:
             return None
-        free = [e.circle.name for e in self._edge_sets(refined.edges) if e.free_radius]
+        free = [e.circle.name for e in refined.sets if e.free_radius]
         for name, offset in zip(free, refined.result.radius_offsets, strict=True):
-            if abs(offset) > 0.3 * self.target.circle(name).radius:
+            if abs(offset) > 0.3 * self._circles[name].radius:
                 return None
         return refined
 
@@ -533,16 +607,23 @@ class EllipseEstimator:
         *,
         full: bool,
         off_axis_width: float | None = None,
+        inner_always: bool = False,
     ) -> _Fit | None:
         """Search every circle's edges at each (σ, window) stage and refit the pose."""
         polarities = dict(polarities or {})
+        if self._outer_polarity is not None:
+            if polarities.get(self.outer.name, self._outer_polarity) != self._outer_polarity:
+                return None  # an edge of the other polarity is not the ring's outer edge
+            polarities[self.outer.name] = self._outer_polarity
         edges: dict[str, CircleEdges] = {}
         result = None
         ring = CirclePose(X_CT.apply(self.outer.center_T), X_CT.R @ self.outer.normal_T)
         for sigma, width in stages:
             edges = {}
-            if self.inner is not None and not polarities:
-                polarities.update(self._ring_polarities(image, X_CT, sigma, width))
+            if self.inner is not None and self.inner.name not in polarities:
+                ring_polarities = self._ring_polarities(image, X_CT, sigma, width)
+                for name, polarity in ring_polarities.items():
+                    polarities.setdefault(name, polarity)
             for circle in circles:
                 circle_width = width
                 if circle in self.off_axis:
@@ -561,7 +642,7 @@ class EllipseEstimator:
             edges = self._drop_blurred(edges, X_CT, sigma)
             if self.outer.name not in edges or edges[self.outer.name].hits.count < 12:
                 return None
-            sets = self._edge_sets(edges)
+            sets = self._edge_sets(edges, X_CT, inner_always=inner_always)
             try:
                 # The first stage only needs to land within the second's window.
                 iterations = 2 if (sigma, width) != stages[-1] else 5
@@ -592,6 +673,7 @@ class EllipseEstimator:
             self._cost(edges, X_CT),
             stages[-1][0],
             edges[self.outer.name].samples.spacing_px,
+            sets=tuple(sets),
         )
 
     def _ring_polarities(
@@ -600,8 +682,10 @@ class EllipseEstimator:
         """The ring's edge polarities when unknown: the two edges of an annulus have opposite
         ones, so both assignments are scored together (edge strength on a few samples of each
         edge) — a window wide enough to hold both edges cannot then take one for the other."""
-        strengths = {}
         assert self.inner is not None
+        if self._outer_polarity is not None:
+            return {self.outer.name: self._outer_polarity, self.inner.name: -self._outer_polarity}
+        strengths = {}
         for p in (1, -1):
             total = 0.0
             for circle, polarity in ((self.outer, p), (self.inner, -p)):
@@ -646,21 +730,53 @@ class EllipseEstimator:
                     drop.add(weaker)
         return {name: e for name, e in edges.items() if name not in drop}
 
-    def _edge_sets(self, edges: dict[str, CircleEdges]) -> list[EdgeSet]:
+    def _edge_sets(
+        self, edges: dict[str, CircleEdges], X_CT: Pose | None, *, inner_always: bool = False
+    ) -> list[EdgeSet]:
         """Edge sets for the fit: the ring's outer edge fixes the scale; the others (inner
         edge, thruster) have free radii — their apparent size is biased by neighbours (the
         ring's inner wall, the nozzle's thin lip) while their position and shape are not. The
-        inner edge joins only when it is far enough inside the outer one (see the settings)."""
+        inner edge joins only when it is far enough inside the outer one (see the settings).
+
+        The bore's wall shows between the ring's inner rim and its foot on the face behind, and
+        the edge found there is whichever of the two stands out: the rim where the wall is dark,
+        the foot where a low sun lights the wall. With a pose (``X_CT``) each inner sample is
+        fitted to the nearer of the two circles (they lie at different depths: taken for one,
+        the other tilts the ring by degrees)."""
         use_inner = False
         if self.inner is not None and self.inner.name in edges:
             outer = edges[self.outer.name].samples
             inner = edges[self.inner.name].samples
             gap = 0.5 * (outer.perimeter_px - inner.perimeter_px) / np.pi
-            use_inner = gap >= self.settings.inner_edge_min_gap_px
+            use_inner = inner_always or gap >= self.settings.inner_edge_min_gap_px
+        sets = []
+        for name, e in edges.items():
+            if len(e.uv_ideal) < 8:
+                continue
+            if self.inner is not None and name == self.inner.name:
+                if use_inner:
+                    sets += self._inner_sets(e.uv_ideal, X_CT)
+                continue
+            sets.append(
+                EdgeSet(self._circles[name], e.uv_ideal, free_radius=name != self.outer.name)
+            )
+        return sets
+
+    def _inner_sets(self, uv: np.ndarray, X_CT: Pose | None) -> list[EdgeSet]:
+        """The inner edge's samples as edge sets of the rim and of the foot (see
+        ``_edge_sets``)."""
+        assert self.inner is not None
+        if self.foot is None or X_CT is None:
+            return [EdgeSet(self.inner, uv, free_radius=True)]
+        distances = []
+        for circle in (self.inner, self.foot):
+            cone = circle_cone(X_CT.apply(circle.center_T), X_CT.R @ circle.normal_T, circle.radius)
+            distances.append(np.abs(sampson_distances(self._K_inv.T @ cone @ self._K_inv, uv)))
+        on_foot = distances[1] < distances[0]
         return [
-            EdgeSet(self.target.circle(name), e.uv_ideal, free_radius=name != self.outer.name)
-            for name, e in edges.items()
-            if len(e.uv_ideal) >= 8 and (self.inner is None or name != self.inner.name or use_inner)
+            EdgeSet(circle, uv[chosen], free_radius=True)
+            for circle, chosen in ((self.inner, ~on_foot), (self.foot, on_foot))
+            if chosen.sum() >= 8
         ]
 
     def _cost(self, edges: dict[str, CircleEdges], X_CT: Pose) -> float:
@@ -719,6 +835,7 @@ class EllipseEstimator:
             self.camera,
             polarity=polarity,
             half_width_px=half_width,
+            min_snr=self.settings.min_edge_snr,
             prior_sigma_px=max(half_width / 2.0, 1.5),
         )
 
@@ -777,7 +894,9 @@ class EllipseEstimator:
             # Smooth and search in proportion to the circle's image: a small one must not be
             # blurred away, a large one is displaced by the ring's tilt error times its lever.
             # (Two scales only, so the fields are shared with the other stages.)
-            sigma = self.settings.coarse_sigma_px * (1.0 if radius_px <= 20.0 else 2.0)
+            sigma = (
+                self.settings.coarse_sigma_px * (1.0 if radius_px <= 20.0 else 2.0) * image.scale
+            )
             width = float(max(2.5, 0.3 * radius_px))
             grad = image.field(sigma, None)
             # Near the prior's roll first (when there is one), else all the way round.
@@ -834,17 +953,20 @@ class EllipseEstimator:
         the joint fit starts from both and keeps the one that explains edges and holes better;
         the holes decide when the other's truncated χ² is higher by ``_HOLES_DECIDE_CHI2``.
         """
-        if fit.X_CT is None:
+        roll_known = fit.X_CT is not None
+        X_holes = fit.X_CT if roll_known else self._roll_of_holes(image, fit)
+        if X_holes is None:
             return fit, False
-        observed = self._find_holes(image, fit.X_CT)
+        observed = self._find_holes(image, X_holes)
         if observed is None:
             return fit, False
-        starts = [fit.X_CT]
+        starts = [X_holes]
         mirror = self._mirror_pose(fit)
         if mirror is not None:
-            starts.append(pose_with_roll(mirror, self.outer, roll_of(fit.X_CT, mirror, self.outer)))
+            starts.append(pose_with_roll(mirror, self.outer, roll_of(X_holes, mirror, self.outer)))
+        roll_known = roll_known or not self._holes_symmetric
         edge_weight = 1.0 / _correlation_inflation(fit.sigma_px, fit.spacing_px)
-        sets = self._edge_sets(fit.edges)
+        sets = list(fit.sets)
         tried: list[tuple[float, _Fit]] = []
         for X_start in starts:
             try:
@@ -862,7 +984,9 @@ class EllipseEstimator:
             if not np.all(np.isfinite(X_CT.p)) or not np.all(np.isfinite(result.covariance)):
                 continue
             ring = CirclePose(X_CT.apply(self.outer.center_T), X_CT.R @ self.outer.normal_T)
-            refit = replace(fit, ring=ring, X_CT=X_CT, result=result, holes=observed)
+            refit = replace(
+                fit, ring=ring, X_CT=X_CT, result=result, holes=observed, roll_known=roll_known
+            )
             tried.append((_joint_cost(result, fit.result.sigma_px), refit))
         if not tried:
             return fit, False
@@ -874,6 +998,65 @@ class EllipseEstimator:
         # leave no second minimum).
         decided = other_cost - cost > _HOLES_DECIDE_CHI2 or self._same_normal(best, other)
         return best, decided
+
+    def _roll_of_holes(self, image: _Image, fit: _Fit) -> Pose | None:
+        """The ring alone (no thruster: roll unknown): the roll about its axis at which the
+        ring's holes stand where the image shows discs of their polarity — a 1-D search (1°,
+        then 0.1° about the best) of their summed matched-filter response, as the thruster's
+        roll is searched. Once labeled, the holes measure the ring's tilt to first order, which
+        its edges alone barely do near head-on (issue 13: faint or not, holes on a ring without
+        a thruster went unused). The roll found is the pattern's, up to its symmetry. None when
+        no roll's summed response reaches z 5 (each hole's disc fit is then tested too)."""
+        s = self.settings
+        holes = self.holes
+        if not s.ring_holes or len(holes.names) < s.min_holes:
+            return None
+        zero = pose_with_roll(fit.ring, self.outer, 0.0)
+        radius_px = float(np.median(holes.radius_m) * self.camera.K[0, 0] / max(zero.p[2], 1e-3))
+        if radius_px < s.min_hole_radius_px:
+            return None
+        sigma = max(1.0, 0.6 * radius_px)
+        smoothed = cv2.GaussianBlur(image.gray, (0, 0), sigma)
+        noise = image.noise / (2.0 * np.sqrt(np.pi) * sigma) * np.sqrt(1.125) + 1e-4
+        ring_r = 2.2 * radius_px + 1.0
+        angles = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
+        around = ring_r * np.column_stack([np.cos(angles), np.sin(angles)])
+        signs = np.where(holes.brighter, 1.0, -1.0)
+        h, w = image.gray.shape
+
+        # The holes turned about the ring's axis n through its centre: R_n(θ)·v = v cos θ +
+        # (n × v) sin θ + n (n·v)(1 − cos θ), for every roll at once.
+        n = fit.ring.normal_C
+        v = (holes.points_T - self.outer.center_T) @ zero.R.T
+        n_cross_v = np.cross(n, v)
+        n_dot_v = v @ n
+
+        def scores(rolls: np.ndarray) -> np.ndarray:
+            c, si = np.cos(rolls)[:, None, None], np.sin(rolls)[:, None, None]
+            P = fit.ring.center_C + v * c + n_cross_v * si + (n_dot_v[:, None] * n) * (1 - c)
+            front = np.all(P[..., 2] > 1e-3, axis=1)
+            uv = np.full(P.shape[:2] + (2,), -1e6)
+            uv[front] = self.camera.project(P[front].reshape(-1, 3)).reshape(-1, len(v), 2)
+            inside = np.all((uv > ring_r + 1) & (uv < [w - ring_r - 2, h - ring_r - 2]), axis=2)
+            points = np.concatenate([uv[..., None, :], uv[..., None, :] + around], axis=2)
+            safe = np.where(inside[..., None, None], points, 0.0).astype(np.float32)
+            # (rows of nine samples: a remap map must stay under 32767 wide)
+            values = cv2.remap(smoothed, safe.reshape(-1, 9, 2), None, cv2.INTER_LINEAR)
+            values = values.reshape(len(rolls), len(v), 9)
+            response = signs * (values[..., 0] - values[..., 1:].mean(axis=2)) * inside
+            count = inside.sum(axis=1)
+            out = response.sum(axis=1) / (noise * np.sqrt(np.maximum(count, 1)))
+            return np.where(count >= s.min_holes, out, 0.0)
+
+        coarse = np.radians(np.arange(0.0, 360.0, 1.0))
+        coarse_scores = scores(coarse)
+        best = int(np.argmax(coarse_scores))
+        z = coarse_scores[best]
+        if z < 5.0:  # (a pattern of many holes has as many peaks: no "distinct" test)
+            return None
+        fine = coarse[best] + np.radians(np.arange(-1.0, 1.01, 0.1))
+        roll = float(fine[int(np.argmax(scores(fine)))])
+        return pose_with_roll(fit.ring, self.outer, roll)
 
     def _find_holes(self, image: _Image, X_CT: Pose) -> PointObservations | None:
         """The ring's holes fitted as discs around their projections under ``X_CT``, in ideal
@@ -894,7 +1077,17 @@ class EllipseEstimator:
         keep = np.flatnonzero(facing & inside & (radius_px >= s.min_hole_radius_px))
         if len(keep) < s.min_holes:
             return None
-        fits = fit_discs(image.gray, uv[keep], A[keep], holes.radius_m[keep], holes.window_m[keep])
+        fits = fit_discs(
+            image.gray,
+            uv[keep],
+            A[keep],
+            holes.radius_m[keep],
+            holes.window_m[keep],
+            extrusion_px=head_extrusion(
+                X_CT, holes.points_T[keep], holes.height_m[keep], self.camera
+            ),
+            noise_sigma=image.clip_sigma,
+        )
         moved = np.linalg.norm(fits.uv - uv[keep], axis=1)
         sign = np.where(holes.brighter[keep], 1.0, -1.0)
         good = fits.ok & (moved <= np.maximum(2.0, 0.5 * radius_px[keep]))
@@ -920,7 +1113,7 @@ class EllipseEstimator:
         covariance when the tilt is clearly measured and moves to the head-on one when the
         estimate cannot be told from head-on (noise pushes such estimates away from it).
         """
-        sets = self._edge_sets(fit.edges)
+        sets = list(fit.sets)
         center = fit.ring.center_C
         head_on = -center / np.linalg.norm(center)
         tilt = normal_angle(fit.ring.normal_C, head_on)
@@ -930,7 +1123,7 @@ class EllipseEstimator:
                 R = turn @ fit.X_CT.R
                 X0 = Pose(R, center - R @ self.outer.center_T)
                 cov0 = covariance_at(sets, fit.result, X0, self.camera.K, points=fit.holes)
-                sigma0 = _normal_sigma(_five_from_six(cov0, X0, self.outer), weak=True)
+                sigma0 = _normal_sigma(circle_covariance_from_pose(cov0, X0, self.outer), weak=True)
             else:
                 cov0 = covariance_at(
                     sets,
@@ -953,21 +1146,31 @@ class EllipseEstimator:
         frame: Frame,
         status: str,
         fit: _Fit,
-        ambiguous: bool,
+        choice: tuple[bool, bool, CirclePose | None],
         prior: Pose | None,
         extracted: list[ExtractedEllipse],
         started: float,
     ) -> Measurement:
         """5-DOF always (the ring's centre and normal); 6-DOF ``X_CT`` when the thruster was
-        found; otherwise a full-pose hint with the roll carried over from the prior."""
+        found; otherwise a full-pose hint with the roll carried over from the prior. ``choice``:
+        (ambiguous, from_prior, the ring's other pose when either)."""
+        ambiguous, from_prior, alternative = choice
         inflation = self.settings.covariance_scale
         if fit.holes is None:  # (a fit with holes weighed its edge samples' correlation already)
             inflation *= _correlation_inflation(fit.sigma_px, fit.spacing_px)
         X_CT = covariance = hint = None
-        if fit.X_CT is not None:
+        if fit.X_CT is not None and fit.roll_known:
             X_CT = fit.X_CT
             covariance = self._honest_covariance(fit, inflation)
-            cov5 = _five_from_six(covariance, X_CT, self.outer)
+            cov5 = circle_covariance_from_pose(covariance, X_CT, self.outer)
+        elif fit.X_CT is not None:
+            # Tilt from the holes, roll only up to their pattern's symmetry: the circle is the
+            # measurement, the pose a hint (with the prior's roll among the pattern's turns).
+            cov5 = circle_covariance_from_pose(
+                self._honest_covariance(fit, inflation), fit.X_CT, self.outer
+            )
+            roll = roll_of(prior, fit.ring, self.outer) if prior is not None else 0.0
+            hint = pose_with_roll(fit.ring, self.outer, roll)
         else:
             cov5 = self._honest_covariance(fit, inflation)
             roll = roll_of(prior, fit.ring, self.outer) if prior is not None else 0.0
@@ -990,6 +1193,9 @@ class EllipseEstimator:
             X_CT_hint=hint,
             residual_px=fit.result.rms_px,
             ambiguous=ambiguous,
+            from_prior=from_prior,
+            alternative_center_C=None if alternative is None else alternative.center_C,
+            alternative_normal_C=None if alternative is None else alternative.normal_C,
             features={
                 "extracted": _subsample(extracted_points, 400),
                 "labeled": _subsample(labeled, 160),
@@ -1003,12 +1209,14 @@ class EllipseEstimator:
 
 def _blank(gray: np.ndarray, noise: float) -> bool:
     """True when the frame holds nothing but noise: 16×16 block means vary no more than the
-    noise averaged over a block would make them."""
+    noise averaged over a block would make them (σ/16; their spread is measured over a
+    thousand blocks, so 1.5× that is far out of reach of noise alone — a dark target under a
+    low sun, 0.15 on black, is not blank)."""
     h, w = gray.shape
     if h < 32 or w < 32:
         return True
     blocks = cv2.resize(gray, (w // 16, h // 16), interpolation=cv2.INTER_AREA)
-    return float(blocks.std()) < max(3.0 * noise / 16.0, 0.004)
+    return float(blocks.std()) < max(1.5 * noise / 16.0, 0.004)
 
 
 def _joint_cost(result: FitResult, edge_sigmas: tuple[float, ...]) -> float:
@@ -1037,6 +1245,37 @@ def ring_hole_layout(target: TargetModel, outer: Circle3D, inner: Circle3D | Non
     return layout.select(on_face)
 
 
+def _rotationally_symmetric(holes: FeatureLayout, outer: Circle3D) -> bool:
+    """Whether a turn about the ring's axis (other than a full one) maps the holes onto
+    holes like them: their roll is then known only up to it."""
+    if len(holes.names) < 2:
+        return len(holes.names) == 1 and False
+    centre = outer.center_T
+    for k in range(2, len(holes.names) + 1):
+        turn = Pose.from_rotvec(outer.normal_T * 2 * np.pi / k, np.zeros(3))
+        moved = (holes.points_T - centre) @ turn.R.T + centre
+        match = np.linalg.norm(moved[:, None] - holes.points_T[None], axis=2) < 1e-3
+        same = (holes.brighter[:, None] == holes.brighter[None]) & (
+            np.abs(holes.radius_m[:, None] - holes.radius_m[None]) < 1e-4
+        )
+        if np.all(np.any(match & same, axis=1)):
+            return True
+    return False
+
+
+def _ring_foot(target: TargetModel, outer: Circle3D, inner: Circle3D | None) -> Circle3D | None:
+    """Where the bore's wall meets the face behind the ring: the inner circle moved back to
+    the face's plane (the outline's), or None when the model does not say where that is."""
+    if inner is None or target.outline_corners_T is None:
+        return None
+    depth = float((target.outline_corners_T.mean(axis=0) - inner.center_T) @ inner.normal_T)
+    if depth >= -1e-4:
+        return None
+    return Circle3D(
+        "ring_foot", inner.center_T + depth * inner.normal_T, inner.normal_T, inner.radius
+    )
+
+
 def _coaxial(circle: Circle3D, reference: Circle3D) -> bool:
     """True when ``circle`` shares the reference's axis (parallel normal, centre on the axis):
     such circles are fixed by the 5-DOF pose; others need the roll."""
@@ -1062,22 +1301,6 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.eye(3)  # (b = −a does not occur here: both face the camera)
     vx = skew(v)
     return np.eye(3) + vx + vx @ vx / (1.0 + c)
-
-
-def _five_from_six(covariance: np.ndarray, X_CT: Pose, circle: Circle3D) -> np.ndarray:
-    """5×5 covariance of a circle's (centre, normal) from the 6×6 covariance of X_CT.
-
-    With R_true = Exp(δθ)·R and p_true = p + δp: δc = δp − [R·c_T]ₓ·δθ and δn = δθ × n, whose
-    components on (u, v) = circle_plane_basis(n) are (α, β)."""
-    n = X_CT.R @ circle.normal_T
-    u, v = circle_plane_basis(n)
-    J = np.zeros((5, 6))
-    J[:3, :3] = -skew(X_CT.R @ circle.center_T)
-    J[:3, 3:] = np.eye(3)
-    J[3, :3] = u @ -skew(n)  # δθ × n = −[n]ₓ δθ
-    J[4, :3] = v @ -skew(n)
-    out = J @ covariance @ J.T
-    return 0.5 * (out + out.T)
 
 
 def _correlation_inflation(sigma_px: float, spacing_px: float) -> float:

@@ -34,7 +34,16 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from estimators.acquisition import TurnChecker, coarse_gradients, pose_hypotheses
+from estimators.acquisition import (
+    TurnChecker,
+    coarse_gradients,
+    judge_flip,
+    judge_turn,
+    pose_hypotheses,
+    roll_free_measurement,
+    turn_axis_circle,
+    warn_if_roll_ambiguous,
+)
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
@@ -109,7 +118,7 @@ class LineOptions:
     tilt_change_deg: float = 2.0
     edge_point_floor_px: float = 0.03
     edge_offset_sigma_px: float = 0.08
-    edge_offset_noise_ratio: float = 0.4
+    edge_offset_noise_ratio: float = 0.1
     edge_turn_sigma_px: float = 0.05
     covariance_scale: float = 1.0
 
@@ -140,6 +149,8 @@ class _Solution:
     edge_points: np.ndarray  # (M,2) image px
     corners_uv: np.ndarray  # (4,2) image px
     reason: str = ""
+    roll_undecided: bool = False  # no part in view tells the panel's quarter turns apart
+    from_prior: bool = False  # ... and the turn was kept from the prior
 
 
 #: A joint fit is taken as found when it used this share of the outline's strips in view.
@@ -162,6 +173,25 @@ class _Joint:
     def good(self) -> bool:
         """Most of the outline in view was found and used."""
         return self.outline.points >= _GOOD_OUTLINE_SHARE * self.outline.expected
+
+
+def _outline_turns(target: TargetModel, turns: tuple[Pose, ...]) -> list[int]:
+    """The panel's quarter turns under which the face's outline lands differently (only 0
+    for a square face centred on the panel's axis; 0 and 1 for a centred rectangle)."""
+    outline = target.outline_corners_T
+    if outline is None:
+        return [0]
+    distinct: list[int] = []
+    seen: list[np.ndarray] = []
+    for k, turn in enumerate(turns):
+        moved = turn.apply(outline)
+        if not any(
+            np.max(np.min(np.linalg.norm(moved[:, None] - other[None], axis=2), axis=1)) < 0.01
+            for other in seen
+        ):
+            distinct.append(k)
+            seen.append(moved)
+    return distinct
 
 
 def _polarity(target: TargetModel) -> float:
@@ -188,7 +218,10 @@ class LineEstimator:
             target.circle("ring_inner").radius if target.has_circle("ring_inner") else math.inf
         )
         self.turns = TurnChecker(target, self.support)
+        self.axis_circle = turn_axis_circle(target)
+        warn_if_roll_ambiguous(SYSTEM, target, self.turns)
         self._outline_ends = outline_edge_ends(target) if options.use_outline else None
+        self._outline_turns = _outline_turns(target, self.turns.turns)
         self._panel_ends = panel_edge_ends(target)
         # Parts that may stand in front of the outline's edges (fasteners, circles and their
         # feet on the face): their images are masked out of the outline's edge fits.
@@ -230,22 +263,12 @@ class LineEstimator:
         )
 
     def _measurement(self, frame: Frame, s: _Solution, status: str, started: float) -> Measurement:
-        return Measurement(
-            system=SYSTEM,
-            status=status,  # type: ignore[arg-type]
-            stamp=frame.stamp,
-            seq=frame.seq,
-            X_CT=s.X_CT,
-            covariance=s.covariance,
-            residual_px=s.rms_px,
-            ambiguous=s.ambiguous,
-            features={
-                "extracted": s.segments.reshape(-1, 2),
-                "labeled": s.edge_points,
-                "corners": s.corners_uv,
-            },
-            time_ms=1000.0 * (time.perf_counter() - started),
-        )
+        features = {
+            "extracted": s.segments.reshape(-1, 2),
+            "labeled": s.edge_points,
+            "corners": s.corners_uv,
+        }
+        return roll_free_measurement(SYSTEM, frame, s, status, self.axis_circle, started, features)
 
     @staticmethod
     def _failure(reason: str, segments: np.ndarray | None = None) -> _Solution:
@@ -396,6 +419,7 @@ class LineEstimator:
         X0: Pose,
         *,
         tracking: bool,
+        retry: bool = True,
     ) -> _Solution:
         options = self.options
         strips = strips_from_pose(X0, self.camera, self.target, options.strip_px)
@@ -426,6 +450,7 @@ class LineEstimator:
             keep=self._keep_mask(X0),
             fallback=strips,  # a wrong segment must not hide an edge the prior predicts
             fallback_search_px=min(gate_px, 2.0 * options.band_px),
+            noise_sigma=image.clip_sigma,
         )
         if not edges.all_found:
             missing = [i for i, e in enumerate(edges.edges) if not e.found]
@@ -440,7 +465,10 @@ class LineEstimator:
             choice, outline = panel, None
         fit = choice.fit
         support = self.support.score(gradients, fit.X_CT)
-        ambiguous = choice.ambiguous
+        # The planar flip: decided by the residuals, or taken from the prior (a lock only if
+        # the prior's was decided: the Tracker knows), or undecided.
+        ambiguous = choice.decided_by == "lower_residual"
+        from_prior = choice.decided_by == "prior"
         if not tracking and choice.ambiguous and choice.alternative is not None:
             # The residuals did not decide the planar flip: the ring, standing in front of the
             # panel, moves differently in the two poses — the whole model's support decides.
@@ -449,6 +477,16 @@ class LineEstimator:
                 fit, support = choice.alternative, other
         X = fit.X_CT
         reason = self._validate(fit.reduced_chi2, support)
+        roll_undecided = False
+        if not reason and not tracking:
+            # Without the outline the panel's edges alone may favour the wrong flip (a small
+            # or faint panel, an edge partly on clutter) even decisively: the whole model
+            # judges the pose against its flip.
+            flip, flipped = judge_flip(self.support, gradients, X, self.target, fit.covariance)
+            if flip == "other" and retry:
+                return self._solve(image, gradients, flipped, tracking=False, retry=False)
+            if flip != "kept":
+                ambiguous = True
         if not reason:
             # The square panel looks the same after a quarter turn: the model's asymmetric
             # parts (the thruster) decide — in tracking too, so that a wrong lock cannot last.
@@ -457,17 +495,33 @@ class LineEstimator:
             # — unless the outline fixed the tilt (then a search only lets noise compete).
             rough = not tracking and outline is None
             turn = self.turns.check(gradients, X, search_px=6.0 if rough else 0.0)
-            if turn.best != 0 and turn.margin >= options.turn_margin:
+            # The hypothesis came with its turn already chosen (on smoother gradients, from the
+            # quad): confirming it needs less margin than overturning it. Undecided (nothing
+            # asymmetric in view, or too faint): in tracking the turn is the prior's (a lock
+            # only if the prior's was decided: the Tracker knows); without a prior the pose is
+            # reported without its roll.
+            judged = judge_turn(turn, options.turn_margin, options.confirm_margin)
+            if judged == "other":
                 if tracking:
                     reason = "a quarter turn of the pose fits the image better"
+                elif retry:
+                    # Measured again from the turned pose: a face that is not square, fitted
+                    # at the wrong turn, does not fit at the right one.
+                    return self._solve(
+                        image,
+                        gradients,
+                        X @ self.turns.turns[turn.best],
+                        tracking=False,
+                        retry=False,
+                    )
                 else:
-                    X = X @ self.turns.turns[turn.best]
-                    support = self.support.score(gradients, X)
-            elif not tracking and self.turns.decidable:
-                # The hypothesis came with its turn already chosen (on smoother gradients, from
-                # the quad): confirming it needs less margin than overturning it.
-                needed = options.confirm_margin if turn.best == 0 else options.turn_margin
-                if not turn.margin >= needed:
+                    reason = "a quarter turn of the pose fits the image better"
+            elif judged == "undecided":
+                if tracking:
+                    from_prior = True
+                elif self.axis_circle is not None:
+                    roll_undecided = True
+                else:
                     reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
         corners_image = self.camera.project(X.apply(self.target.panel_corners_T))
         points = edges.image_points()
@@ -482,6 +536,8 @@ class LineEstimator:
             points,
             corners_image,
             reason,
+            roll_undecided,
+            from_prior,
         )
 
     def _observations(
@@ -502,9 +558,12 @@ class LineEstimator:
         # A floor under each point's σ: the edge's fine shape departs from a straight step by a
         # few hundredths of a pixel (rendering, relief) even where the noise is nil.
         sigma = np.hypot(sigma, options.edge_point_floor_px)
-        # Each edge's common offset: a part of its own (pixel quantisation, a plate's side
-        # wall) and a part that grows with the noise (clipped noise at a dark side shifts the
-        # step) — in proportion to the edge's point σ, which carries noise over contrast.
+        # Each edge's common offset: a part of its own (pixel quantisation) and a small part
+        # that grows with the noise, in proportion to the edge's point σ (noise over contrast).
+        # The noise part was 0.4 σ while clipped noise shifted steps toward the bright side
+        # and the plate's side walls were not modelled; both are now (the clipped likelihood,
+        # the side's width in the strips), and 0.1 σ keeps the NEES at its χ² interval
+        # (tests/hil/evaluation/test_documented_accuracy.py).
         typical = np.full(len(ends), np.inf)
         for e in np.unique(index):
             typical[e] = float(np.median(sigma[index == e]))
@@ -574,15 +633,30 @@ class LineEstimator:
         )
         prior = X0 if tracking else None
         predictions = [fit.X_CT] + ([X_tilt] if X_tilt is not None and not tracking else [])
-        for X_pred in predictions:
+        if not tracking:
+            # Which of the outline's edges is which depends on the panel's quarter turn, still
+            # undecided here when the face is not square: each distinct turn predicts it (with
+            # the panel's edges measured again under that turn's labels), and the one that
+            # explains more of the outline wins — a single edge fitted as the wrong one drags
+            # the tilt by degrees.
+            predictions = [(X, edges) for X in predictions]
+            for k in self._outline_turns[1:]:
+                turned = fit.X_CT @ self.turns.turns[k]
+                relabeled = self._panel_edges_at(image, turned)
+                if relabeled is not None:
+                    predictions.append((turned, relabeled))
+        else:
+            predictions = [(X, edges) for X in predictions]
+        for X_pred, panel_edges in predictions:
             corners = self._outline_image(X_pred)
             if any(np.max(np.abs(corners - c)) < 2.0 for c in tried):
                 continue
             tried.append(corners)
-            joint = self._joint_fit(image, edges, X_pred, fit.covariance, flip, prior)
+            starts = flip if panel_edges is edges else []
+            joint = self._joint_fit(image, panel_edges, X_pred, fit.covariance, starts, prior)
             if joint is not None and (best is None or joint.points > best.points):
                 best = joint
-            if best is not None and best.good:
+            if best is not None and best.good and len(self._outline_turns) == 1:
                 break
         return best
 
@@ -649,6 +723,7 @@ class LineEstimator:
                 max_search_px=options.max_outline_search_px,
                 max_strips=options.outline_strips,
                 keep=self._outline_keep(X_pred),
+                noise_sigma=image.clip_sigma,
             )
             joint = None
             while outline.found:
@@ -699,6 +774,7 @@ class LineEstimator:
             min_contrast_snr=self.options.min_contrast_snr,
             polarity=self.polarity,
             keep=self._keep_mask(X_CT),
+            noise_sigma=image.clip_sigma,
         )
         return edges if edges.all_found else None
 
@@ -747,8 +823,13 @@ class LineEstimator:
         if len(panel) < 4 or min(panel) < options.min_edge_support:
             weakest = min(panel) if panel else float("nan")
             return f"a reprojected panel edge has no edge support (z {weakest:.1f})"
+        # Another part of the mock-up (ring, outline, thruster) must confirm the panel: a quad
+        # taken for the panel at a wrong scale (the face's outline as the panel) puts them
+        # all out of view.
         others = support.others()
-        if others and max(others.values()) < options.min_edge_support:
+        if not others:
+            return "no other part of the mock-up in view to confirm the panel"
+        if max(others.values()) < options.min_edge_support:
             return "the reprojected ring/thruster have no edge support"
         return ""
 

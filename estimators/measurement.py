@@ -8,19 +8,35 @@ Covariance conventions (used by fusion; estimators must follow them):
 * 5-DOF ``covariance_5dof`` (5×5) is over [δc, α, β] of a circle's centre ``center_C`` (m, in C)
   and unit normal ``normal_C``: n_true ≈ n_est + α·u + β·v with (u, v) =
   ``estimators.conics.circle_plane_basis(normal_C)``.
+
+Ambiguity (issue 13). Some targets look the same in two or more poses: a lone circle in its
+two closed-form poses (its mirror), a square panel under its quarter turns. A measurement says
+what the frame decided and what it did not:
+
+* ``ambiguous``: the frame could not tell the answer from another pose, and nothing else did;
+  ``alternative_center_C`` / ``alternative_normal_C`` carry a circle's other pose.
+* ``from_prior``: the frame could not decide, and the answer took the pose nearer the prior.
+  That is evidence only if the prior itself was decided: the ``Tracker`` keeps whether it was
+  and, when it was not, reports the answer as undecided (ambiguous, or 5-DOF without the roll
+  that nothing measured) — a guess carried from frame to frame never becomes a lock.
+* A pose whose roll no part in view can decide (a square panel with nothing asymmetric in
+  sight) comes as 5-DOF: the circle of the ring about the panel's axis, centre and normal,
+  with the pose (any roll) as ``X_CT_hint``.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
 
+from estimators.conics import circle_plane_basis
 from estimators.frame import Frame
-from estimators.geometry import Pose
+from estimators.geometry import Pose, skew
+from estimators.target import Circle3D
 
 Status = Literal["acquired", "tracking", "lost"]
 SYSTEMS = ("corners", "lines", "ellipses")
@@ -47,7 +63,8 @@ class Measurement:
     ``center_C`` + ``normal_C`` (5-DOF circle pose of ``circle``). ``X_CT_hint`` is a full pose
     an estimator proposes as the next prior when it measured only 5 DOF (roll not measured).
     ``features`` holds image points for overlays and logs (name → (N,2) pixels), e.g.
-    ``extracted``, ``labeled``, ``reprojected``.
+    ``extracted``, ``labeled``, ``reprojected``. ``ambiguous``, ``from_prior`` and the
+    circle's ``alternative_*`` pose: see the module docstring.
     """
 
     system: str
@@ -66,6 +83,9 @@ class Measurement:
     ambiguous: bool = False
     features: Mapping[str, np.ndarray] = field(default_factory=dict)
     time_ms: float = 0.0
+    from_prior: bool = False
+    alternative_center_C: np.ndarray | None = None
+    alternative_normal_C: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.status not in ("acquired", "tracking", "lost"):
@@ -78,6 +98,12 @@ class Measurement:
         object.__setattr__(
             self, "covariance_5dof", _readonly(self.covariance_5dof, (5, 5), "covariance_5dof")
         )
+        for name in ("alternative_center_C", "alternative_normal_C"):
+            object.__setattr__(self, name, _readonly(getattr(self, name), (3,), name))
+        if (self.alternative_center_C is None) != (self.alternative_normal_C is None):
+            raise ValueError("Measurement.alternative_center_C and _normal_C go together")
+        if self.alternative_center_C is not None and self.center_C is None:
+            raise ValueError("a circle's alternative pose needs the circle (center_C, normal_C)")
         if self.status == "lost":
             if not self.reason:
                 raise ValueError("a lost Measurement must say why (reason)")
@@ -129,6 +155,9 @@ class Measurement:
             "residual_px": None if not np.isfinite(self.residual_px) else float(self.residual_px),
             "ambiguous": self.ambiguous,
             "time_ms": self.time_ms,
+            "from_prior": self.from_prior,
+            "alternative_center_C": listed(self.alternative_center_C),
+            "alternative_normal_C": listed(self.alternative_normal_C),
         }
         if with_features:
             out["features"] = {k: np.asarray(v).tolist() for k, v in self.features.items()}
@@ -159,6 +188,9 @@ class Measurement:
             ambiguous=bool(record.get("ambiguous", False)),
             features={k: np.asarray(v, dtype=float) for k, v in record.get("features", {}).items()},
             time_ms=float(record.get("time_ms") or 0.0),
+            from_prior=bool(record.get("from_prior", False)),
+            alternative_center_C=record.get("alternative_center_C"),
+            alternative_normal_C=record.get("alternative_normal_C"),
         )
 
     @staticmethod
@@ -183,6 +215,41 @@ class Measurement:
         )
 
 
+def circle_covariance_from_pose(covariance: np.ndarray, X_CT: Pose, circle: Circle3D) -> np.ndarray:
+    """5×5 covariance of a circle's (centre, normal) from the 6×6 covariance of ``X_CT``.
+
+    With R_true = Exp(δθ)·R and p_true = p + δp: δc = δp − [R·c_T]ₓ·δθ and δn = δθ × n, whose
+    components on (u, v) = circle_plane_basis(n) are (α, β)."""
+    n = X_CT.R @ circle.normal_T
+    u, v = circle_plane_basis(n)
+    J = np.zeros((5, 6))
+    J[:3, :3] = -skew(X_CT.R @ circle.center_T)
+    J[:3, 3:] = np.eye(3)
+    J[3, :3] = u @ -skew(n)  # δθ × n = −[n]ₓ δθ
+    J[4, :3] = v @ -skew(n)
+    out = J @ covariance @ J.T
+    return 0.5 * (out + out.T)
+
+
+def circle_of_pose(
+    X_CT: Pose, covariance: np.ndarray, circle: Circle3D
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(centre_C, normal_C, 5×5 covariance) of a model circle under a 6-DOF pose."""
+    return (
+        X_CT.apply(circle.center_T[None])[0],
+        X_CT.R @ circle.normal_T,
+        circle_covariance_from_pose(covariance, X_CT, circle),
+    )
+
+
+def without_roll(m: Measurement) -> Measurement:
+    """The 5-DOF part of a measurement that carries both a pose and its circle: the roll
+    about the circle's axis is dropped (``X_CT`` becomes the hint)."""
+    if m.X_CT is None or m.center_C is None:
+        raise ValueError("without_roll needs a measurement with a pose and its circle")
+    return replace(m, X_CT=None, covariance=None, X_CT_hint=m.X_CT, from_prior=False)
+
+
 @runtime_checkable
 class Estimator(Protocol):
     """A FEDALPE pose estimator: a pure function of (frame, prior) given its configuration.
@@ -201,14 +268,22 @@ class Tracker:
 
     The prior is the last valid measurement's pose. A lost frame drops it at once, so the next
     frame is searched globally: a lost system re-acquires by itself.
+
+    It also carries what the last measurement decided: its roll (a 6-DOF pose, not ambiguous)
+    and its circle (which of the two poses). An answer that took the undecided part from the
+    prior (``from_prior``) is reported as what it is when the prior had not decided it either:
+    a pose without its roll (5-DOF), or an ambiguous circle.
     """
 
     def __init__(self, estimator: Estimator):
         self.estimator = estimator
         self.prior_X_CT: Pose | None = None
+        self.roll_decided = False
+        self.circle_decided = False
 
     def reset(self) -> None:
         self.prior_X_CT = None
+        self.roll_decided = self.circle_decided = False
 
     def update(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
         """Estimate on ``frame`` with the given prior (e.g. from fusion) or the tracker's own."""
@@ -219,5 +294,24 @@ class Tracker:
             measurement = Measurement.lost(
                 self.estimator.system, frame, f"estimator raised {type(exc).__name__}: {exc}"
             )
+        if measurement.valid and measurement.from_prior:
+            measurement = self._honest(measurement)
         self.prior_X_CT = measurement.prior if measurement.valid else None
+        self.roll_decided = (
+            measurement.valid and measurement.X_CT is not None and not measurement.ambiguous
+        )
+        self.circle_decided = measurement.valid and not measurement.ambiguous
         return measurement
+
+    def _honest(self, m: Measurement) -> Measurement:
+        """A measurement that took its undecided part from a prior that had not decided it:
+        an undecided normal (a circle's mirror, a plate's planar flip) stays ambiguous; a roll
+        kept from a prior that had none is dropped (5-DOF) — or flagged when there is no
+        circle to keep."""
+        if not self.circle_decided:
+            return replace(m, ambiguous=True)
+        if m.X_CT is not None and not self.roll_decided:
+            if m.center_C is not None:
+                return without_roll(m)
+            return replace(m, ambiguous=True)
+        return m

@@ -162,13 +162,15 @@ class ModelSupport:
         the disc layout does — parts that cannot tell ``X_CT`` from ``X_CT @ turn``."""
         symmetric = set()
         for i, name in enumerate(self.names):
-            moved = turn.apply(self.points_T[self.contour_of == i])
+            own = self.points_T[self.contour_of == i]
+            moved = turn.apply(own)
             gap = np.min(
                 np.linalg.norm(moved[:, None, :] - self.points_T[None, :, :], axis=2), axis=1
             )
-            if np.max(gap) < tolerance_m + 0.05 * np.max(
-                np.linalg.norm(np.diff(self.points_T, axis=0), axis=1)
-            ):
+            # Within half the contour's own sample spacing of a model sample: a face 5 cm
+            # longer than wide is not symmetric under a quarter turn.
+            spacing = float(np.max(np.linalg.norm(np.diff(own, axis=0), axis=1)))
+            if np.max(gap) < tolerance_m + 0.5 * spacing:
                 symmetric.add(name)
         discs_symmetric = True
         if len(self.disc_centres_T):
@@ -253,27 +255,53 @@ class ModelSupport:
         """z-score of Σ sign·(disc centre − ring around it) over the discs in view."""
         if len(self.disc_centres_T) == 0:
             return math.nan
-        uv, visible = self._project(X_CT, self.disc_centres_T, 6.0 + shift_px)
-        if visible.sum() < 2:
-            return math.nan
-        depth = X_CT.apply(self.disc_centres_T[visible])[:, 2]
-        radius_px = np.maximum(self.disc_radius_m[visible] * self.camera.K[0, 0] / depth, 0.5)
-        signs = self.disc_signs[visible]
+        best = -math.inf
+        for z in self._disc_responses(gradients, X_CT, np.arange(len(self.disc_signs)), shift_px):
+            seen = z[np.isfinite(z)]
+            if len(seen) >= 2:
+                best = max(best, float(seen.sum() / math.sqrt(len(seen))))
+        return best if math.isfinite(best) else math.nan
+
+    def disc_responses(
+        self, gradients: GradientImage, X_CT: Pose, discs: np.ndarray, *, shift_px: float = 0.0
+    ) -> np.ndarray:
+        """Each disc's (indices ``discs`` into the model's discs) polarity response at
+        ``X_CT`` as a z-score (NaN out of view): sign·(centre − ring around it) over its noise,
+        at the common image offset within ±``shift_px`` that makes their sum largest."""
+        best, best_sum = np.full(len(discs), np.nan), -math.inf
+        for z in self._disc_responses(gradients, X_CT, np.asarray(discs, int), shift_px):
+            total = float(np.nansum(z))
+            if total > best_sum:
+                best, best_sum = z, total
+        return best
+
+    def _disc_responses(self, gradients, X_CT: Pose, discs: np.ndarray, shift_px: float):
+        """Per-disc z-scores (NaN out of view) at each trial offset within ±``shift_px``."""
+        centres = self.disc_centres_T[discs]
+        uv, visible = self._project(X_CT, centres, 6.0 + shift_px)
+        if not np.any(visible):
+            return [np.full(len(discs), np.nan)]
+        depth = X_CT.apply(centres[visible])[:, 2]
+        radius_px = np.maximum(
+            self.disc_radius_m[discs][visible] * self.camera.K[0, 0] / depth, 0.5
+        )
+        signs = self.disc_signs[discs][visible]
         angles = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
         ring_offsets = (2.2 * radius_px + 1.0)[:, None, None] * np.stack(
             [np.cos(angles), np.sin(angles)], axis=1
         )
-        best = -math.inf
         shifts = [(0.0, 0.0)]
         if shift_px > 0:
             steps = (-0.5 * shift_px, 0.0, 0.5 * shift_px)
             shifts = [(dx, dy) for dx in steps for dy in steps]
+        out = []
         for dx, dy in shifts:
             centre = uv[visible] + np.array([dx, dy])
             inner = gradients.sample(centre)
             ring = gradients.sample((centre[:, None, :] + ring_offsets).reshape(-1, 2))
             difference = signs * (inner - ring.reshape(-1, 8).mean(axis=1))
             # Noise of one smoothed sample minus the mean of eight: σ_s·√(1 + 1/8).
-            z = difference.sum() / (gradients.noise_sigma * math.sqrt(len(difference) * 1.125))
-            best = max(best, float(z))
-        return best
+            z = np.full(len(discs), np.nan)
+            z[visible] = difference / (gradients.noise_sigma * math.sqrt(1.125))
+            out.append(z)
+        return out

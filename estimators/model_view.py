@@ -37,3 +37,19 @@ def plane_coordinates(uv: np.ndarray, X_CT: Pose, camera: CameraInfo, z_T: float
         s = (z_T - o[2]) / d[:, 2]
     s = np.where(s > 0, s, np.nan)
     return o[:2] + s[:, None] * d[:, :2]
+
+
+def head_extrusion(
+    X_CT: Pose, points_T: np.ndarray, height_m: np.ndarray, camera: CameraInfo
+) -> np.ndarray:
+    """Image vectors (N,2 px) from the top centre of each head (N,3, in T) to its base, the
+    head standing ``height_m`` (N,) proud of a surface parallel to T's xy plane — how far its
+    wall shows beside its top (0 for a flat disc)."""
+    points = as_points(points_T, 3, "points_T")
+    height = np.broadcast_to(np.asarray(height_m, dtype=float), (len(points),))
+    out = np.zeros((len(points), 2))
+    raised = height > 0
+    if np.any(raised):
+        base = points[raised] - np.outer(height[raised], [0.0, 0.0, 1.0])
+        out[raised] = camera.project(X_CT.apply(base)) - camera.project(X_CT.apply(points[raised]))
+    return out

@@ -149,6 +149,7 @@ def fit_outline_edges(
     max_search_px: float = 20.0,
     max_strips: int = 20,
     keep: Callable[[np.ndarray], np.ndarray] | None = None,
+    noise_sigma: float = 0.0,
 ) -> OutlineEdges:
     """Find the visible outline edges near their projection under ``X_CT`` (covariance 6×6
     over [δθ, δp]; see module docstring). Edges with less than ``min_length_px`` in view are
@@ -181,7 +182,11 @@ def fit_outline_edges(
         sigma = predicted_offset_sigma_px(X_CT, covariance, strips, camera)
         search = float(np.clip(4.0 * sigma + 2.0, 2.0, max_search_px))
         settings = dict(
-            half_width_px=band_px, min_contrast_snr=min_contrast_snr, polarity=0.0, keep=keep
+            half_width_px=band_px,
+            min_contrast_snr=min_contrast_snr,
+            polarity=0.0,
+            keep=keep,
+            noise_sigma=noise_sigma,
         )
         if search <= _NARROW_PX:
             # The prediction is good to a pixel or two: the step fits search that far alone.

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -46,12 +46,14 @@ def panel_edge_ends(target: TargetModel) -> np.ndarray:
 class EdgeStrips:
     """Where to look for one edge: strip centres (K,2 px) on the predicted edge, unit normals
     (K,2) toward the panel's inside, the strips' half length (px), and — when predicted from
-    a pose — the model points (K,3, in T) the centres are images of."""
+    a pose — the model points (K,3, in T) the centres are images of and the width (K, px) of
+    the panel's side showing just outside the edge (0 where it faces away)."""
 
     centers_uv: np.ndarray
     normals: np.ndarray
     half_length_px: float
     points_T: np.ndarray | None = None
+    wall_px: np.ndarray | None = None
 
 
 def strip_count(length_px: float, strip_px: float) -> int:
@@ -62,7 +64,8 @@ def strip_count(length_px: float, strip_px: float) -> int:
 def strips_from_pose(
     X_CT: Pose, camera: CameraInfo, target: TargetModel, strip_px: float
 ) -> list[EdgeStrips] | None:
-    """Strips along the four projected panel edges (None if the panel is not in view)."""
+    """Strips along the four projected panel edges (None if the panel is not in view), with
+    the width of the panel's side showing beside each (``side_wall_px``)."""
     corners = target.panel_corners_T
     if not np.all(camera.in_view(X_CT.apply(corners), margin_px=1.0)):
         return None
@@ -72,8 +75,27 @@ def strips_from_pose(
         strip = strips_along_edge(X_CT, camera, corners[i], corners[(i + 1) % 4], centre, strip_px)
         if strip is None:
             return None
-        strips.append(strip)
+        wall = side_wall_px(X_CT, camera, target, strip)
+        strips.append(replace(strip, wall_px=wall))
     return strips
+
+
+def side_wall_px(
+    X_CT: Pose, camera: CameraInfo, target: TargetModel, strips: EdgeStrips
+) -> np.ndarray | None:
+    """Width (K, px) of the panel's side showing outside its edge at each strip: the image
+    offset, outward across the edge, of the side's foot on the face behind (``panel_thickness``
+    back along the panel's normal) from the front edge; 0 where the side faces away (its
+    image then lies under the panel's front). None without model points or thickness."""
+    if strips.points_T is None or target.panel_thickness <= 0:
+        return None
+    corners = target.panel_corners_T
+    normal = np.cross(corners[1] - corners[0], corners[2] - corners[1])
+    normal /= np.linalg.norm(normal)
+    front = camera.project(X_CT.apply(strips.points_T))
+    foot = camera.project(X_CT.apply(strips.points_T - target.panel_thickness * normal))
+    outward = -np.sum((foot - front) * strips.normals, axis=1)
+    return np.maximum(outward, 0.0)
 
 
 #: Samples along a model edge when looking for its part in view.
@@ -206,6 +228,7 @@ def shift_strips(strips: EdgeStrips, shift_px: np.ndarray) -> EdgeStrips:
         strips.centers_uv + np.asarray(shift_px, dtype=float)[:, None] * strips.normals,
         strips.normals,
         strips.half_length_px,
+        wall_px=strips.wall_px,  # a shift of a few pixels leaves the side's width as it was
     )
 
 
@@ -257,11 +280,13 @@ def fit_edge(
     min_contrast_snr: float = 3.5,
     polarity: float = 1.0,
     keep: Callable[[np.ndarray], np.ndarray] | None = None,
+    noise_sigma: float = 0.0,
 ) -> FittedEdge:
     """One straight edge from its strips: step-edge points (``estimators.edge_fit``) converted
     to ideal pixels, and a robust line through them. Found when the grey levels differ with
     ``polarity`` (+1: brighter on the normals' side, −1: darker, 0: either) by
-    ``min_contrast_snr`` standard deviations and the line has at least three inliers."""
+    ``min_contrast_snr`` standard deviations and the line has at least three inliers.
+    ``noise_sigma``: the image noise, for the model of clipped pixels."""
     points = fit_edge_points(
         pixels,
         strip.centers_uv,
@@ -270,6 +295,8 @@ def fit_edge(
         half_width_px,
         search_px=search_px,
         keep=keep,
+        noise_sigma=noise_sigma,
+        wall_px=strip.wall_px,
     )
     ok = np.flatnonzero(points.ok)
     empty = FittedEdge(points, np.zeros((0, 2)), np.zeros(0), None, np.zeros(0, int))
@@ -317,6 +344,7 @@ def fit_panel_edges(
     keep: Callable[[np.ndarray], np.ndarray] | None = None,
     fallback: list[EdgeStrips] | None = None,
     fallback_search_px: float = 4.0,
+    noise_sigma: float = 0.0,
 ) -> PanelEdges:
     """Fit the four edges from their strips (``search_px`` per edge or for all). An edge
     counts as found when its grey levels differ with the model's polarity (+1: the panel is
@@ -331,6 +359,7 @@ def fit_panel_edges(
             min_contrast_snr=min_contrast_snr,
             polarity=polarity,
             keep=keep,
+            noise_sigma=noise_sigma,
         )
         edge = fit_edge(pixels, strip, camera, search_px=searches[i], **settings)
         if not edge.found and fallback is not None:

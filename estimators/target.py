@@ -26,7 +26,9 @@ def _frozen_vector(values: np.ndarray, size: int, name: str) -> np.ndarray:
 class PointFeature:
     """A point feature: a panel corner, or the centre of a bolt head/hole disc.
 
-    ``brighter`` says whether the feature is brighter than the surface around it.
+    ``brighter`` says whether the feature is brighter than the surface around it. A disc's
+    ``p_T`` is the centre of its top; ``height`` (m) is how far it stands proud of its surface
+    (along T's z), so that its wall may show beside it.
     """
 
     name: str
@@ -34,6 +36,7 @@ class PointFeature:
     diameter: float
     kind: Literal["corner", "disc"]
     brighter: bool
+    height: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "p_T", _frozen_vector(self.p_T, 3, f"{self.name}.p_T"))
@@ -70,6 +73,9 @@ class TargetModel:
     ``thruster_exit`` and ``thruster_inner``. ``outline_corners_T`` (4,3), optional: the
     corners of the face the panel sits on (the mock-up's outline against the background), in
     the panel's corner order — a large, high-contrast rectangle that helps find the target.
+    ``panel_thickness`` (m): how far the panel's front stands proud of the face behind it (its
+    sides show beside its edges when seen from the side). ``ring_brighter``: whether the
+    ring's front is brighter than the face around it (from the colours; None: not known).
     """
 
     name: str
@@ -77,6 +83,8 @@ class TargetModel:
     point_features: tuple[PointFeature, ...]
     circles: tuple[Circle3D, ...]
     outline_corners_T: np.ndarray | None = None
+    panel_thickness: float = 0.0
+    ring_brighter: bool | None = None
 
     def __post_init__(self) -> None:
         corners = np.array(self.panel_corners_T, dtype=float)

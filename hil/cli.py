@@ -95,7 +95,23 @@ Codec = _choices("Codec", CODEC_NAMES)
 CameraOpt = Annotated[
     str, typer.Option(help="Camera profile: a built-in name (reference, oak_d_rgb) or a YAML path.")
 ]
-MockupOpt = Annotated[str, typer.Option(help="Mock-up: 'default' or a YAML path.")]
+MockupOpt = Annotated[
+    str, typer.Option(help="Mock-up: 'default', a YAML path, or random:SEED (a random mock-up).")
+]
+MockupsOpt = Annotated[
+    str,
+    typer.Option(
+        help="Mock-up(s): 'default', a YAML path, random:SEED, random:A-B (one per seed) or a "
+        "comma list of these."
+    ),
+]
+LightOpt = Annotated[
+    str,
+    typer.Option(
+        "--light",
+        help="Light: default | harsh (a low side sun with shadows) | random (per mock-up).",
+    ),
+]
 NoiseOpt = Annotated[
     Noise,
     typer.Option(help="Image noise: reference variances 0 / 0.05 / 0.1, or the sensor model."),
@@ -349,7 +365,8 @@ def matrix(
     maneuver: Annotated[str, typer.Option(help="Comma-separated maneuvers, or 'all'.")] = "all",
     seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
     camera: CameraOpt = "reference",
-    mockup: MockupOpt = "default",
+    mockup: MockupsOpt = "default",
+    light: LightOpt = "default",
     blank: Annotated[
         str, typer.Option(help="Comma-separated frame indices replaced by blank frames.")
     ] = "",
@@ -368,13 +385,25 @@ def matrix(
     ] = False,
 ) -> None:
     """Run the reference study's test matrix against simulator ground truth and print the
-    per-case mean ± std of the errors beside the targets and the reference's numbers."""
+    per-case mean ± std of the errors beside the targets and the reference's numbers, the
+    estimators' biases and (with several mock-ups) a row per mock-up."""
     from dataclasses import asdict
 
+    from configuration.random_mockup import mockup_names
     from hil.analysis.campaigns.matrix_runs import run_matrix_campaign
-    from hil.evaluation.matrix import MatrixSpec, markdown_table, summarize
+    from hil.evaluation.matrix import (
+        MatrixSpec,
+        bias_table,
+        markdown_table,
+        mockup_table,
+        summarize,
+    )
     from hil.evaluation.scenarios import MANEUVERS
 
+    try:
+        names = mockup_names(mockup)
+    except ValueError as exc:
+        raise _fail(f"bad --mockup: {exc}") from None
     try:
         spec = MatrixSpec(
             systems=tuple(system),
@@ -388,7 +417,9 @@ def matrix(
             supersample=supersample,
             acquisition=acquisition,
             camera=camera,
-            mockup=mockup,
+            mockup=names[0],
+            mockups=tuple(names) if len(names) > 1 else (),
+            lighting=light,
             blank_frames=tuple(int(i) for i in blank.split(",") if i.strip()),
         )
     except ValueError as exc:
@@ -405,7 +436,9 @@ def matrix(
         )
     except (ValueError, NotImplementedError, ConfigError) as exc:
         raise _fail(str(exc)) from None
-    table = markdown_table(summarize(rows))
+    table = markdown_table(summarize(rows)) + "\n" + bias_table(rows)
+    if len(names) > 1:
+        table += "\n" + mockup_table(rows)
     out.print(table, markup=False, highlight=False, soft_wrap=True)
     if out_path is not None:
         with _writing(out_path, "--out"):
@@ -419,10 +452,14 @@ def matrix(
 @app.command("path")
 def approach_path(
     system: Annotated[str, typer.Option(help="Estimator: corners | lines | ellipses.")],
-    frames: Annotated[int, typer.Option(min=2, help="Frames from 2.5 m to 0.5 m.")] = 120,
+    frames: Annotated[int, typer.Option(min=2, help="Frames from the start to 0.5 m.")] = 120,
     noise: NoiseOpt = Noise.low,
     camera: CameraOpt = "reference",
-    mockup: MockupOpt = "default",
+    mockup: MockupsOpt = "default",
+    light: LightOpt = "default",
+    start_distance: Annotated[
+        float, typer.Option(min=0.6, max=6.0, help="Start distance (m).")
+    ] = 2.5,
     seed: Annotated[int, typer.Option(help="Noise seed.")] = 0,
     out_path: Annotated[
         Path | None, typer.Option("--out", help="Write the markdown tables here.")
@@ -430,30 +467,55 @@ def approach_path(
 ) -> None:
     """Open loop: one estimator tracks the target along a scripted approach path (2.5 m →
     0.5 m, re-centring an off-centre, rotated start); print errors by distance and by the
-    fraction of the ring in view. (The closed loop is `satgrasp approach`.)"""
-    from hil.evaluation.approach_path import markdown_approach, markdown_visible, run_approach
+    fraction of the ring in view, and count the frames that claim a pose beyond their own 3σ
+    without flagging it ambiguous. (The closed loop is `satgrasp approach`.)"""
+    from configuration.random_mockup import mockup_names
+    from hil.evaluation.approach_path import (
+        ApproachPath,
+        markdown_approach,
+        markdown_visible,
+        run_approach,
+    )
 
     if out_path is not None:
         _output_file(out_path, "--out")
     try:
-        results = run_approach(
-            system, frames=frames, noise=noise.value, camera=camera, mockup=mockup, seed=seed
-        )
+        names = mockup_names(mockup)
+        path = ApproachPath(start_distance_m=start_distance)
+        results = []
+        for name in names:
+            results += run_approach(
+                system,
+                frames=frames,
+                noise=noise.value,
+                camera=camera,
+                mockup=name,
+                seed=seed,
+                path=path,
+                lighting=light,
+            )
     except (ConfigError, ValueError, NotImplementedError) as exc:
         raise _fail(str(exc)) from None
+    bins = tuple(sorted({start_distance, 2.5, 2.0, 1.5, 1.0, 0.75, 0.6, 0.49}, reverse=True))
+    bins = tuple(b for b in bins if b <= start_distance)
     text = (
-        markdown_approach(results, (2.5, 2.0, 1.5, 1.0, 0.75, 0.6, 0.49))
+        markdown_approach(results, bins)
         + "\n"
         + markdown_visible(results, (1.01, 0.95, 0.9, 0.8, 0.7, 0.6, 0.5, 0.0))
     )
     lost = sum(r.status == "lost" for r in results)
+    firsts = {id(r) for r in results if r.index == 0}
+    later = [r for r in results if id(r) not in firsts]
     text += (
-        f"\n{len(results)} frames, {lost} lost, statuses after the first: "
+        f"\n{len(results)} frames ({len(names)} mock-up(s)), {lost} lost, statuses after the "
+        "first: "
         + ", ".join(
-            f"{s} {sum(r.status == s for r in results[1:])}"
-            for s in ("tracking", "acquired", "lost")
+            f"{s} {sum(r.status == s for r in later)}" for s in ("tracking", "acquired", "lost")
         )
-        + "\n"
+        + f"; flagged ambiguous {sum(r.ambiguous for r in results if r.status != 'lost')}"
+        + "; claiming a pose beyond its own 3σ without the flag: "
+        + f"{sum(r.overconfident for r in results)} "
+        + f"(tracking {sum(r.overconfident for r in results if r.status == 'tracking')})\n"
     )
     out.print(text, markup=False, highlight=False)
     if out_path is not None:

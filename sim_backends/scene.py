@@ -49,7 +49,7 @@ def mockup_parts(mockup: MockupConfig) -> list[_Part]:
             "centre_panel",
             None,
             (panel.side / 2, panel.side / 2, panel.thickness / 2),
-            (0.0, 0.0, z_bus + panel.thickness / 2),
+            (*panel.center, z_bus + panel.thickness / 2),
             panel.color,
         ),
         _Part(

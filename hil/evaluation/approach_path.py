@@ -3,7 +3,10 @@ front of the target while re-centring it from an off-centre, slightly rotated st
 
 Each frame is rendered with ground truth and fed to a ``Tracker`` (starting without a prior),
 so the run measures tracking continuity, errors along the way, and — for circle features —
-error against the fraction of the ring's circumference in view at close range.
+error against the fraction of the ring's circumference in view at close range. A frame is
+*over-confident* when it claims a pose (not flagged ambiguous) whose error lies beyond its own
+3σ (NEES above the 99.73 % χ² quantile): the measurement that would steer the arm off without
+warning (issue 13).
 """
 
 from __future__ import annotations
@@ -14,10 +17,12 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import chi2
 
 from configuration.camera import load_camera
 from configuration.mockup import MockupConfig, load_mockup
-from configuration.render import NoiseConfig, RenderConfig
+from configuration.random_mockup import is_random_name, named_lighting, seed_of
+from configuration.render import Lighting, NoiseConfig, RenderConfig
 from estimators.conics import circle_points
 from estimators.frame import CameraInfo, Frame, GroundTruth
 from estimators.geometry import Pose
@@ -64,6 +69,21 @@ class ApproachFrame:
     ring_visible: float  # fraction of the reference circle's circumference in view
     six_dof: bool
     time_ms: float
+    ambiguous: bool = False
+    mockup: str = ""
+
+    @property
+    def overconfident(self) -> bool:
+        """A valid, unflagged answer whose error lies beyond its own 3σ (see module docstring)."""
+        if self.status == "lost" or self.ambiguous:
+            return False
+        if self.six_dof:
+            return bool(self.error.nees_pose > THREE_SIGMA_NEES[6])
+        return bool(self.error.nees_circle > THREE_SIGMA_NEES[5])
+
+
+#: NEES beyond which an error lies outside its covariance's "3σ" (99.73 %) region.
+THREE_SIGMA_NEES = {dof: float(chi2.ppf(0.9973, dof)) for dof in (5, 6)}
 
 
 def circle_visible_fraction(X_CT: Pose, center_T, normal_T, radius: float, camera) -> float:
@@ -91,13 +111,15 @@ def render_approach(
     path: ApproachPath | None = None,
     seed: int = 0,
     fps: float = 30.0,
+    light: Lighting | None = None,
 ) -> Iterator[PathFrame]:
-    """Render the approach ``path`` in ``frames`` frames (seeded sensor noise), frame ``i``
-    stamped ``i / fps``."""
+    """Render the approach ``path`` in ``frames`` frames (seeded sensor noise) under
+    ``light`` (the default light when None), frame ``i`` stamped ``i / fps``."""
     path = path or ApproachPath()
     noise_config = NoiseConfig(preset=noise)
+    render = RenderConfig() if light is None else RenderConfig(lighting=light)
     with MockupScene(mockup_config) as scene:
-        renderer = PybulletRenderer(scene, info, RenderConfig())
+        renderer = PybulletRenderer(scene, info, render)
         for i in range(frames):
             distance, offset = path.offset(i / max(frames - 1, 1))
             X_WC, _ = camera_pose_for(distance, offset)
@@ -120,16 +142,19 @@ def run_approach(
     seed: int = 0,
     circle: str = "ring_outer",
     estimator_options: dict | None = None,
+    lighting: str = "default",
 ) -> list[ApproachFrame]:
-    """Track ``system`` along the approach; one result per frame."""
+    """Track ``system`` along the approach; one result per frame. ``lighting``: ``default``,
+    ``harsh`` or ``random`` (the mock-up's random light)."""
     info = load_camera(camera).camera_info()
     mockup_config = load_mockup(mockup)
     target = mockup_config.target_model()
     reference = target.circle(circle)
     tracker = Tracker(build_estimator(system, target, info, **(estimator_options or {})))
+    light = named_lighting(lighting, seed_of(mockup) if is_random_name(mockup) else seed)
     results = []
     for rendered in render_approach(
-        info, mockup_config, frames=frames, noise=noise, path=path, seed=seed
+        info, mockup_config, frames=frames, noise=noise, path=path, seed=seed, light=light
     ):
         m = tracker.update(rendered.frame)
         X_CT = rendered.frame.truth.X_CT
@@ -145,6 +170,8 @@ def run_approach(
                 ),
                 m.X_CT is not None,
                 m.time_ms,
+                m.ambiguous,
+                str(mockup),
             )
         )
     return results

@@ -31,7 +31,9 @@ class MeasurementError:
     ``center_m`` and ``normal_rad``. When both exist, ``roll_rad`` is the 6-DOF rotation error
     about the circle's normal. ``nees_pose`` and ``nees_circle`` are the normalised estimation
     errors squared under the measurement's own covariances (χ² with 6 and 5 degrees of freedom
-    when the covariances are honest).
+    when the covariances are honest). ``offset_C``: estimate minus truth (m, along the camera's
+    x, y, z) of the target's origin (6-DOF) or else of the circle's centre — its mean over many
+    frames is the estimator's bias.
     """
 
     translation_m: float = NAN
@@ -42,6 +44,7 @@ class MeasurementError:
     roll_rad: float = NAN
     nees_pose: float = NAN
     nees_circle: float = NAN
+    offset_C: tuple[float, float, float] = (NAN, NAN, NAN)
 
     @property
     def position_m(self) -> float:
@@ -58,8 +61,9 @@ def measurement_error(m: Measurement, X_CT_true: Pose, target: TargetModel) -> M
     """Errors of ``m`` given the true pose of the target in the camera."""
     if not m.valid:
         return MeasurementError()
-    values: dict[str, float] = {}
+    values: dict = {}
     if m.X_CT is not None:
+        values["offset_C"] = tuple(float(v) for v in m.X_CT.p - X_CT_true.p)
         values["translation_m"] = translation_error(X_CT_true, m.X_CT)
         values["rotation_rad"] = rotation_error_rpy_norm(X_CT_true, m.X_CT)
         values["rotation_geodesic_rad"] = rotation_error_geodesic(X_CT_true, m.X_CT)
@@ -69,6 +73,7 @@ def measurement_error(m: Measurement, X_CT_true: Pose, target: TargetModel) -> M
         center_true = X_CT_true.apply(circle.center_T)
         normal_true = X_CT_true.R @ circle.normal_T
         values["center_m"] = float(np.linalg.norm(m.center_C - center_true))
+        values.setdefault("offset_C", tuple(float(v) for v in m.center_C - center_true))
         values["normal_rad"] = normal_angle(normal_true, m.normal_C)
         if m.covariance_5dof is not None:
             u, v = circle_plane_basis(m.normal_C)

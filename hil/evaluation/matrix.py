@@ -6,7 +6,10 @@ none / low / high; the reference camera. Each case starts without a prior (acqui
 tracks frame to frame, exactly as a running system would. Noise-free renderings are shared by
 all noise levels and systems of a case; each frame's noise depends only on (seed, case, frame).
 With ``acquisition`` every frame is also estimated without a prior (mode ``acquisition``), to
-measure how reliably each system finds the target from nothing.
+measure how reliably each system finds the target from nothing. ``mockups`` runs every case on
+several mock-ups (e.g. twenty random ones, ``configuration.random_mockup``) and ``lighting``
+under another light; summaries pool the mock-ups, ``mockup_table`` and ``bias_table`` show
+them apart and the estimators' mean offsets (their biases).
 
 Every frame is judged against ground truth: its errors, its NEES (is the covariance honest?),
 whether it is *correct* (within 3× the accuracy target of ``hil.evaluation.targets``) or a *wrong lock*
@@ -25,6 +28,7 @@ import numpy as np
 
 from configuration.camera import load_camera
 from configuration.mockup import load_mockup
+from configuration.random_mockup import is_random_name, named_lighting, seed_of
 from configuration.render import NoiseConfig, RenderConfig
 from estimators.frame import Frame, GroundTruth
 from estimators.measurement import Tracker
@@ -54,7 +58,9 @@ BLANK_LEVEL = 0.35
 class MatrixSpec:
     """What to run. ``estimator_options`` go to every estimator factory. ``acquisition`` also
     estimates every frame without a prior (rows of mode "acquisition"); ``blank_frames``
-    replaces those frame indices by blank frames (a forced loss, to measure re-acquisition)."""
+    replaces those frame indices by blank frames (a forced loss, to measure re-acquisition).
+    ``mockups`` (names, e.g. ``random:3``), when given, replaces ``mockup``: every case runs on
+    each; ``lighting``: ``default``, ``harsh`` or ``random`` (a random light per mock-up)."""
 
     systems: tuple[str, ...]
     distances_m: tuple[float, ...] = REFERENCE_DISTANCES_M
@@ -68,6 +74,12 @@ class MatrixSpec:
     estimator_options: dict = field(default_factory=dict)
     acquisition: bool = False
     blank_frames: tuple[int, ...] = ()
+    mockups: tuple[str, ...] = ()
+    lighting: str = "default"
+
+    @property
+    def mockup_names(self) -> tuple[str, ...]:
+        return self.mockups or (self.mockup,)
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,6 +98,7 @@ class FrameResult:
     blank: bool = False  # a forced loss: the frame showed nothing
     ambiguous: bool = False  # the estimator said it could not choose between two poses
     mode: str = "tracking"  # or "acquisition": estimated without any prior
+    mockup: str = ""
 
 
 def _maneuver(name: str) -> Maneuver:
@@ -95,20 +108,41 @@ def _maneuver(name: str) -> Maneuver:
     raise ValueError(f"unknown maneuver {name!r}; known: {', '.join(m.name for m in MANEUVERS)}")
 
 
-def case_seed(spec: MatrixSpec, distance_index: int, maneuver_index: int, noise_index: int) -> int:
-    return spec.seed * 1_000_003 + distance_index * 10_007 + maneuver_index * 101 + noise_index
+def case_seed(
+    spec: MatrixSpec,
+    distance_index: int,
+    maneuver_index: int,
+    noise_index: int,
+    mockup_index: int = 0,
+) -> int:
+    return (
+        spec.seed * 1_000_003
+        + distance_index * 10_007
+        + maneuver_index * 101
+        + noise_index
+        + mockup_index * 7_000_003
+    )
 
 
-def run_case_group(spec: MatrixSpec, distance_m: float, maneuver_name: str) -> list[FrameResult]:
-    """All noise levels and systems of one (distance, maneuver): render once, estimate many."""
+def run_case_group(
+    spec: MatrixSpec, distance_m: float, maneuver_name: str, mockup_name: str | None = None
+) -> list[FrameResult]:
+    """All noise levels and systems of one (mock-up, distance, maneuver): render once,
+    estimate many."""
     camera = load_camera(spec.camera).camera_info()
-    mockup = load_mockup(spec.mockup)
+    mockup_name = spec.mockup_names[0] if mockup_name is None else mockup_name
+    mockup_index = spec.mockup_names.index(mockup_name)
+    mockup = load_mockup(mockup_name)
     target = mockup.target_model()
     maneuver = _maneuver(maneuver_name)
     distance_index = spec.distances_m.index(distance_m)
     maneuver_index = spec.maneuvers.index(maneuver_name)
+    light_seed = seed_of(mockup_name) if is_random_name(mockup_name) else mockup_index
+    render_config = RenderConfig(
+        supersample=spec.supersample, lighting=named_lighting(spec.lighting, light_seed)
+    )
     with MockupScene(mockup) as scene:
-        renderer = PybulletRenderer(scene, camera, RenderConfig(supersample=spec.supersample))
+        renderer = PybulletRenderer(scene, camera, render_config)
         renderings = []
         for i in range(spec.frames):
             X_WC, _ = camera_pose_for(distance_m, maneuver.offset(i / spec.frames))
@@ -116,7 +150,7 @@ def run_case_group(spec: MatrixSpec, distance_m: float, maneuver_name: str) -> l
     results = []
     for noise_index, noise in enumerate(spec.noises):
         noise_config = NoiseConfig(preset=noise)
-        seed = case_seed(spec, distance_index, maneuver_index, noise_index)
+        seed = case_seed(spec, distance_index, maneuver_index, noise_index, mockup_index)
         trackers = {
             s: Tracker(build_estimator(s, target, camera, **spec.estimator_options))
             for s in spec.systems
@@ -138,19 +172,34 @@ def run_case_group(spec: MatrixSpec, distance_m: float, maneuver_name: str) -> l
                 had_prior = tracker.prior_X_CT is not None
                 measurements.append(tracker.update(frame))
                 results.append(
-                    _frame_result(measurements[-1], system, *case, had_prior, "tracking")
+                    _frame_result(
+                        measurements[-1], system, *case, had_prior, "tracking", mockup_name
+                    )
                 )
                 if spec.acquisition:
                     m = Tracker(tracker.estimator).update(frame)  # no prior at all
-                    results.append(_frame_result(m, system, *case, False, "acquisition"))
+                    results.append(
+                        _frame_result(m, system, *case, False, "acquisition", mockup_name)
+                    )
             if fusion is not None:
                 m = fusion.update(frame, measurements)
-                results.append(_frame_result(m, FUSED, *case, i > 0, "tracking"))
+                results.append(_frame_result(m, FUSED, *case, i > 0, "tracking", mockup_name))
     return results
 
 
 def _frame_result(
-    m, system, distance_m, maneuver, noise, index, X_CT_true, target, blank, had_prior, mode
+    m,
+    system,
+    distance_m,
+    maneuver,
+    noise,
+    index,
+    X_CT_true,
+    target,
+    blank,
+    had_prior,
+    mode,
+    mockup_name="",
 ) -> FrameResult:
     return FrameResult(
         system,
@@ -167,23 +216,31 @@ def _frame_result(
         blank,
         m.ambiguous,
         mode,
+        mockup_name,
     )
 
 
 def run_matrix(
     spec: MatrixSpec, *, jobs: int = 1, progress: Callable[[str], None] | None = None
 ) -> list[FrameResult]:
-    """Run every case of ``spec``; ``jobs`` > 1 spreads (distance, maneuver) groups over processes."""
+    """Run every case of ``spec``; ``jobs`` > 1 spreads (distance, maneuver, mock-up) groups
+    over processes."""
     for name in spec.maneuvers:
         _maneuver(name)
-    groups = [(d, m) for d in spec.distances_m for m in spec.maneuvers]
+    named_lighting(spec.lighting)
+    for name in spec.mockup_names:
+        load_mockup(name)  # a bad name fails here, once, with its reason
+    groups = [
+        (d, m, k) for k in spec.mockup_names for d in spec.distances_m for m in spec.maneuvers
+    ]
     results: list[FrameResult] = []
     start = time.perf_counter()
 
-    def report(done: int, group: tuple[float, str]) -> None:
+    def report(done: int, group: tuple[float, str, str]) -> None:
         if progress is not None:
             elapsed = time.perf_counter() - start
-            progress(f"[{done}/{len(groups)}] {group[0]:.1f} m {group[1]} ({elapsed:.0f} s)")
+            where = f" {group[2]}" if len(spec.mockup_names) > 1 else ""
+            progress(f"[{done}/{len(groups)}] {group[0]:.1f} m {group[1]}{where} ({elapsed:.0f} s)")
 
     if jobs <= 1:
         for done, group in enumerate(groups, 1):
@@ -469,5 +526,93 @@ def acquisition_table(summaries: Sequence[CaseSummary]) -> str:
         lines.append(
             f"| {system} | {noise} | {distance:.1f} m | {valid}/{frames} ({100 * valid / frames:.1f} %) "
             f"| {correct_text} | {wrong} | {median:.1f} / {p95:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+#: Bias allowed per axis (issue 13): 0.2 mm, or 0.2 standard deviations of the error when larger.
+BIAS_LIMIT_M = 0.0002
+BIAS_LIMIT_SIGMA = 0.2
+
+
+def bias_table(results: Iterable[FrameResult]) -> str:
+    """Mean offset (estimate − truth) of the target's position along the camera's x, y, z per
+    system, noise and distance over the valid tracking frames of every maneuver and mock-up:
+    the estimators' biases, beside their standard deviations and the limit max(0.2 mm,
+    0.2 σ); ✓ when every axis is within it."""
+    groups: dict[tuple, list[FrameResult]] = {}
+    for r in results:
+        if r.mode == "tracking" and not r.blank and r.status != "lost":
+            offset = np.asarray(r.error.offset_C, dtype=float)
+            if np.all(np.isfinite(offset)):
+                groups.setdefault((r.system, r.noise, r.distance_m), []).append(r)
+    lines = [
+        "| system | noise | distance | frames | bias x / y / z (mm) | sd x / y / z (mm) "
+        "| limit x / y / z (mm) | within |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    order = {"none": 0, "low": 1, "high": 2}
+    for (system, noise, distance), rows in sorted(
+        groups.items(), key=lambda g: (g[0][0], order.get(g[0][1], 3), -g[0][2])
+    ):
+        offsets = 1000.0 * np.array([r.error.offset_C for r in rows], dtype=float)
+        mean, sd = offsets.mean(axis=0), offsets.std(axis=0)
+        limit = np.maximum(1000.0 * BIAS_LIMIT_M, BIAS_LIMIT_SIGMA * sd)
+        ok = bool(np.all(np.abs(mean) <= limit))
+        lines.append(
+            f"| {system} | {noise} | {distance:.1f} m | {len(rows)} "
+            f"| {' / '.join(f'{v:+.2f}' for v in mean)} | {' / '.join(f'{v:.2f}' for v in sd)} "
+            f"| {' / '.join(f'{v:.2f}' for v in limit)} | {'✓' if ok else '✗'} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def mockup_table(results: Iterable[FrameResult]) -> str:
+    """Per mock-up and system: tracking frames valid, frames acquired without a prior (when
+    run), wrong locks and ambiguous answers, and the worst case's mean errors as a share of
+    its target (≤ 1 meets every target)."""
+    rows = list(results)
+    by: dict[tuple[str, str], list[FrameResult]] = {}
+    for r in rows:
+        by.setdefault((r.mockup, r.system), []).append(r)
+    worst: dict[tuple[str, str], float] = {}
+    for (mockup, system), group in by.items():
+        cases: dict[tuple, list[FrameResult]] = {}
+        for r in group:
+            if r.mode == "tracking" and not r.blank and r.status != "lost":
+                cases.setdefault((r.distance_m, r.maneuver, r.noise), []).append(r)
+        share = 0.0
+        for (distance, _, noise), case in cases.items():
+            target = accuracy_target(system, distance, noise)
+            if target is None:
+                continue
+            errors = [judged_errors(system, r.error) for r in case]
+            position = float(np.nanmean([e[0] for e in errors]))
+            attitude = float(np.nanmean([e[1] for e in errors]))
+            share = max(share, position / target[0], attitude / target[1])
+        worst[(mockup, system)] = share
+    lines = [
+        "| mock-up | system | tracking valid | acquired without prior | wrong locks (ambiguous) "
+        "| worst case mean / target |",
+        "|---|---|---|---|---|---|",
+    ]
+    for (mockup, system), group in sorted(by.items()):
+        tracking = [r for r in group if r.mode == "tracking" and not r.blank]
+        acquisition = [r for r in group if r.mode == "acquisition" and not r.blank]
+        valid = sum(r.status != "lost" for r in tracking)
+        acquired = (
+            f"{sum(r.status != 'lost' for r in acquisition)}/{len(acquisition)}"
+            if acquisition
+            else "–"
+        )
+        wrong = sum(
+            is_wrong_lock(r.error, r.distance_m, ambiguous=r.ambiguous)
+            for r in group
+            if r.status != "lost"
+        )
+        ambiguous = sum(r.ambiguous for r in group if r.status != "lost")
+        lines.append(
+            f"| {mockup} | {system} | {valid}/{len(tracking)} | {acquired} "
+            f"| {wrong} ({ambiguous}) | {worst[(mockup, system)]:.2f} |"
         )
     return "\n".join(lines) + "\n"

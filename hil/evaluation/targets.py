@@ -1,7 +1,8 @@
 """Our accuracy targets per system and case (the issues' "must show" tables), and what counts
 as a correct pose and as a wrong lock when the matrix judges a frame.
 
-Targets are mean errors over a case's frames at low noise; high noise may be 1.5× larger.
+Targets are mean errors over a case's frames at low noise; high noise may be 1.5× larger. At
+the 0.5 m stand-off (issue 13: acquisition over the whole approach) the 1.2 m targets hold.
 A frame is *correct* when its error is within 3× the target; a valid frame is a *wrong lock*
 when its error is gross — the estimator locked onto the wrong thing (a quarter turn of the
 panel, the planar flip of a tilted target, another quadrilateral) rather than measured noisily.
@@ -24,11 +25,13 @@ ACCURACY_TARGETS: dict[str, dict[float, tuple[float, float]]] = {
         3.0: (1.5 * _CM, 2.0 * _DEG),
         2.0: (0.8 * _CM, 1.0 * _DEG),
         1.2: (0.3 * _CM, 0.4 * _DEG),
+        0.5: (0.3 * _CM, 0.4 * _DEG),
     },
     "lines": {
         3.0: (1.5 * _CM, 2.0 * _DEG),
         2.0: (0.8 * _CM, 1.0 * _DEG),
         1.2: (0.3 * _CM, 0.4 * _DEG),
+        0.5: (0.3 * _CM, 0.4 * _DEG),
     },
     # Circle centre and normal (issue 4); judged on the 5-DOF circle pose even when the
     # thruster also gives 6-DOF (roll has its own target, ROLL_TARGET_RAD).
@@ -36,6 +39,7 @@ ACCURACY_TARGETS: dict[str, dict[float, tuple[float, float]]] = {
         3.0: (1.0 * _CM, 2.0 * _DEG),
         2.0: (1.0 * _CM, 1.5 * _DEG),
         1.2: (1.0 * _CM, 1.0 * _DEG),
+        0.5: (1.0 * _CM, 1.0 * _DEG),
     },
 }
 ROLL_TARGET_RAD = 3.0 * _DEG

@@ -170,3 +170,45 @@ def test_simulation_naming_a_missing_file_says_where_it_looked(tmp_path):
         f"mockup: file not found: {(tmp_path / 'my_mockup.yaml').resolve()} "
         "(a relative path is taken from this file's folder)"
     ]
+
+
+def test_mockup_allows_markers_inside_the_ring_and_an_off_centre_panel(tmp_path):
+    text = (
+        "name: m\ncentre_panel: {side: 0.2, center: [0.04, -0.03]}\n"
+        + BOLTS
+        + "  - {name: marker, "
+        "surface: bus, diameter: 0.03, height: 0.0002, positions: [[0.0, -0.205], [0.17, 0.1]]}\n"
+    )
+    mockup = load_mockup(_write(tmp_path, text))
+    model = mockup.target_model()
+    assert model.panel_corners_T.mean(axis=0)[:2] == pytest.approx([0.04, -0.03])
+    marker = next(f for f in model.point_features if f.name == "marker_0")
+    assert marker.p_T[:2] == pytest.approx([0.0, -0.205])
+    assert not marker.brighter  # dark (default colour) on the gold-ish face
+
+
+@pytest.mark.parametrize(
+    ("position", "problem"),
+    [
+        ("[0.0, 0.0]", "under the ring, panel or thruster"),  # under the panel
+        ("[0.0, 0.27]", "under the ring, panel or thruster"),  # under the ring
+        ("[0.5, 0.42]", "under the ring, panel or thruster"),  # under the thruster
+        ("[0.9, 0.0]", "off its bus"),
+    ],
+)
+def test_mockup_refuses_a_bus_fastener_where_another_part_stands(tmp_path, position, problem):
+    text = (
+        "name: m\n" + BOLTS + "  - {name: marker, surface: bus, diameter: 0.03, "
+        f"positions: [{position}]}}\n"
+    )
+    with pytest.raises(ConfigError, match=rf"fasteners.1 \(marker\).*{problem}"):
+        load_mockup(_write(tmp_path, text))
+
+
+def test_mockup_refuses_overlapping_fasteners_and_a_panel_off_the_ring(tmp_path):
+    text = "name: m\n" + BOLTS + "  - {name: extra, surface: ring, diameter: 0.02, positions: "
+    text += "[[0.275, 0.005]]}\n"
+    with pytest.raises(ConfigError, match=r"fasteners.1 \(extra\).*overlaps one of b"):
+        load_mockup(_write(tmp_path, text))
+    with pytest.raises(ConfigError, match="panel's corners must lie inside"):
+        load_mockup(_write(tmp_path, "name: m\ncentre_panel: {center: [0.1, 0.0]}\n" + BOLTS))

@@ -1,4 +1,5 @@
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -121,3 +122,31 @@ def test_corner_estimator_lhm_pose_method_and_bad_options():
         CornerOptions(pose_method="dlt")
     with pytest.raises(TypeError):
         build(TARGET, f.info, gate=3)
+
+
+def test_corner_estimator_tracks_a_mockup_with_a_marker_inside_the_ring(tmp_path):
+    # The default mock-up, its thruster removed and a single dark marker placed on the face
+    # inside the ring's bore: the marker is now the only thing that breaks the square's
+    # symmetry — it validates, is labeled and fitted, and decides the quarter turn.
+    base = (Path(__file__).resolve().parents[2] / "configs" / "mockup.yaml").read_text()
+    base = base[: base.index("thruster:")] + "thruster: null\n"
+    config = base.replace(
+        "fasteners:",
+        "fasteners:\n  - {name: marker, surface: bus, diameter: 0.03, height: 0.0003, "
+        "color: [0.05, 0.05, 0.05], positions: [[0.0, -0.212]]}",
+        1,
+    )
+    path = tmp_path / "marker.yaml"
+    path.write_text(config)
+    target = rendered.target(str(path))
+    assert any(f.name == "marker_0" for f in target.point_features)
+    tracker = Tracker(build(target, rendered.render(1.2, mockup=str(path))[2]))
+    marker = next(f for f in target.point_features if f.name == "marker_0")
+    for k, offset in enumerate([rendered.GENERIC, (0.02, 0.0, 0.0, 0.03, -0.04, 0.08)]):
+        f = rendered.frame(1.2, offset, seed=k, seq=k, mockup=str(path))
+        m = tracker.update(f)
+        assert m.valid and m.X_CT is not None and not m.ambiguous, m.reason  # 6-DOF: turn decided
+        assert translation_error(f.truth.X_CT, m.X_CT) < 0.003
+        assert rotation_error_rpy_norm(f.truth.X_CT, m.X_CT) < math.radians(0.4)
+        seen = f.info.project(f.truth.X_CT.apply(marker.p_T[None]))[0]
+        assert np.min(np.linalg.norm(m.features["labeled"] - seen, axis=1)) < 1.0

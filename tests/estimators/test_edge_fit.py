@@ -74,3 +74,29 @@ def test_fit_line_robust_ignores_outliers_and_intersects():
     assert crossing is not None and np.allclose(crossing, [20.0, 13.0], atol=0.2)
     assert intersect(line, line) is None
     assert fit_line_robust(points[:2], np.ones(2)) is None
+
+
+def test_fit_edge_points_is_unbiased_against_black_when_told_the_noise():
+    # A 0.35 face against black space, noise σ = 0.22 clipped at 0 as a sensor does: the mean
+    # of the black side is lifted to 0.09 and a least-squares step fit puts the edge inside the
+    # face; the clipped likelihood puts it back.
+    rng = np.random.default_rng(5)
+    sigma = math.sqrt(0.05)
+    normal = np.array([math.cos(0.3), math.sin(0.3)])
+    tangent = np.array([-normal[1], normal[0]])
+    offsets = {0.0: [], sigma: []}
+    for _ in range(60):
+        offset = 40.0 + rng.uniform(0.0, 1.0)  # every sub-pixel phase
+        clean = _half_plane_image(normal, offset, 0.35, 0.0)
+        noisy = np.clip(clean + rng.normal(0, sigma, clean.shape), 0, 1).astype(np.float32)
+        foot = normal * offset + ((np.array([40.0, 40.0]) - normal * offset) @ tangent) * tangent
+        centers = foot + np.linspace(-30, 30, 11)[:, None] * tangent
+        for model in offsets:
+            points = fit_edge_points(
+                noisy, centers, np.tile(normal, (11, 1)), 3.0, 3.0, search_px=2.0, noise_sigma=model
+            )
+            ok = points.ok
+            offsets[model].append(float(np.mean((points.uv[ok] - foot) @ normal)))
+    plain, modelled = np.mean(offsets[0.0]), np.mean(offsets[sigma])
+    assert plain > 0.05  # toward the bright side
+    assert abs(modelled) < 0.02

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from estimators.edge_search import (
-    estimate_noise_sigma,
     gradient_noise_gain,
     search_edges,
     smoothed_gradient,
 )
+from estimators.imaging import estimate_noise_sigma
 
 
 def step_image(edge_x: float, shape=(120, 160), low=0.3, high=0.7, noise=0.0, seed=0):

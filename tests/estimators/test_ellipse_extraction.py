@@ -5,12 +5,13 @@ import numpy as np
 import pytest
 
 from estimators.conics import Ellipse, ellipse_from_conic, fit_ellipse_direct, refine_ellipse
-from estimators.edge_search import estimate_noise_sigma, to_gray_float
+from estimators.edge_search import to_gray_float
 from estimators.ellipse_extraction import (
     ExtractorSettings,
     extract_ellipses,
     find_arcs,
 )
+from estimators.imaging import estimate_noise_sigma
 
 
 def draw_ellipses(

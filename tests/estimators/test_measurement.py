@@ -138,3 +138,97 @@ def test_tracker_carries_the_prior_and_drops_it_on_loss():
     statuses = [tracker.update(Frame(FRAME.image, float(i), INFO, i)).status for i in range(4)]
     assert statuses == ["acquired", "tracking", "lost", "acquired"]
     assert seen[0] is None and seen[1].p[2] == 2.0 and seen[2].p[2] == 3.0 and seen[3] is None
+
+
+def _answer(frame, prior, *, pose=True, circle=True, from_prior=False, ambiguous=False):
+    """A measurement of a pose 2 m ahead with (optionally) its ring circle."""
+    X_CT = Pose(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 2.0])
+    fields = dict(from_prior=from_prior, ambiguous=ambiguous)
+    if pose:
+        fields.update(X_CT=X_CT, covariance=np.eye(6) * 1e-4)
+    else:
+        fields.update(X_CT_hint=X_CT)
+    if circle:
+        fields.update(
+            circle="ring_outer",
+            center_C=np.array([0.0, 0.0, 2.0]),
+            normal_C=np.array([0.0, 0.0, -1.0]),
+            covariance_5dof=np.eye(5) * 1e-4,
+        )
+    status = "tracking" if prior is not None else "acquired"
+    return Measurement(system="s", status=status, stamp=frame.stamp, seq=frame.seq, **fields)
+
+
+class _Script:
+    """Answers from a script of keyword sets, one per frame."""
+
+    system = "s"
+
+    def __init__(self, script):
+        self.script = iter(script)
+
+    def estimate(self, frame, prior_X_CT=None):
+        step = next(self.script)
+        if step is None:
+            return Measurement.lost(self.system, frame, "gone")
+        return _answer(frame, prior_X_CT, **step)
+
+
+def _run(script):
+    tracker = Tracker(_Script(script))
+    return [tracker.update(Frame(FRAME.image, float(i), INFO, i)) for i in range(len(script))]
+
+
+def test_tracker_never_turns_a_roll_taken_from_an_undecided_prior_into_a_pose():
+    # Acquired without its roll (5-DOF), then tracked with the roll "kept from the prior": the
+    # prior's roll was a guess, so the answers stay 5-DOF — until a frame decides the roll.
+    kept = dict(from_prior=True)
+    out = _run([dict(pose=False), kept, kept, dict(), kept, None, dict(pose=False), kept])
+    assert [m.X_CT is not None for m in out] == [
+        False,
+        False,
+        False,
+        True,
+        True,
+        False,
+        False,
+        False,
+    ]
+    assert all(m.center_C is not None for m in out if m.valid)
+    assert not any(m.ambiguous for m in out)
+    assert all(not m.from_prior for m in out[:3])  # what was kept is no longer claimed
+    assert out[1].X_CT_hint is not None and out[5].status == "lost"
+
+
+def test_tracker_keeps_a_circle_ambiguous_until_evidence_separates_its_two_poses():
+    # The ellipse system's case: an ambiguous acquisition, then frames that chose the pose
+    # nearer the prior — ambiguous too, until one frame decides.
+    circle_only = dict(pose=False, from_prior=True)
+    out = _run(
+        [dict(pose=False, ambiguous=True), circle_only, circle_only, dict(pose=False), circle_only]
+    )
+    assert [m.ambiguous for m in out] == [True, True, True, False, False]
+    # A pose without its circle whose roll came from an undecided prior is flagged instead.
+    out = _run([dict(pose=False), dict(circle=False, from_prior=True)])
+    assert out[1].ambiguous and out[1].X_CT is not None
+
+
+def test_measurement_round_trips_its_ambiguity_fields():
+    import json
+
+    m = _answer(FRAME, None, pose=False, ambiguous=True)
+    m = Measurement(
+        **{
+            **{f: getattr(m, f) for f in m.__dataclass_fields__},
+            "alternative_center_C": np.array([0.0, 0.01, 2.0]),
+            "alternative_normal_C": np.array([0.0, 0.6, -0.8]),
+            "from_prior": True,
+        }
+    )
+    back = Measurement.from_dict(json.loads(json.dumps(m.to_dict())))
+    assert back.ambiguous and back.from_prior
+    assert np.array_equal(back.alternative_normal_C, m.alternative_normal_C)
+    with pytest.raises(ValueError, match="go together"):
+        Measurement(
+            **{**{f: getattr(m, f) for f in m.__dataclass_fields__}, "alternative_center_C": None}
+        )

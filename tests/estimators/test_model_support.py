@@ -34,10 +34,15 @@ def test_turn_checker_uses_only_the_asymmetric_parts():
     target = rendered.target()
     checker = TurnChecker(target, ModelSupport(target, rendered.render(2.0)[2]))
     assert checker.parts == {"thruster_exit", "thruster_inner"}  # the outline is square
-    assert not checker.use_discs  # the default fastener layout has the panel's symmetry
+    assert len(checker.discs) == 0  # the default fastener layout has the panel's symmetry
     other = rendered.target("other")
     checker_other = TurnChecker(other, ModelSupport(other, rendered.render(2.0)[2]))
-    assert checker_other.use_discs and "ring_outer" not in checker_other.parts
+    assert "ring_outer" not in checker_other.parts
+    # Only the discs whose turned places do not hold a disc like them: six ring holes (60°
+    # apart), three of four panel bolts' places, three bus heads.
+    names = [f.name for f in other.point_features if f.kind == "disc"]
+    informative = {names[i].rsplit("_", 1)[0] for i in checker_other.discs}
+    assert informative == {"ring_hole", "panel_bolt", "bus_head"}
 
 
 def test_turn_checker_finds_the_true_quarter_turn():

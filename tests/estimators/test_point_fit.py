@@ -120,3 +120,32 @@ def test_fit_discs_with_no_features_returns_empty():
         np.zeros(0),
     )
     assert fits.uv.shape == (0, 2) and fits.ok.shape == (0,)
+
+
+def test_fit_discs_finds_a_raised_head_from_its_top_whatever_its_wall_shows():
+    # A head whose wall shows 0.8 px beside its top (the base's image is the top's shifted by
+    # the extrusion), the wall darker than the top: a plain disc fit centres between top and
+    # base; given the extrusion, the fit finds the top's centre.
+    top = np.array([31.3, 30.6])
+    extrusion = np.array([-0.6, 0.53])
+    radius = 4.0
+    base = top + extrusion
+
+    def on_segment_distance(u, v):
+        d = np.stack([u - top[0], v - top[1]], axis=-1)
+        t = np.clip(d @ extrusion / (extrusion @ extrusion), 0.0, 1.0)
+        return np.hypot(d[..., 0] - t * extrusion[0], d[..., 1] - t * extrusion[1])
+
+    disc = _area_sampled(lambda u, v: (u - top[0]) ** 2 + (v - top[1]) ** 2 <= radius**2)
+    stadium = _area_sampled(lambda u, v: on_segment_distance(u, v) <= radius)
+    image = 0.35 + (0.8 - 0.35) * disc + (0.6 - 0.35) * (stadium - disc)
+    A = np.eye(2)[None] * 200.0
+    plain = fit_discs(image, top[None], A, np.array([radius / 200.0]), np.array([0.04]))
+    raised = fit_discs(
+        image, top[None], A, np.array([radius / 200.0]), np.array([0.04]), extrusion_px=[extrusion]
+    )
+    assert plain.ok[0] and raised.ok[0]
+    assert np.linalg.norm(plain.uv[0] - top) > 0.1  # pulled toward the base
+    assert np.linalg.norm(raised.uv[0] - top) < 0.02
+    assert np.linalg.norm(raised.uv[0] - top) < 0.2 * np.linalg.norm(plain.uv[0] - top)
+    assert np.linalg.norm(base - top) > 0.7

@@ -128,6 +128,8 @@ def _no_nan(value: Any) -> Any:
         return None
     if isinstance(value, dict):
         return {k: _no_nan(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_no_nan(v) for v in value]
     return value
 
 
@@ -141,6 +143,8 @@ def frame_results_from_json(data: list[dict[str, Any]]) -> list[Any]:
     from hil.evaluation.matrix import FrameResult
 
     def number(v: Any) -> Any:
+        if isinstance(v, list):  # a vector (MeasurementError.offset_C)
+            return tuple(number(x) for x in v)
         return math.nan if v is None else v
 
     return [

@@ -3,7 +3,14 @@ re-acquisition count, wrong-lock and ambiguity counts."""
 
 import pytest
 
-from hil.evaluation.matrix import MatrixSpec, markdown_table, run_matrix, summarize
+from hil.evaluation.matrix import (
+    MatrixSpec,
+    bias_table,
+    markdown_table,
+    mockup_table,
+    run_matrix,
+    summarize,
+)
 
 ORACLE = "tests.hil.fake_estimators:build_oracle"
 
@@ -58,3 +65,25 @@ def test_matrix_counts_wrong_locks_beyond_the_gate():
     # The oracle claims a 1 mm covariance: an 8 cm error it does not admit is a wrong lock.
     assert s.wrong_locks == 3
     assert s.position_mean_m == pytest.approx(0.08)
+
+
+def test_matrix_runs_several_mockups_under_a_light_and_tables_their_bias():
+    spec = MatrixSpec(
+        systems=(ORACLE,),
+        distances_m=(0.5,),
+        maneuvers=("none",),
+        noises=("none",),
+        frames=2,
+        mockups=("random:3", "random:4"),
+        lighting="harsh",
+        estimator_options={"offset_m": 0.0003},  # a 0.3 mm bias along the camera's x
+    )
+    rows = run_matrix(spec)
+    assert sorted({r.mockup for r in rows}) == ["random:3", "random:4"]
+    bias = bias_table(rows)
+    assert f"| {ORACLE} | none | 0.5 m | 4 | +0.30 / +0.00 / +0.00 |" in bias
+    assert bias.rstrip().endswith("| ✗ |")  # 0.3 mm is beyond 0.2 mm (the spread is nil)
+    per_mockup = mockup_table(rows)
+    assert f"| random:3 | {ORACLE} | 2/2 | – | 0 (0) |" in per_mockup
+    with pytest.raises(ValueError, match="light must be one of"):
+        run_matrix(MatrixSpec(systems=(ORACLE,), lighting="dusk", frames=2))
