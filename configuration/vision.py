@@ -11,11 +11,12 @@ from pydantic import Field
 
 from configuration.base import Strict
 
-#: Time per frame of each system (ms, median on the reference camera at 3 m), measured with
-#: `satgrasp bench estimate` on the 2-core development machine: tracking (with a prior) and
-#: acquisition (a search of the whole image). What ``--clock sim`` charges.
-BENCH_PROCESSING_MS = {"corners": 27.0, "lines": 42.0, "ellipses": 37.0}
-BENCH_ACQUISITION_MS = {"corners": 145.0, "lines": 180.0, "ellipses": 80.0}
+#: Time per frame of each system (ms): the medians of the estimators' own ``time_ms`` over a
+#: closed-loop approach (seed 1, low noise, two trials at once on the 2-core development
+#: machine, 2026-12-02), tracking (with a prior) and acquisition (a search of the whole image).
+#: What ``--clock sim`` charges. Re-measure after a change to the estimators (docs/realtime.md).
+BENCH_PROCESSING_MS = {"corners": 43.0, "lines": 63.0, "ellipses": 62.0}
+BENCH_ACQUISITION_MS = {"corners": 250.0, "lines": 355.0, "ellipses": 263.0}
 
 
 class CameraTiming(Strict):

@@ -210,7 +210,7 @@ def pipeline_timing(
         fusion=PoseFusion(target),
         history=StateHistory(geometry),
         workers=workers,
-        config=VisionConfig(max_frame_age_s=10.0, log_frames_every_s=0.0),
+        config=VisionConfig(max_frame_age_s=5.0, log_frames_every_s=0.0),
     )
     records: list[VisionRecord] = []
     try:
