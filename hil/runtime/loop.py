@@ -25,6 +25,7 @@ import contextlib
 import gc
 import math
 import traceback
+from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -186,8 +187,8 @@ class ControlLoop:
         # What the supervisor compares against: the previous tick's sent command and states,
         # the flange's orientation at the start, since when the target turns too fast.
         self._sent: tuple[np.ndarray, float] | None = None
-        self._previous_arm: ArmState | None = None
-        self._previous_track: TrackState | None = None
+        self._arm_states: deque[ArmState] = deque(maxlen=32)
+        self._track_states: deque[TrackState] = deque(maxlen=32)
         self._R_BE_start: np.ndarray | None = None
         self._rate_since: float | None = None
 
@@ -287,9 +288,9 @@ class ControlLoop:
             period_s=self.period_s,
             previous_V_BE=None if self._sent is None else self._sent[0],
             previous_track_velocity=None if self._sent is None else self._sent[1],
-            previous_arm=self._previous_arm,
+            previous_arm=_baseline(self._arm_states, arm),
             track=track,
-            previous_track=self._previous_track,
+            previous_track=_baseline(self._track_states, track),
             R_BE_start=self._R_BE_start,
             target_rate=rate,
             target_rate_since=self._rate_since,
@@ -302,11 +303,11 @@ class ControlLoop:
             t, violations, output, V_BE, phase_before
         )
         events.extend(more)
-        self._sent, self._previous_arm, self._previous_track = (
-            (command.V_BE, track_velocity),
-            arm,
-            track,
-        )
+        self._sent = (command.V_BE, track_velocity)
+        if arm is not None:
+            self._arm_states.append(arm)
+        if track is not None:
+            self._track_states.append(track)
         for kind, message in events:
             self._event(t, kind, message)
         self._log_vision()
@@ -548,6 +549,23 @@ class ControlLoop:
     @property
     def t0(self) -> float:
         return self._t0
+
+
+#: Measured accelerations are differenced against a state at least this much older: over one
+#: 8 ms period the jitter of when a device sampled its state reads as acceleration (the
+#: emulated track, accelerating at its 0.5 m/s², read 0.76 m/s² against a 0.75 m/s² limit).
+ACCELERATION_BASELINE_S = 0.032
+
+
+def _baseline(states: deque, now: ArmState | TrackState | None):
+    """The newest of ``states`` at least ``ACCELERATION_BASELINE_S`` older than ``now`` (the
+    oldest one kept while there is none that old yet)."""
+    if now is None or not states:
+        return None
+    for state in reversed(states):
+        if now.stamp - state.stamp >= ACCELERATION_BASELINE_S:
+            return state
+    return states[0]
 
 
 def describe_exception(exc: BaseException) -> str:

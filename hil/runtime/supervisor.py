@@ -76,6 +76,8 @@ class SafetySnapshot:
     period_s: float = 0.008
     previous_V_BE: np.ndarray | None = None
     previous_track_velocity: float | None = None
+    #: Earlier arm and track states to difference measured accelerations against (the loop
+    #: passes ones about ``loop.ACCELERATION_BASELINE_S`` old, not the previous tick's).
     previous_arm: ArmState | None = None
     track: TrackState | None = None
     previous_track: TrackState | None = None
