@@ -186,10 +186,6 @@ class Trial:
         injector = [self.injector] if self.injector is not None else []
         return [self.judge, *injector] + ([self._on_tick] if self._on_tick is not None else [])
 
-    def rig_options(self) -> dict:
-        """How the simulated rig starts and judges a grasp (``SimRig``'s keyword arguments)."""
-        return rig_options(self.config, self.start)
-
     def _build_stepped(self) -> None:
         """``--clock sim``: world, pipeline and loop in this process, one simulated clock."""
         config, start = self.config, self.start
@@ -201,7 +197,7 @@ class Trial:
                 noise=config.noise,
                 render=config.render,
                 seed=self.seed,
-                **self.rig_options(),
+                **rig_options(config, start),
             )
         )
         world.start()
