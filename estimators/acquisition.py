@@ -30,9 +30,9 @@ import numpy as np
 
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, rotation_error_geodesic
-from estimators.imaging import GrayImage, smooth
+from estimators.imaging import GradientImage, ImageStack, smooth
 from estimators.measurement import Measurement, circle_of_pose
-from estimators.model_support import GradientImage, ModelSupport, Support
+from estimators.model_support import ModelSupport, Support
 from estimators.panel_edges import fit_panel_edges, strips_from_quad
 from estimators.planar_pose import ippe_poses, project_ideal
 from estimators.target import Circle3D, TargetModel
@@ -269,9 +269,9 @@ def roll_free_measurement(
 COARSE_SMOOTHING_PX = 4.0
 
 
-def coarse_gradients(image: GrayImage) -> GradientImage:
+def coarse_gradients(image: ImageStack) -> GradientImage:
     """Gradients smoothed enough (σ = 4 px) to judge a pose a few pixels off."""
-    return GradientImage.of(image.pixels, COARSE_SMOOTHING_PX, image.noise_sigma)
+    return image.gradients(COARSE_SMOOTHING_PX)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -320,7 +320,7 @@ def _side_support(gradients: GradientImage, quad: np.ndarray, polarity: float) -
 
 
 def find_panel_quads(
-    image: GrayImage,
+    image: ImageStack,
     gradients: GradientImage,
     target: TargetModel,
     *,
@@ -438,7 +438,7 @@ def poses_from_corners(
 
 
 def refine_quad(
-    image: GrayImage,
+    image: ImageStack,
     corners_uv: np.ndarray,
     camera: CameraInfo,
     polarity: float,
@@ -482,7 +482,7 @@ def refine_quad(
 
 
 def pose_hypotheses(
-    image: GrayImage,
+    image: ImageStack,
     gradients: GradientImage,
     coarse: GradientImage,
     camera: CameraInfo,

@@ -12,9 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimators.conics import circle_points
-from estimators.edge_search import EdgeHits, GradientField, search_edges
+from estimators.edge_search import EdgeHits, search_edges
 from estimators.frame import CameraInfo
 from estimators.geometry import field_radius
+from estimators.imaging import GradientField
 from estimators.planar_pose import ideal_pixels
 
 _MAX_SAMPLES = 2400

@@ -44,9 +44,15 @@ from estimators.acquisition import (
 )
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, rotation_error_geodesic
-from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
+from estimators.imaging import (
+    GradientImage,
+    ImageStack,
+    image_stack,
+    smooth,
+    smoothing_sigma_px,
+)
 from estimators.measurement import Measurement
-from estimators.model_support import GradientImage, ModelSupport, Support
+from estimators.model_support import ModelSupport, Support
 from estimators.model_view import head_extrusion, local_affine, plane_coordinates
 from estimators.planar_pose import (
     POSE_METHODS,
@@ -200,10 +206,10 @@ class CornerEstimator:
     # --- entry point ----------------------------------------------------------------------
     def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
         started = time.perf_counter()
-        image = gray_image(frame)
+        image = image_stack(frame)
         if isinstance(image, str):
             return Measurement.lost(SYSTEM, frame, image, started=started)
-        gradients = GradientImage.of(image.pixels, 2.0, image.noise_sigma)
+        gradients = image.gradients(2.0)
         reasons = []
         if prior_X_CT is not None:
             solution = self._solve(image, gradients, prior_X_CT, tracking=True)
@@ -224,7 +230,7 @@ class CornerEstimator:
         return roll_free_measurement(SYSTEM, frame, s, status, self.axis_circle, started, features)
 
     # --- acquisition ------------------------------------------------------------------------
-    def _acquire(self, image: GrayImage, gradients: GradientImage) -> _Solution:
+    def _acquire(self, image: ImageStack, gradients: GradientImage) -> _Solution:
         coarse = coarse_gradients(image)
         hypotheses = pose_hypotheses(
             image, gradients, coarse, self.camera, self.target, self.support, self.turns
@@ -281,7 +287,7 @@ class CornerEstimator:
 
     def _extract(
         self,
-        image: GrayImage,
+        image: ImageStack,
         uv: np.ndarray,
         visible: np.ndarray,
         radius_px: np.ndarray,
@@ -558,7 +564,7 @@ class CornerEstimator:
 
     def _solve(
         self,
-        image: GrayImage,
+        image: ImageStack,
         gradients: GradientImage,
         X0: Pose,
         *,

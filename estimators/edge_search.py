@@ -1,7 +1,7 @@
-"""Sub-pixel edge points: a smoothed gradient field and 1-D searches along curve normals.
+"""Sub-pixel edge points: 1-D searches along curve normals in a smoothed gradient field.
 
-The image is smoothed with a Gaussian whose scale is matched to the noise, differentiated
-(Sobel), and searched along the normals of a predicted curve for the strongest gradient of the
+The field (``imaging.ImageStack.gradient_field``) is the image smoothed with a Gaussian whose
+scale is matched to the noise and differentiated (Sobel); it is searched along the normals of a predicted curve for the strongest gradient of the
 expected polarity; the maximum is located to sub-pixel precision by a parabola through the three
 samples around it (the classic gradient-maximum edge localisation, as in Canny's detector and
 "moving edges" trackers — Bouthemy 1989; Drummond & Cipolla 2002).
@@ -15,110 +15,7 @@ import cv2
 import numpy as np
 
 from estimators.geometry import as_points
-
-#: Immerkær's noise-estimation kernel (a Laplacian difference that cancels planes and edges
-#: to first order): "Fast noise variance estimation", CVIU 64(2), 1996.
-_NOISE_KERNEL = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32)
-
-
-def to_gray_float(image: np.ndarray) -> np.ndarray:
-    """A float32 mono image in [0, 1] from uint8/float mono or BGR input."""
-    array = np.asarray(image)
-    if array.ndim == 3:
-        if array.shape[2] == 1:
-            array = array[:, :, 0]
-        else:
-            array = (
-                cv2.cvtColor(array[:, :, :3], cv2.COLOR_BGR2GRAY)
-                if array.dtype == np.uint8
-                else (
-                    array[:, :, :3].astype(np.float32) @ np.array([0.114, 0.587, 0.299], np.float32)
-                )
-            )
-    if array.dtype == np.uint8:
-        return array.astype(np.float32) * np.float32(1.0 / 255.0)
-    return np.asarray(array, dtype=np.float32)
-
-
-def shown_noise_sigma(gray: np.ndarray) -> float:
-    """Spread of the noise as the pixels of a mono image in [0, 1] show it, by Immerkær's
-    method (σ = √(π/2) · mean|I ∗ N| / 6), robust to edges and shading — the scale an edge
-    search's SNR thresholds are measured against.
-
-    Pixels near black or white are left out: there the noise was clipped by the sensor, and a
-    dark background would otherwise make the noise look several times smaller than it is on
-    the target. Clipping still shrinks what the pixels kept show (20 % at σ = 0.32): the noise
-    σ itself, for likelihoods of clipped pixels, is ``estimators.imaging.estimate_noise_sigma``."""
-    if gray.shape[0] < 6 or gray.shape[1] < 6:
-        return 0.0
-    # Every fourth row is enough for a stable estimate (tens of thousands of pixels).
-    rows = np.ascontiguousarray(gray[::4])
-    response = np.abs(cv2.filter2D(rows, cv2.CV_32F, _NOISE_KERNEL)[1:-1, 1:-1])
-    level = cv2.blur(rows, (5, 5))[1:-1, 1:-1]
-    unclipped = (level > 0.15) & (level < 0.85)
-    if unclipped.sum() >= 0.05 * unclipped.size:
-        response = response[unclipped]
-    return float(np.sqrt(np.pi / 2.0) * response.mean() / 6.0)
-
-
-def gradient_noise_gain(sigma_px: float) -> float:
-    """Std of one component of ``smoothed_gradient`` for unit-variance white noise (measured
-    by pushing an impulse through the same filters: the gain is the kernel's L2 norm)."""
-    half = int(np.ceil(4.0 * max(sigma_px, 0.5))) + 3
-    impulse = np.zeros((2 * half + 1, 2 * half + 1), np.float32)
-    impulse[half, half] = 1.0
-    gx, _ = _gradient(impulse, sigma_px)
-    return float(np.sqrt((gx.astype(np.float64) ** 2).sum()))
-
-
-def _gradient(gray: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
-    smoothed = cv2.GaussianBlur(gray, (0, 0), sigma_px) if sigma_px > 0 else gray
-    gx = cv2.Sobel(smoothed, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-    gy = cv2.Sobel(smoothed, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-    return gx, gy
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class GradientField:
-    """Smoothed gradient (intensity per px) of the region [x0, x0+w) × [y0, y0+h) of an image.
-
-    ``noise`` is the std of one gradient component caused by the image noise; an edge's
-    strength divided by it is its signal-to-noise ratio.
-    """
-
-    gxy: np.ndarray  # float32 (h, w, 2): d/dx, d/dy
-    x0: int
-    y0: int
-    sigma_px: float
-    noise: float
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return self.gxy.shape[0], self.gxy.shape[1]
-
-
-def smoothed_gradient(
-    gray: np.ndarray,
-    sigma_px: float,
-    noise_sigma: float,
-    roi: tuple[int, int, int, int] | None = None,
-) -> GradientField:
-    """Gradient of ``gray`` (float32) smoothed at ``sigma_px``, over ``roi`` = (x0, y0, x1, y1)
-    (clipped to the image; the whole image when None). A margin of 3σ is filtered with the
-    region so its border is not degraded."""
-    h, w = gray.shape
-    if roi is None:
-        x0, y0, x1, y1 = 0, 0, w, h
-    else:
-        x0, y0, x1, y1 = (int(v) for v in roi)
-    margin = int(np.ceil(3.0 * sigma_px)) + 2
-    x0c, y0c = max(0, x0 - margin), max(0, y0 - margin)
-    x1c, y1c = min(w, x1 + margin), min(h, y1 + margin)
-    if x1c - x0c < 3 or y1c - y0c < 3:
-        return GradientField(np.zeros((1, 1, 2), np.float32), 0, 0, sigma_px, 1.0)
-    gx, gy = _gradient(np.ascontiguousarray(gray[y0c:y1c, x0c:x1c]), sigma_px)
-    noise = max(noise_sigma, 1e-4) * gradient_noise_gain(sigma_px)
-    return GradientField(cv2.merge([gx, gy]), x0c, y0c, sigma_px, noise)
+from estimators.imaging import GradientField
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -26,10 +26,11 @@ from estimators.conics import (
     ellipse_from_conic,
     fit_ellipse_direct,
 )
-from estimators.edge_search import GradientField, search_edges
+from estimators.edge_search import search_edges
 from estimators.ellipse_extraction import ExtractedEllipse
 from estimators.frame import CameraInfo
 from estimators.geometry import Pose
+from estimators.imaging import GradientField
 from estimators.target import Circle3D
 
 #: Gate on the normalised labeling cost (≈ χ² with 4 degrees of freedom at 99.5 %).

@@ -45,12 +45,8 @@ from estimators.conics import (
     refine_ellipse,
     sampson_distances,
 )
-from estimators.edge_search import (
-    GradientField,
-    gradient_noise_gain,
-    search_edges,
-    smoothed_gradient,
-)
+from estimators.edge_search import search_edges
+from estimators.imaging import GradientField, gradient_noise_gain, smoothed_gradient
 
 # Outward unit directions of the four gradient sectors: +x, +y, −x, −y (image axes, y down).
 _SECTOR_DIRECTIONS = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])

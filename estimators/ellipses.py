@@ -61,12 +61,6 @@ from estimators.conics import (
     sampson_distances,
 )
 from estimators.corners import FeatureLayout
-from estimators.edge_search import (
-    GradientField,
-    shown_noise_sigma,
-    smoothed_gradient,
-    to_gray_float,
-)
 from estimators.ellipse_detection import (
     label_with_prior,
     pose_with_roll,
@@ -76,9 +70,9 @@ from estimators.ellipse_detection import (
     search_roll,
 )
 from estimators.ellipse_extraction import ExtractedEllipse, ExtractorSettings, extract_ellipses
-from estimators.frame import CameraInfo, Frame, frame_problem
+from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, normal_angle, skew
-from estimators.imaging import estimate_noise_sigma
+from estimators.imaging import GradientField, ImageStack, image_stack
 from estimators.measurement import Measurement, circle_covariance_from_pose
 from estimators.model_view import head_extrusion, local_affine
 from estimators.planar_pose import PointObservations, ideal_pixels
@@ -142,28 +136,30 @@ class EllipseSettings:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class _Image:
-    """One frame prepared for the stages, with a per-call cache of gradient fields."""
+    """The frame's image stack as the stages see it at one smoothing scale."""
 
-    gray: np.ndarray
-    noise: float
+    stack: ImageStack
     camera: CameraInfo
     fine_sigma: float
-    fields: dict = field(default_factory=dict)
     scale: float = 1.0  # smoothing of every stage, relative to the settings' (low contrast: > 1)
-    clip_sigma: float = 0.0  # the noise σ before clipping (``noise`` is what the pixels show)
+
+    @property
+    def gray(self) -> np.ndarray:
+        return self.stack.pixels
+
+    @property
+    def noise(self) -> float:
+        """The noise σ the pixels show."""
+        return self.stack.noise_sigma
+
+    @property
+    def clip_sigma(self) -> float:
+        """The noise σ before the sensor clipped it."""
+        return self.stack.clip_sigma
 
     def field(self, sigma_px: float, roi=None) -> GradientField:
         """The smoothed gradient at ``sigma_px`` over ``roi`` (x0, y0, x1, y1) or the frame."""
-        if (sigma_px, None) in self.fields:  # a full-frame field covers any region
-            return self.fields[(sigma_px, None)]
-        if roi is not None:
-            h, w = self.gray.shape
-            x0, y0, x1, y1 = roi
-            roi = (max(0, int(x0)), max(0, int(y0)), min(w, int(x1) + 1), min(h, int(y1) + 1))
-        key = (sigma_px, roi)
-        if key not in self.fields:
-            self.fields[key] = smoothed_gradient(self.gray, sigma_px, self.noise, roi)
-        return self.fields[key]
+        return self.stack.gradient_field(sigma_px, roi)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -223,27 +219,19 @@ class EllipseEstimator:
     # --- entry point ----------------------------------------------------------------------
     def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
         started = time.perf_counter()
-        problem = frame_problem(frame)
-        if problem is not None:
-            return Measurement.lost(SYSTEM, frame, f"unusable frame: {problem}", started=started)
         # estimators.registry builds one estimator per CameraInfo: another camera here is a bug.
         assert frame.info.key == self.camera.key, "frame intrinsics differ from the estimator's"
-        gray = to_gray_float(frame.image)
-        noise = shown_noise_sigma(gray)
-        if _blank(gray, noise):
-            return Measurement.lost(SYSTEM, frame, "blank image (no contrast)", started=started)
-        noise = max(noise, 0.5 / 255.0)
-        clip_sigma = estimate_noise_sigma(gray)  # the noise before the sensor clipped it
+        stack = image_stack(frame)
+        if isinstance(stack, str):
+            return Measurement.lost(SYSTEM, frame, stack, started=started)
         s = self.settings
-        fine_sigma = float(np.clip(5.0 * noise, s.fine_sigma_px, s.fine_sigma_max_px))
+        fine_sigma = float(np.clip(5.0 * stack.noise_sigma, s.fine_sigma_px, s.fine_sigma_max_px))
         # The smoothing suits a ring of the usual contrast (≈ 0.4 at this noise). A ring that
         # shows far less — a low sun from the side leaves 0.15 — has its edges below the
         # search's SNR sample by sample: every stage is tried again smoothed more (an edge's
         # SNR grows with the smoothing).
         for scale in s.smoothing_scales:
-            image = _Image(
-                gray, noise, self.camera, fine_sigma * scale, scale=scale, clip_sigma=clip_sigma
-            )
+            image = _Image(stack, self.camera, fine_sigma * scale, scale=scale)
             found = self._track(image, prior_X_CT) if prior_X_CT is not None else None
             status = "tracking"
             extracted: list[ExtractedEllipse] = []
@@ -257,7 +245,10 @@ class EllipseEstimator:
                         fine_sigma_px=extractor.fine_sigma_px * scale,
                     )
                 extracted = extract_ellipses(
-                    gray, image.noise, settings=extractor, field=image.field(image.fine_sigma)
+                    stack.pixels,
+                    stack.noise_sigma,
+                    settings=extractor,
+                    field=image.field(image.fine_sigma),
                 )
                 found = self._acquire(image, extracted)
             if found is not None:
@@ -1016,7 +1007,7 @@ class EllipseEstimator:
         if radius_px < s.min_hole_radius_px:
             return None
         sigma = max(1.0, 0.6 * radius_px)
-        smoothed = cv2.GaussianBlur(image.gray, (0, 0), sigma)
+        smoothed = image.stack.smoothed(sigma)
         noise = image.noise / (2.0 * np.sqrt(np.pi) * sigma) * np.sqrt(1.125) + 1e-4
         ring_r = 2.2 * radius_px + 1.0
         angles = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
@@ -1205,18 +1196,6 @@ class EllipseEstimator:
 
 
 # --- helpers ----------------------------------------------------------------------------------
-
-
-def _blank(gray: np.ndarray, noise: float) -> bool:
-    """True when the frame holds nothing but noise: 16×16 block means vary no more than the
-    noise averaged over a block would make them (σ/16; their spread is measured over a
-    thousand blocks, so 1.5× that is far out of reach of noise alone — a dark target under a
-    low sun, 0.15 on black, is not blank)."""
-    h, w = gray.shape
-    if h < 32 or w < 32:
-        return True
-    blocks = cv2.resize(gray, (w // 16, h // 16), interpolation=cv2.INTER_AREA)
-    return float(blocks.std()) < max(1.5 * noise / 16.0, 0.004)
 
 
 def _joint_cost(result: FitResult, edge_sigmas: tuple[float, ...]) -> float:

@@ -1,14 +1,19 @@
-"""Image preparation shared by the estimators: a usable grey image or the reason there is none,
-the image noise level, smoothing matched to it, and the moments of noise clipped by the sensor
-at black and white.
+"""The one image stack of a frame, shared by every estimator: a usable grey image or the reason
+there is none, the image noise level, smoothing matched to it, smoothed images and gradients
+(computed once, lazily, and only over the regions asked for), and the moments of noise clipped
+by the sensor at black and white.
 
-Pure functions of the pixels; nothing here knows about the target.
+``image_stack(frame)`` returns the same ``ImageStack`` to every estimator that asks for the
+same frame, so gray conversion, noise estimate and smoothing happen once per frame however
+many systems look at it. Nothing here knows about the target.
 """
 
 from __future__ import annotations
 
+import functools
 import math
-from dataclasses import dataclass
+import threading
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -18,35 +23,197 @@ from estimators.frame import Frame, frame_problem
 
 #: Smallest image side an estimator will look at (px).
 MIN_IMAGE_SIDE_PX = 24
+#: The least noise σ an image is taken to have (half an 8-bit step).
+QUANTISATION_NOISE = 0.5 / 255.0
 #: Below this spread of intensities (on [0, 1]) there is nothing to see.
 MIN_INTENSITY_SPREAD = 0.03
 
 
 @dataclass(frozen=True, slots=True, eq=False)
-class GrayImage:
-    """A frame as float32 intensities on [0, 1] (HxW) with its estimated noise level.
+class GradientImage:
+    """A smoothed image with the noise standard deviations left in it and in a directional
+    derivative; derivatives are read on demand by central differences (``directional``)."""
+
+    smoothed: np.ndarray
+    noise_sigma: float
+    gradient_noise: float
+    sigma_px: float = 1.0
+
+    @staticmethod
+    def of(pixels: np.ndarray, sigma_px: float, noise_sigma: float) -> GradientImage:
+        """Gaussian smoothing by ``sigma_px`` of an image with white noise ``noise_sigma``."""
+        return GradientImage.from_smoothed(smooth(pixels, sigma_px), sigma_px, noise_sigma)
+
+    @staticmethod
+    def from_smoothed(smoothed: np.ndarray, sigma_px: float, noise_sigma: float) -> GradientImage:
+        # White noise through a 2-D Gaussian of σ_b keeps σ / (2√π σ_b) of its deviation; its
+        # derivative along one direction has deviation σ_s / (√2 σ_b). The floor keeps
+        # noise-free images from dividing by zero.
+        residual = noise_sigma / (2.0 * math.sqrt(math.pi) * sigma_px) + 0.002
+        return GradientImage(smoothed, residual, residual / (math.sqrt(2.0) * sigma_px), sigma_px)
+
+    def sample(self, uv: np.ndarray) -> np.ndarray:
+        """Bilinear samples of the smoothed image at pixel positions (N,2)."""
+        map_xy = np.asarray(uv, dtype=np.float32).reshape(1, -1, 2)
+        return cv2.remap(
+            self.smoothed, map_xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )[0].astype(float)
+
+    def directional(self, uv: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Derivative of the smoothed image at points (N,2) along unit directions (N,2) or (2,)
+        (central difference over ±1 px)."""
+        direction = np.broadcast_to(np.asarray(direction, dtype=float), np.shape(uv))
+        both = self.sample(np.concatenate([uv + direction, uv - direction]))
+        return 0.5 * (both[: len(uv)] - both[len(uv) :])
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class GradientField:
+    """Smoothed gradient (intensity per px) of the region [x0, x0+w) × [y0, y0+h) of an image.
+
+    ``noise`` is the std of one gradient component caused by the image noise; an edge's
+    strength divided by it is its signal-to-noise ratio.
+    """
+
+    gxy: np.ndarray  # float32 (h, w, 2): d/dx, d/dy
+    x0: int
+    y0: int
+    sigma_px: float
+    noise: float
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.gxy.shape[0], self.gxy.shape[1]
+
+
+def _sobel(smoothed: np.ndarray) -> np.ndarray:
+    gx = cv2.Sobel(smoothed, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    gy = cv2.Sobel(smoothed, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    return cv2.merge([gx, gy])
+
+
+def gradient_noise_gain(sigma_px: float) -> float:
+    """Std of one component of a ``GradientField`` for unit-variance white noise (measured by
+    pushing an impulse through the same filters: the gain is the kernel's L2 norm)."""
+    return _gradient_noise_gain(round(float(sigma_px), 6))
+
+
+@functools.lru_cache(maxsize=64)
+def _gradient_noise_gain(sigma_px: float) -> float:
+    half = int(np.ceil(4.0 * max(sigma_px, 0.5))) + 3
+    impulse = np.zeros((2 * half + 1, 2 * half + 1), np.float32)
+    impulse[half, half] = 1.0
+    gxy = _sobel(smooth(impulse, sigma_px) if sigma_px > 0 else impulse)
+    return float(np.sqrt((gxy[:, :, 0].astype(np.float64) ** 2).sum()))
+
+
+def smoothed_gradient(
+    gray: np.ndarray,
+    sigma_px: float,
+    noise_sigma: float,
+    roi: tuple[int, int, int, int] | None = None,
+) -> GradientField:
+    """Gradient of ``gray`` (float32) smoothed at ``sigma_px``, over ``roi`` = (x0, y0, x1, y1)
+    (clipped to the image; the whole image when None). A margin of 3σ is filtered with the
+    region so its border is not degraded: inside the region the result equals the whole image's."""
+    h, w = gray.shape
+    x0, y0, x1, y1 = (0, 0, w, h) if roi is None else (int(v) for v in roi)
+    margin = int(np.ceil(3.0 * sigma_px)) + 2
+    x0c, y0c = max(0, x0 - margin), max(0, y0 - margin)
+    x1c, y1c = min(w, x1 + margin), min(h, y1 + margin)
+    if x1c - x0c < 3 or y1c - y0c < 3:
+        return GradientField(np.zeros((1, 1, 2), np.float32), 0, 0, sigma_px, 1.0)
+    crop = np.ascontiguousarray(gray[y0c:y1c, x0c:x1c])
+    gxy = _sobel(smooth(crop, sigma_px) if sigma_px > 0 else crop)
+    noise = max(noise_sigma, 1e-4) * gradient_noise_gain(sigma_px)
+    return GradientField(gxy, x0c, y0c, sigma_px, noise)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ImageStack:
+    """A frame as float32 intensities on [0, 1] (HxW) with its estimated noise level, and the
+    smoothed images and gradients the estimators ask of it, each computed once.
 
     ``noise_sigma`` is the standard deviation of the pixel noise as the pixels show it (same
     units; what edge strengths and smoothing are judged against), ``clip_sigma`` that of the
     noise before the sensor clipped it (for likelihoods of clipped pixels); both from
-    ``noise_levels``.
+    ``noise_levels``. Two gradient views share the smoothing: ``gradients`` (the whole smoothed
+    image, derivatives sampled along given directions — model-contour support and edge
+    profiles) and ``gradient_field`` (Sobel components over a region — searches along curve
+    normals). The caches are guarded by a lock: systems on threads may share a stack.
     """
 
     pixels: np.ndarray
     noise_sigma: float
     clip_sigma: float = 0.0
+    _cache: dict = field(default_factory=dict, repr=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.pixels.shape  # type: ignore[return-value]
 
+    def smoothed(self, sigma_px: float) -> np.ndarray:
+        """The whole image smoothed by a Gaussian of ``sigma_px`` (``smooth``)."""
+        return self._cached(("smoothed", sigma_px), lambda: smooth(self.pixels, sigma_px))
 
-def gray_image(frame: Frame) -> GrayImage | str:
-    """The frame as a ``GrayImage``, or a one-line reason why it cannot be used.
+    def gradients(self, sigma_px: float) -> GradientImage:
+        """The ``GradientImage`` at ``sigma_px``."""
+        return self._cached(
+            ("gradients", sigma_px),
+            lambda: GradientImage.from_smoothed(
+                self.smoothed(sigma_px), sigma_px, self.noise_sigma
+            ),
+        )
 
-    uint8 images are scaled by 1/255; float images are taken as intensities on [0, 1] (the
-    renderer's convention); BGR images are converted with OpenCV's luma weights.
-    """
+    def gradient_field(
+        self, sigma_px: float, roi: tuple[int, int, int, int] | None = None
+    ) -> GradientField:
+        """The ``GradientField`` at ``sigma_px`` over ``roi`` = (x0, y0, x1, y1) inclusive of
+        x1, y1 (clipped to the image), or the whole image; a whole-image field serves any
+        region, and only the region (with its filter margin) is filtered otherwise."""
+        whole = self._cache.get(("field", sigma_px, None))
+        if whole is not None:
+            return whole
+        if roi is not None:
+            h, w = self.pixels.shape
+            x0, y0, x1, y1 = roi
+            roi = (max(0, int(x0)), max(0, int(y0)), min(w, int(x1) + 1), min(h, int(y1) + 1))
+        return self._cached(
+            ("field", sigma_px, roi),
+            lambda: smoothed_gradient(self.pixels, sigma_px, self.noise_sigma, roi),
+        )
+
+    def _cached(self, key: tuple, compute):
+        value = self._cache.get(key)
+        if value is None:
+            value = compute()  # (outside the lock: a twin computed by a racing thread is equal)
+            with self._lock:
+                value = self._cache.setdefault(key, value)
+        return value
+
+
+_last: tuple[Frame, ImageStack | str] | None = None
+_last_lock = threading.Lock()
+
+
+def image_stack(frame: Frame) -> ImageStack | str:
+    """The frame's ``ImageStack``, or a one-line reason why it cannot be used — the same stack
+    for every call with the same frame object (the last frame's is kept), so the systems that
+    look at one frame in one process prepare its pixels once."""
+    global _last
+    with _last_lock:
+        if _last is not None and _last[0] is frame:
+            return _last[1]
+    stack = _prepare(frame)
+    with _last_lock:
+        _last = (frame, stack)
+    return stack
+
+
+def _prepare(frame: Frame) -> ImageStack | str:
+    """uint8 images are scaled by 1/255; float images are taken as intensities on [0, 1] (the
+    renderer's convention); BGR images are converted with OpenCV's luma weights."""
     problem = frame_problem(frame)
     if problem is not None:
         return problem
@@ -66,7 +233,22 @@ def gray_image(frame: Frame) -> GrayImage | str:
         level = "black" if high < 0.1 else "saturated" if low > 0.9 else "uniform"
         return f"image has no contrast ({level}: 1–99 % intensities {low:.2f}–{high:.2f})"
     shown, sigma = noise_levels(pixels)
-    return GrayImage(pixels, shown, sigma)
+    # An 8-bit image is never cleaner than its quantisation: the floor keeps edge SNRs of a
+    # noise-free rendering finite.
+    shown = max(shown, QUANTISATION_NOISE)
+    if _only_noise(pixels, shown):
+        return "image holds nothing but noise (blank)"
+    return ImageStack(pixels, shown, sigma)
+
+
+def _only_noise(pixels: np.ndarray, noise_sigma: float) -> bool:
+    """True when the frame holds nothing but noise: 16×16 block means vary no more than the
+    noise averaged over a block would make them (σ/16; their spread is measured over a
+    thousand blocks, so 1.5× that is far out of reach of noise alone — a dark target under a
+    low sun, 0.15 on black, is not blank)."""
+    h, w = pixels.shape
+    blocks = cv2.resize(pixels, (w // 16, h // 16), interpolation=cv2.INTER_AREA)
+    return float(blocks.std()) < max(1.5 * noise_sigma / 16.0, 0.004)
 
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)

@@ -46,9 +46,15 @@ from estimators.acquisition import (
 )
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, rotation_error_geodesic
-from estimators.imaging import GrayImage, gray_image, smooth, smoothing_sigma_px
+from estimators.imaging import (
+    GradientImage,
+    ImageStack,
+    image_stack,
+    smooth,
+    smoothing_sigma_px,
+)
 from estimators.measurement import Measurement
-from estimators.model_support import GradientImage, ModelSupport, Support
+from estimators.model_support import ModelSupport, Support
 from estimators.model_view import plane_coordinates
 from estimators.outline_edges import (
     OutlineEdges,
@@ -241,10 +247,10 @@ class LineEstimator:
     # --- entry point ----------------------------------------------------------------------
     def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
         started = time.perf_counter()
-        image = gray_image(frame)
+        image = image_stack(frame)
         if isinstance(image, str):
             return Measurement.lost(SYSTEM, frame, image, started=started)
-        gradients = GradientImage.of(image.pixels, 2.0, image.noise_sigma)
+        gradients = image.gradients(2.0)
         reasons = []
         segments = np.zeros((0, 4))
         if prior_X_CT is not None:
@@ -285,7 +291,7 @@ class LineEstimator:
         )
 
     # --- acquisition ------------------------------------------------------------------------
-    def _acquire(self, image: GrayImage, gradients: GradientImage) -> _Solution:
+    def _acquire(self, image: ImageStack, gradients: GradientImage) -> _Solution:
         coarse = coarse_gradients(image)
         hypotheses = pose_hypotheses(
             image, gradients, coarse, self.camera, self.target, self.support, self.turns
@@ -306,7 +312,7 @@ class LineEstimator:
         return self._failure(f"{len(tried)} hypotheses rejected: {failures[0]}")
 
     # --- extraction and labeling ------------------------------------------------------------
-    def _segments(self, image: GrayImage, corners_uv: np.ndarray, margin: float) -> np.ndarray:
+    def _segments(self, image: ImageStack, corners_uv: np.ndarray, margin: float) -> np.ndarray:
         """Hough segments (S,4) near the predicted panel, in image pixels."""
         h, w = image.shape
         lo = np.maximum(np.floor(corners_uv.min(axis=0) - margin), 0).astype(int)
@@ -414,7 +420,7 @@ class LineEstimator:
     # --- the pipeline from a pose guess -----------------------------------------------------
     def _solve(
         self,
-        image: GrayImage,
+        image: ImageStack,
         gradients: GradientImage,
         X0: Pose,
         *,
@@ -597,7 +603,7 @@ class LineEstimator:
         return keep
 
     def _with_outline(
-        self, image: GrayImage, edges: PanelEdges, X0: Pose, tracking: bool
+        self, image: ImageStack, edges: PanelEdges, X0: Pose, tracking: bool
     ) -> _Joint | None:
         """The pose from the panel's and the outline's edges together (None when the model has
         no outline or none of it is found).
@@ -690,7 +696,7 @@ class LineEstimator:
 
     def _joint_fit(
         self,
-        image: GrayImage,
+        image: ImageStack,
         edges: PanelEdges,
         X_pred: Pose,
         covariance: np.ndarray,
@@ -759,7 +765,7 @@ class LineEstimator:
             X_pred, covariance, refreshed = joint.fit.X_CT, joint.fit.covariance, True
             starts = [X_pred]
 
-    def _panel_edges_at(self, image: GrayImage, X_CT: Pose) -> PanelEdges | None:
+    def _panel_edges_at(self, image: ImageStack, X_CT: Pose) -> PanelEdges | None:
         """The panel's edges measured narrowly (±2 px) around their projection under a pose
         held by more than the panel (None when one is not found)."""
         strips = strips_from_pose(X_CT, self.camera, self.target, self.options.strip_px)

@@ -22,52 +22,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from estimators.frame import CameraInfo
 from estimators.geometry import Pose, field_radius
+from estimators.imaging import GradientImage
 from estimators.target import TargetModel
 
 _SAMPLES_PER_EDGE = 24
 _SAMPLES_PER_CIRCLE = 96
 _MIN_SAMPLES = 8
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class GradientImage:
-    """A smoothed image with the noise standard deviations left in it and in a directional
-    derivative; derivatives are read on demand by central differences (``directional``)."""
-
-    smoothed: np.ndarray
-    noise_sigma: float
-    gradient_noise: float
-    sigma_px: float = 1.0
-
-    @staticmethod
-    def of(pixels: np.ndarray, sigma_px: float, noise_sigma: float) -> GradientImage:
-        """Gaussian smoothing by ``sigma_px`` of an image with white noise ``noise_sigma``."""
-        size = 2 * math.ceil(3.0 * sigma_px) + 1
-        smoothed = cv2.GaussianBlur(pixels, (size, size), sigma_px, borderType=cv2.BORDER_REPLICATE)
-        # White noise through a 2-D Gaussian of σ_b keeps σ / (2√π σ_b) of its deviation; its
-        # derivative along one direction has deviation σ_s / (√2 σ_b). The floor keeps
-        # noise-free images from dividing by zero.
-        residual = noise_sigma / (2.0 * math.sqrt(math.pi) * sigma_px) + 0.002
-        return GradientImage(smoothed, residual, residual / (math.sqrt(2.0) * sigma_px), sigma_px)
-
-    def sample(self, uv: np.ndarray) -> np.ndarray:
-        """Bilinear samples of the smoothed image at pixel positions (N,2)."""
-        map_xy = np.asarray(uv, dtype=np.float32).reshape(1, -1, 2)
-        return cv2.remap(
-            self.smoothed, map_xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-        )[0].astype(float)
-
-    def directional(self, uv: np.ndarray, direction: np.ndarray) -> np.ndarray:
-        """Derivative of the smoothed image at points (N,2) along unit directions (N,2) or (2,)
-        (central difference over ±1 px)."""
-        direction = np.broadcast_to(np.asarray(direction, dtype=float), np.shape(uv))
-        both = self.sample(np.concatenate([uv + direction, uv - direction]))
-        return 0.5 * (both[: len(uv)] - both[len(uv) :])
 
 
 @dataclass(frozen=True, slots=True)

@@ -12,8 +12,8 @@ from estimators.acquisition import (
     quarter_turns,
 )
 from estimators.geometry import rotation_error_geodesic
-from estimators.imaging import gray_image
-from estimators.model_support import GradientImage, ModelSupport
+from estimators.imaging import GradientImage, image_stack
+from estimators.model_support import ModelSupport
 from estimators.planar_pose import project_ideal
 from tests.estimators import rendered
 
@@ -23,7 +23,7 @@ TARGET = rendered.target()
 @pytest.mark.parametrize("distance", [3.0, 1.2])
 def test_find_panel_quads_finds_the_panel_among_other_squares(distance):
     f = rendered.frame(distance, noise="high", seed=2)
-    image = gray_image(f)
+    image = image_stack(f)
     gradients = GradientImage.of(image.pixels, 2.0, image.noise_sigma)
     quads = find_panel_quads(image, gradients, TARGET)
     truth = f.info.project(f.truth.X_CT.apply(TARGET.panel_corners_T))
@@ -47,7 +47,7 @@ def test_poses_from_corners_include_every_quarter_turn_of_the_truth():
 
 def test_pose_hypotheses_rank_the_true_quarter_turn_first():
     f = rendered.frame(2.0, noise="low", seed=8)
-    image = gray_image(f)
+    image = image_stack(f)
     gradients = GradientImage.of(image.pixels, 2.0, image.noise_sigma)
     support = ModelSupport(TARGET, f.info)
     hypotheses = pose_hypotheses(

@@ -3,12 +3,8 @@
 import numpy as np
 import pytest
 
-from estimators.edge_search import (
-    gradient_noise_gain,
-    search_edges,
-    smoothed_gradient,
-)
-from estimators.imaging import estimate_noise_sigma
+from estimators.edge_search import search_edges
+from estimators.imaging import estimate_noise_sigma, gradient_noise_gain, smoothed_gradient
 
 
 def step_image(edge_x: float, shape=(120, 160), low=0.3, high=0.7, noise=0.0, seed=0):

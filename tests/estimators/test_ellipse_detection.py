@@ -9,7 +9,6 @@ from configuration.camera import load_camera
 from configuration.mockup import load_mockup
 from estimators.circle_pose import CirclePose
 from estimators.conics import Ellipse, conic_from_ellipse
-from estimators.edge_search import smoothed_gradient
 from estimators.ellipse_detection import (
     LABEL_GATE,
     label_with_prior,
@@ -22,6 +21,7 @@ from estimators.ellipse_detection import (
 )
 from estimators.ellipse_extraction import ExtractedEllipse
 from estimators.geometry import Pose
+from estimators.imaging import smoothed_gradient
 from tests.estimators.test_ellipse_extraction import draw_ellipses
 
 CAMERA = load_camera("reference").camera_info()

@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 from estimators.conics import Ellipse, ellipse_from_conic, fit_ellipse_direct, refine_ellipse
-from estimators.edge_search import to_gray_float
 from estimators.ellipse_extraction import (
     ExtractorSettings,
     extract_ellipses,
@@ -147,11 +146,3 @@ def test_refine_ellipse_improves_a_short_arc_fit():
     assert error(refined) < error(direct)
     assert sigma == pytest.approx(0.3, rel=0.3)
     assert len(residuals) == 150
-
-
-def test_to_gray_float_accepts_mono_and_bgr():
-    mono = np.full((4, 5), 255, np.uint8)
-    assert to_gray_float(mono).max() == pytest.approx(1.0)
-    bgr = np.zeros((4, 5, 3), np.uint8)
-    bgr[..., 2] = 255  # red
-    assert to_gray_float(bgr)[0, 0] == pytest.approx(0.299, abs=0.01)

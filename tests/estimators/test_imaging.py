@@ -3,7 +3,7 @@ import pytest
 
 from configuration.camera import load_camera
 from estimators.frame import Frame
-from estimators.imaging import GrayImage, estimate_noise_sigma, gray_image
+from estimators.imaging import ImageStack, estimate_noise_sigma, image_stack
 
 CAMERA = load_camera("reference").camera_info()
 
@@ -19,14 +19,48 @@ def test_estimate_noise_sigma_recovers_additive_noise_on_a_structured_image(sigm
     assert estimate_noise_sigma(np.clip(noisy, 0.0, 1.0)) == pytest.approx(sigma, rel=0.05)
 
 
-def test_gray_image_converts_and_measures_noise():
+def _structured_frame(seq: int = 0) -> Frame:
     rng = np.random.default_rng(1)
-    pixels = np.clip(0.5 + rng.normal(0, 0.1, CAMERA.shape), 0, 1)
-    frame = Frame((pixels * 255).astype(np.uint8), 0.0, CAMERA, 0)
-    image = gray_image(frame)
-    assert isinstance(image, GrayImage)
+    pixels = np.full(CAMERA.shape, 0.3)
+    pixels[100:300, 200:450] = 0.7
+    pixels = np.clip(pixels + rng.normal(0, 0.1, CAMERA.shape), 0, 1)
+    return Frame((pixels * 255).astype(np.uint8), 0.0, CAMERA, seq)
+
+
+def test_image_stack_converts_and_measures_noise():
+    image = image_stack(_structured_frame())
+    assert isinstance(image, ImageStack)
     assert image.pixels.dtype == np.float32 and image.shape == CAMERA.shape
     assert image.noise_sigma == pytest.approx(0.1, rel=0.1)
+
+
+def test_image_stack_is_prepared_once_per_frame_and_computes_each_product_once():
+    frame = _structured_frame()
+    stack = image_stack(frame)
+    assert image_stack(frame) is stack  # a second system asking for the same frame
+    assert image_stack(_structured_frame(1)) is not stack  # another frame: another stack
+    assert stack.gradients(2.0) is stack.gradients(2.0)
+    assert stack.gradients(2.0).smoothed is stack.smoothed(2.0)
+    assert stack.gradient_field(1.5, (10, 20, 100, 80)) is stack.gradient_field(
+        1.5, (10, 20, 100, 80)
+    )
+
+
+def test_a_region_gradient_field_equals_the_whole_images_inside_the_region():
+    stack = image_stack(_structured_frame())
+    x0, y0, x1, y1 = 180, 90, 260, 140
+    region = stack.gradient_field(1.5, (x0, y0, x1, y1))
+    whole = ImageStack(stack.pixels, stack.noise_sigma).gradient_field(1.5)
+    inside = region.gxy[y0 - region.y0 : y1 - region.y0, x0 - region.x0 : x1 - region.x0]
+    assert region.noise == pytest.approx(whole.noise)
+    np.testing.assert_allclose(inside, whole.gxy[y0:y1, x0:x1], atol=1e-6)
+
+
+def test_a_frame_of_nothing_but_noise_is_blank():
+    rng = np.random.default_rng(1)
+    pixels = np.clip(0.5 + rng.normal(0, 0.1, CAMERA.shape), 0, 1)
+    result = image_stack(Frame((pixels * 255).astype(np.uint8), 0.0, CAMERA, 0))
+    assert isinstance(result, str) and "nothing but noise" in result
 
 
 @pytest.mark.parametrize(
@@ -40,12 +74,12 @@ def test_gray_image_converts_and_measures_noise():
         (np.zeros(CAMERA.shape, np.int16), "neither uint8 nor float"),
     ],
 )
-def test_gray_image_names_the_problem_of_a_bad_frame(image, reason):
-    result = gray_image(Frame(image, 0.0, CAMERA, 0))
+def test_image_stack_names_the_problem_of_a_bad_frame(image, reason):
+    result = image_stack(Frame(image, 0.0, CAMERA, 0))
     assert isinstance(result, str) and reason in result
 
 
-def test_gray_image_rejects_a_tiny_image_of_a_tiny_camera():
+def test_image_stack_rejects_a_tiny_image_of_a_tiny_camera():
     tiny = load_camera("reference").model_copy(update={"width": 16, "height": 16}).camera_info()
-    result = gray_image(Frame(np.zeros((16, 16), np.uint8), 0.0, tiny, 0))
+    result = image_stack(Frame(np.zeros((16, 16), np.uint8), 0.0, tiny, 0))
     assert isinstance(result, str) and "too small" in result

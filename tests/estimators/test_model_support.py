@@ -1,14 +1,14 @@
 import numpy as np
 
 from estimators.acquisition import TurnChecker, quarter_turns
-from estimators.imaging import gray_image
-from estimators.model_support import GradientImage, ModelSupport
+from estimators.imaging import GradientImage, image_stack
+from estimators.model_support import ModelSupport
 from estimators.planar_pose import retract
 from tests.estimators import rendered
 
 
 def _gradients(f):
-    image = gray_image(f)
+    image = image_stack(f)
     return GradientImage.of(image.pixels, 2.0, image.noise_sigma)
 
 
@@ -26,7 +26,7 @@ def test_model_support_is_high_at_the_true_pose_and_near_zero_off_it():
     assert at_truth.total > 3 * off.total
     # On coarser gradients a pose a couple of pixels off still scores.
     near = retract(f.truth.X_CT, np.array([0, 0, 0, 0.008, 0, 0]))  # 2 px
-    coarse = GradientImage.of(gray_image(f).pixels, 4.0, gray_image(f).noise_sigma)
+    coarse = GradientImage.of(image_stack(f).pixels, 4.0, image_stack(f).noise_sigma)
     assert support.score(coarse, near).total > 0.7 * support.score(coarse, f.truth.X_CT).total
 
 
