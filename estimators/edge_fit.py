@@ -14,7 +14,7 @@ against space) then looks steeper on its bright side and a least-squares step fi
 there: measured 0.07–0.1 px inward at low noise on the outline, a range bias of +3 mm at 3 m
 for the line system. Given the noise σ, the fit maximises the clipped-Gaussian (Tobit)
 likelihood instead: a pixel at black or white says only that intensity plus noise fell beyond
-the clip (``estimators.imaging.clipped_likelihood_terms``); Newton steps on that likelihood.
+the clip (``estimators.clipped_noise.clipped_likelihood_terms``); Newton steps on that likelihood.
 
 Line. Weighted total least squares (the principal axis of the points, weights 1/σ²) with
 iteratively reweighted Tukey biweights so that strips on clutter do not pull the line
@@ -27,13 +27,12 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numba
 import numpy as np
-from scipy.special import ndtr
 
-from estimators.imaging import clipped_likelihood_terms, clipped_moments
+from estimators.clipped_noise import clipped_moment, clipped_terms, normal_cdf, normal_pdf
 from estimators.point_fit import EDGE_WIDTH_PX
-
-_SQRT_2PI = math.sqrt(2.0 * math.pi)
+from estimators.small_linalg import solve_small
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -65,61 +64,180 @@ def _no_points(k: int) -> EdgePoints:
     )
 
 
-def _levels(values: np.ndarray, step: np.ndarray) -> tuple[float, float]:
-    """Least-squares grey levels (a, b) of values ≈ a·step + b·(1 − step)."""
-    other = 1.0 - step
-    s11, s12, s22 = float(step @ step), float(step @ other), float(other @ other)
-    t1, t2 = float(step @ values), float(other @ values)
-    det = s11 * s22 - s12 * s12
-    if len(values) < 3 or abs(det) < 1e-9 * max(s11 * s22, 1e-12):
-        return math.nan, math.nan
-    return (s22 * t1 - s12 * t2) / det, (s11 * t2 - s12 * t1) / det
-
-
-def _profile(d: np.ndarray, delta: np.ndarray, wall: np.ndarray, s: float):
-    """Basis (M,3) of a step edge at ``delta`` with a wall ``wall`` px wide showing outside it
-    (on the side the normals point away from): inside Φ((d − δ)/s), outside 1 − Φ((d − δ + w)/s)
-    and the wall between them; and their derivatives in δ (M,3). Levels · basis = intensity."""
+@numba.njit(cache=True, inline="always")
+def _profile_at(d: float, delta: float, wall: float, s: float):
+    """Basis (3) of a step edge at ``delta`` with a wall ``wall`` px wide showing outside it
+    (on the side the normals point away from), at offset ``d`` across the edge: inside
+    Φ((d − δ)/s), outside 1 − Φ((d − δ + w)/s) and the wall between them; and their
+    derivatives in δ (3). Levels · basis = intensity."""
     z1 = (d - delta) / s
     z2 = (d - delta + wall) / s
-    f1, f2 = ndtr(z1), ndtr(z2)
-    p1 = np.exp(-0.5 * z1 * z1) / (_SQRT_2PI * s)
-    p2 = np.exp(-0.5 * z2 * z2) / (_SQRT_2PI * s)
-    basis = np.column_stack([f1, 1.0 - f2, f2 - f1])
-    slopes = np.column_stack([-p1, p2, p1 - p2])
-    return basis, slopes
+    f1, f2 = normal_cdf(z1), normal_cdf(z2)
+    p1, p2 = normal_pdf(z1) / s, normal_pdf(z2) / s
+    return f1, 1.0 - f2, f2 - f1, -p1, p2, p1 - p2
 
 
-def _profile_levels(
-    values: np.ndarray, basis: np.ndarray, levels: np.ndarray, sigma: float
-) -> np.ndarray:
-    """Grey levels (inside, outside, wall) of values ≈ basis · levels: linear least squares,
-    or scoring steps on the clipped likelihood from ``levels`` given the noise σ. The wall's
-    level: with σ, a prior N((inside + outside)/2, (|inside − outside|/2)²) — a wall narrower
-    than a pixel barely shows its own grey, and a free one would trade with the edge's place
-    at high noise; without σ, a weak tie to the outside's (it decides only where no wall
-    shows)."""
-    levels = np.array(levels, dtype=float)
-    tie = 1e-3 * len(values)
+@numba.njit(cache=True)
+def _profile_levels(values, d, delta, wall, s, levels, sigma):
+    """Grey levels (inside, outside, wall) of values ≈ basis · levels at edge offsets ``delta``
+    (per pixel): linear least squares, or scoring steps on the clipped likelihood from
+    ``levels`` given the noise σ. The wall's level: with σ, a prior N((inside + outside)/2,
+    (|inside − outside|/2)²) — a wall narrower than a pixel barely shows its own grey, and a
+    free one would trade with the edge's place at high noise; without σ, a weak tie to the
+    outside's (it decides only where no wall shows)."""
+    n = len(values)
+    levels = levels.copy()
+    tie = 1e-3 * n
+    tie_vector = np.empty(3)
+    start = np.zeros(3)
     for _ in range(8 if sigma > 0 else 1):
         if sigma > 0:
-            score, info = clipped_likelihood_terms(values, basis @ levels, sigma)
-            start = levels
+            start = levels.copy()
             spread = max(abs(start[0] - start[1]) / 2.0, 1e-3)
-            tie_vector = np.array([-0.5, -0.5, 1.0]) / spread
+            tie_vector[0], tie_vector[1], tie_vector[2] = -0.5 / spread, -0.5 / spread, 1 / spread
         else:
-            score, info, start = values, np.ones_like(values), np.zeros(3)
-            tie_vector = np.array([0.0, -1.0, 1.0]) * np.sqrt(tie)
-        H = basis.T @ (info[:, None] * basis) + np.outer(tie_vector, tie_vector)
-        g = basis.T @ score - tie_vector * float(tie_vector @ start)
-        try:
-            step = np.linalg.solve(H + 1e-12 * np.eye(3), g)
-        except np.linalg.LinAlgError:
+            root = math.sqrt(tie)
+            tie_vector[0], tie_vector[1], tie_vector[2] = 0.0, -root, root
+        H = np.outer(tie_vector, tie_vector) + 1e-12 * np.eye(3)
+        g = -tie_vector * (tie_vector @ start)
+        for i in range(n):
+            b0, b1, b2, _, _, _ = _profile_at(d[i], delta[i], wall[i], s)
+            if sigma > 0:
+                score, info = clipped_terms(
+                    values[i], b0 * levels[0] + b1 * levels[1] + b2 * levels[2], sigma
+                )
+            else:
+                score, info = values[i], 1.0
+            basis = (b0, b1, b2)
+            for r in range(3):
+                g[r] += basis[r] * score
+                for c in range(3):
+                    H[r, c] += info * basis[r] * basis[c]
+        step = solve_small(H, g)
+        if not np.all(np.isfinite(step)):
             return np.full(3, np.nan)
         levels = start + step
         if np.sum(np.abs(levels - start)) < 1e-4 and sigma > 0:
             break
     return levels
+
+
+@numba.njit(cache=True)
+def _fit_offsets(values, d, strip, k, grid, half_width, wall_of_strip, noise_sigma):
+    """Steps 1–3 of ``fit_edge_points`` on a band's pixels (see there): the strips' offsets,
+    their standard deviations and usable flags, the grey levels, the contrast's standard
+    deviation and the residual noise; ``ok`` all False when no step fits."""
+    n = len(values)
+    failed = (
+        np.zeros(k),
+        np.full(k, np.inf),
+        np.zeros(k, np.bool_),
+        np.nan,
+        np.nan,
+        np.inf,
+        np.nan,
+    )
+    # 1. One common offset for the whole edge: grid search of the step fit on a fixed band.
+    best_cost, delta0, a, b = np.inf, 0.0, np.nan, np.nan
+    for offset in grid:
+        s11 = s12 = s22 = t1 = t2 = 0.0
+        for i in range(n):
+            step = normal_cdf((d[i] - offset) / 1.2)
+            other = 1.0 - step
+            s11 += step * step
+            s12 += step * other
+            s22 += other * other
+            t1 += step * values[i]
+            t2 += other * values[i]
+        det = s11 * s22 - s12 * s12
+        if n < 3 or abs(det) < 1e-9 * max(s11 * s22, 1e-12):
+            continue
+        a_try, b_try = (s22 * t1 - s12 * t2) / det, (s11 * t2 - s12 * t1) / det
+        cost = 0.0
+        for i in range(n):
+            r = values[i] - b_try - (a_try - b_try) * normal_cdf((d[i] - offset) / 1.2)
+            cost += r * r
+        if cost < best_cost:
+            best_cost, delta0, a, b = cost, offset, a_try, b_try
+    if not math.isfinite(a):
+        return failed
+    near = np.abs(d - delta0) <= half_width
+    values, d, strip = values[near], d[near], strip[near]
+    n = len(values)
+    counts = np.bincount(strip, minlength=k)
+
+    # 2. Per-strip offsets within ±max_shift of the common one, coarse to fine, with shared
+    # grey levels refreshed between scales (a scoring step on the clipped likelihood).
+    max_shift = max(1.0, half_width - 1.5)
+    delta = np.full(k, delta0)
+    w = wall_of_strip[strip]
+    levels = _profile_levels(values, d, delta[strip], w, 1.2, np.array([a, b, b]), noise_sigma)
+    if not np.all(np.isfinite(levels)):
+        return failed
+    jj, jr = np.zeros(k), np.zeros(k)
+    for s, count in ((1.2, 2), (0.7, 2), (EDGE_WIDTH_PX, 3)):
+        for _ in range(count):
+            jj[:] = 0.0
+            jr[:] = 0.0
+            for i in range(n):
+                j = strip[i]
+                b0, b1, b2, q0, q1, q2 = _profile_at(d[i], delta[j], w[i], s)
+                intensity = b0 * levels[0] + b1 * levels[1] + b2 * levels[2]
+                score, info = clipped_terms(values[i], intensity, noise_sigma)
+                J = q0 * levels[0] + q1 * levels[1] + q2 * levels[2]  # ∂model/∂δ
+                jj[j] += info * J * J
+                jr[j] += J * score
+            for j in range(k):
+                step = min(max(jr[j] / max(jj[j], 1e-12), -0.5), 0.5)
+                delta[j] = min(max(delta[j] + step, delta0 - max_shift), delta0 + max_shift)
+        levels = _profile_levels(values, d, delta[strip], w, s, levels, noise_sigma)
+        if not np.all(np.isfinite(levels)):
+            return failed
+
+    # 3. Statistics at the solution. Per-pixel information: from the residuals' own variance;
+    # with a clipping model, the clipped likelihood's (a clipped pixel tells less than an
+    # unclipped one), on the scale of the noise σ scaled by how the residuals compare with what
+    # clipped noise leaves (clipping shrinks the residuals' own spread, which would make the
+    # points look too precise).
+    walled = np.any(wall_of_strip >= 0.05)
+    dof = max(n - k - (3 if walled else 2), 1)
+    J = np.empty(n)
+    weight = np.empty(n)
+    rr = excess = spread = 0.0
+    aa = ao = oo = 0.0
+    for i in range(n):
+        b0, b1, b2, q0, q1, q2 = _profile_at(d[i], delta[strip[i]], w[i], EDGE_WIDTH_PX)
+        intensity = b0 * levels[0] + b1 * levels[1] + b2 * levels[2]
+        r = values[i] - intensity
+        rr += r * r
+        J[i] = -(q0 * levels[0] + q1 * levels[1] + q2 * levels[2])
+        if noise_sigma > 0:
+            _, weight[i] = clipped_terms(values[i], intensity, noise_sigma)
+            mean, variance, _ = clipped_moment(intensity, noise_sigma)
+            excess += (values[i] - mean) ** 2
+            spread += variance
+        other = b1 + b2
+        aa += b0 * b0
+        ao += b0 * other
+        oo += other * other
+    noise2 = rr / dof
+    if noise_sigma > 0:
+        scale = excess / max(spread, 1e-12) * n / dof
+        weight /= max(scale, 0.5)
+    else:
+        weight[:] = 1.0 / max(noise2, 1e-12)
+    info = np.zeros(k)
+    for i in range(n):
+        info[strip[i]] += weight[i] * J[i] * J[i]
+    sigma = 1.0 / np.sqrt(np.maximum(info, 1e-12))
+    # Grey-level uncertainty from the linear part: Var(a − b) = σ²·[1 −1](AᵀA)⁻¹[1 −1]ᵀ
+    det = aa * oo - ao * ao
+    contrast_sigma = np.inf
+    if det != 0.0:
+        contrast_sigma = math.sqrt(max(noise2 * (oo + aa + 2.0 * ao) / det, 0.0))
+    ok = (counts >= 4) & np.isfinite(delta) & (np.abs(delta - delta0) < max_shift - 1e-6)
+    ok &= np.isfinite(sigma) & (info > 0)
+    return delta, sigma, ok, levels[0], levels[1], contrast_sigma, math.sqrt(noise2)
 
 
 #: Strips per chunk when collecting a band's pixels: one bounding box per chunk, so that a
@@ -210,82 +328,15 @@ def fit_edge_points(
     if len(values) < 12:
         return _no_points(k)
 
-    # 1. One common offset for the whole edge: grid search of the step fit on a fixed band.
-    best = (math.inf, 0.0, math.nan, math.nan)
     grid = np.arange(-search_px, search_px + 1e-9, 1.0) if search_px > 0 else np.zeros(1)
-    for delta in grid:
-        step = ndtr((d - delta) / 1.2)
-        a, b = _levels(values, step)
-        if not math.isfinite(a):
-            continue
-        residual = values - b - (a - b) * step
-        cost = float(residual @ residual)
-        if cost < best[0]:
-            best = (cost, float(delta), a, b)
-    _, delta0, a, b = best
-    if not math.isfinite(a):
-        return _no_points(k)
-    near = np.abs(d - delta0) <= half_width_px
-    values, d, strip = values[near], d[near], strip[near]
-    counts = np.bincount(strip, minlength=k)
-
-    # 2. Per-strip offsets within ±max_shift of the common one, coarse to fine, with shared
-    # grey levels refreshed between scales (a scoring step on the clipped likelihood).
-    max_shift = max(1.0, half_width_px - 1.5)
-    delta = np.full(k, delta0)
     wall = np.zeros(k) if wall_px is None else np.clip(np.nan_to_num(wall_px), 0.0, 3.0)
-    w = wall[strip]
-    walled = bool(np.any(wall >= 0.05))
-    levels = np.array([a, b, b])  # inside, outside, the wall's
-    levels = _profile_levels(values, _profile(d, delta[strip], w, 1.2)[0], levels, noise_sigma)
-    if not np.all(np.isfinite(levels)):
+    delta, sigma, ok, a, b, contrast_sigma, noise = _fit_offsets(
+        values, d, strip.astype(np.int64), k, grid, float(half_width_px), wall, float(noise_sigma)
+    )
+    if not ok.any() and not math.isfinite(a):
         return _no_points(k)
-    for s, count in ((1.2, 2), (0.7, 2), (EDGE_WIDTH_PX, 3)):
-        for _ in range(count):
-            basis, slopes = _profile(d, delta[strip], w, s)
-            score, info = clipped_likelihood_terms(values, basis @ levels, noise_sigma)
-            J = slopes @ levels  # ∂model/∂δ
-            jj = np.bincount(strip, info * J * J, minlength=k)
-            jr = np.bincount(strip, J * score, minlength=k)
-            step = np.clip(jr / np.maximum(jj, 1e-12), -0.5, 0.5)
-            delta = np.clip(delta + step, delta0 - max_shift, delta0 + max_shift)
-        levels = _profile_levels(values, _profile(d, delta[strip], w, s)[0], levels, noise_sigma)
-        if not np.all(np.isfinite(levels)):
-            return _no_points(k)
-    a, b = float(levels[0]), float(levels[1])
-
-    # 3. Statistics at the solution.
-    basis, slopes = _profile(d, delta[strip], w, EDGE_WIDTH_PX)
-    intensity = basis @ levels
-    r = values - intensity
-    free = 3 if walled else 2
-    noise2 = float(r @ r / max(len(values) - k - free, 1))
-    J = -(slopes @ levels)
-    # Per-pixel information: from the residuals' own variance; with a clipping model, the
-    # clipped likelihood's (a clipped pixel tells less than an unclipped one), on the scale of
-    # the noise σ scaled by how the residuals compare with what clipped noise leaves (clipping
-    # shrinks the residuals' own spread, which would make the points look too precise).
-    weight = np.full(len(values), 1.0 / max(noise2, 1e-12))
-    if noise_sigma > 0:
-        _, clipped_info = clipped_likelihood_terms(values, intensity, noise_sigma)
-        mean, variance, _ = clipped_moments(intensity, noise_sigma)
-        excess = float((values - mean) @ (values - mean)) / max(float(variance.sum()), 1e-12)
-        excess *= len(values) / max(len(values) - k - free, 1)
-        weight = clipped_info / max(excess, 0.5)
-    info = np.bincount(strip, weight * J * J, minlength=k)
-    sigma = 1.0 / np.sqrt(np.maximum(info, 1e-12))
-    # Grey-level uncertainty from the linear part: Var(a − b) = σ²·[1 −1](AᵀA)⁻¹[1 −1]ᵀ
-    inside, other = basis[:, 0], basis[:, 1] + basis[:, 2]
-    AtA = np.array([[inside @ inside, inside @ other], [inside @ other, other @ other]])
-    try:
-        cov_ab = np.linalg.inv(AtA) * noise2
-        contrast_sigma = float(math.sqrt(max(cov_ab[0, 0] + cov_ab[1, 1] - 2 * cov_ab[0, 1], 0)))
-    except np.linalg.LinAlgError:
-        contrast_sigma = math.inf
-    ok = (counts >= 4) & np.isfinite(delta) & (np.abs(delta - delta0) < max_shift - 1e-6)
-    ok &= np.isfinite(sigma) & (info > 0)
     uv = centers + delta[:, None] * normals
-    return EdgePoints(uv, sigma, ok, float(a), float(b), contrast_sigma, math.sqrt(noise2))
+    return EdgePoints(uv, sigma, ok, float(a), float(b), contrast_sigma, noise)
 
 
 def _strip_lattice(pixels, centers, normals, half_length, reach, keep):

@@ -1,7 +1,7 @@
 """The one image stack of a frame, shared by every estimator: a usable grey image or the reason
 there is none, the image noise level, smoothing matched to it, smoothed images and gradients
-(computed once, lazily, and only over the regions asked for), and the moments of noise clipped
-by the sensor at black and white.
+(computed once, lazily, and only over the regions asked for). The noise clipped by the sensor
+at black and white is ``clipped_noise``'s.
 
 ``image_stack(frame)`` returns the same ``ImageStack`` to every estimator that asks for the
 same frame, so gray conversion, noise estimate and smoothing happen once per frame however
@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy.special import ndtr
 
+from estimators.clipped_noise import clipped_moments
 from estimators.frame import Frame, frame_problem
 
 #: Smallest image side an estimator will look at (px).
@@ -249,67 +249,6 @@ def _only_noise(pixels: np.ndarray, noise_sigma: float) -> bool:
     h, w = pixels.shape
     blocks = cv2.resize(pixels, (w // 16, h // 16), interpolation=cv2.INTER_AREA)
     return float(blocks.std()) < max(1.5 * noise_sigma / 16.0, 0.004)
-
-
-_SQRT_2PI = math.sqrt(2.0 * math.pi)
-
-
-def clipped_moments(
-    intensity: np.ndarray, sigma: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mean, variance and ∂mean/∂intensity of clip(I + n, 0, 1) for n ~ N(0, σ²) — what a
-    sensor that clips at black and white shows of intensity I (the derivative is the chance
-    that the pixel is not clipped). σ = 0: I, 0 and 1."""
-    intensity = np.asarray(intensity, dtype=float)
-    if sigma <= 0:
-        return intensity, np.zeros_like(intensity), np.ones_like(intensity)
-    alpha = -intensity / sigma
-    beta = (1.0 - intensity) / sigma
-    below, above = ndtr(alpha), ndtr(beta)
-    pdf_a = np.exp(-0.5 * alpha * alpha) / _SQRT_2PI
-    pdf_b = np.exp(-0.5 * beta * beta) / _SQRT_2PI
-    inside = above - below
-    mean = intensity * inside + sigma * (pdf_a - pdf_b) + (1.0 - above)
-    second = (
-        intensity**2 * inside
-        + 2.0 * intensity * sigma * (pdf_a - pdf_b)
-        + sigma**2 * (inside + alpha * pdf_a - beta * pdf_b)
-        + (1.0 - above)
-    )
-    return mean, np.maximum(second - mean * mean, 0.0), inside
-
-
-#: Pixels this close to 0 or 1 are taken as clipped (an 8-bit sensor's 0 and 255).
-CLIP_TOLERANCE = 0.5 / 255.0
-
-
-def clipped_likelihood_terms(
-    values: np.ndarray, intensity: np.ndarray, sigma: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Score ∂ℓ/∂I and information −∂²ℓ/∂I² of each pixel's log-likelihood ℓ given its
-    intensity I, under Gaussian noise σ clipped at black and white (a Tobit model: a clipped
-    pixel only says the intensity plus noise fell beyond the clip). The maximum-likelihood fit
-    of a model of I is unbiased where least squares on the clipped values is not. σ = 0: the
-    least-squares terms (v − I, 1)."""
-    values = np.asarray(values, dtype=float)
-    intensity = np.asarray(intensity, dtype=float)
-    if sigma <= 0:
-        return values - intensity, np.ones_like(intensity)
-    score = (values - intensity) / sigma**2
-    info = np.full_like(intensity, 1.0 / sigma**2)
-    # ℓ = log Φ(a) with a = −I/σ below black, (I − 1)/σ above white: ∂ℓ/∂I = ∓λ/σ and
-    # −∂²ℓ/∂I² = λ(λ + a)/σ², λ = φ(a)/Φ(a).
-    for sign, clipped, alpha in (
-        (-1.0, values <= CLIP_TOLERANCE, -intensity / sigma),
-        (1.0, values >= 1.0 - CLIP_TOLERANCE, (intensity - 1.0) / sigma),
-    ):
-        if not np.any(clipped):
-            continue
-        a = alpha[clipped]
-        ratio = np.exp(-0.5 * a * a) / _SQRT_2PI / np.maximum(ndtr(a), 1e-300)
-        score[clipped] = sign * ratio / sigma
-        info[clipped] = ratio * (ratio + a) / sigma**2
-    return score, info
 
 
 def estimate_noise_sigma(pixels: np.ndarray) -> float:

@@ -21,7 +21,7 @@ first would correlate the noise and bias the covariance. Gauss–Newton on all p
 (position, shape, the grey levels) for all features at once; the covariance is σ²·(JᵀJ)⁻¹
 with σ² from each feature's residuals. Given the image noise σ (``noise_sigma``), the fits
 maximise the likelihood of noise clipped at black and white instead (Fisher scoring with the
-terms of ``estimators.imaging.clipped_likelihood_terms``): a dark panel or hole loses a third
+terms of ``estimators.clipped_noise.clipped_likelihood_terms``): a dark panel or hole loses a third
 of its noise to the clip at low noise, and a least-squares wedge then neither fits nor
 converges.
 """
@@ -32,13 +32,19 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
-from scipy.special import ndtr
 
-from estimators.imaging import clipped_likelihood_terms, clipped_moments
+from estimators.clipped_noise import (
+    clipped_likelihood_terms,
+    clipped_moments,
+    clipped_terms,
+    normal_cdf,
+    normal_pdf,
+)
+from estimators.small_linalg import solve_small
 
 EDGE_WIDTH_PX = 0.45
-_SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -108,109 +114,18 @@ def fit_discs(
     u = u_int.astype(float)
     v = v_int.astype(float)
     values = pixels[v_int, u_int].astype(float)
-    a11, a12, a21, a22 = (A_inv[owner, i, j] for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)))
-    ex, ey, ee = e_m[owner, 0], e_m[owner, 1], e_m2[owner]
-    sc = scale[owner]
-    rad_px = radius[owner] * sc
-    win = window[owner]
-
-    def model(c: np.ndarray, s: float):
-        """Top-disc and stadium coverages, their slopes and ∂ρ/∂c, and the window mask."""
-        du = u - c[owner, 0]
-        dv = v - c[owner, 1]
-        wx = a11 * du + a12 * dv  # metres in the disc plane
-        wy = a21 * du + a22 * dv
-        d = np.sqrt(wx * wx + wy * wy)
-        z = (rad_px - d * sc) / s
-        inv_d = sc / np.maximum(d, 1e-12)
-        # ∂ρ/∂c = scale · A⁻ᵀ ŵ
-        gx = (a11 * wx + a21 * wy) * inv_d
-        gy = (a12 * wx + a22 * wy) * inv_d
-        # The stadium: distance to the segment from the top's centre to the base's.
-        t = np.clip((wx * ex + wy * ey) / ee, 0.0, 1.0)
-        qx, qy = wx - t * ex, wy - t * ey
-        dq = np.sqrt(qx * qx + qy * qy)
-        zq = (rad_px - dq * sc) / s
-        inv_q = sc / np.maximum(dq, 1e-12)
-        hx = (a11 * qx + a21 * qy) * inv_q
-        hy = (a12 * qx + a22 * qy) * inv_q
-        top, stadium = ndtr(z), ndtr(zq)
-        slope_top = np.exp(-0.5 * z * z) / (_SQRT_2PI * s)
-        slope_stadium = np.exp(-0.5 * zq * zq) / (_SQRT_2PI * s)
-        return top, stadium, slope_top, slope_stadium, (gx, gy), (hx, hy), d < win
-
-    def sums(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        return np.bincount(owner, x * mask, minlength=n)
-
-    def levels(top, stadium, mask, current=None):
-        """Grey levels (top a, surroundings b, wall c) by linear least squares — or, from
-        ``current`` with a noise σ, a scoring step on the clipped likelihood. The wall's level
-        is tied to the top's (the same material): weakly without σ (decisive only where the
-        wall does not show); with σ by a prior of sd |a − b|/2 — a wall a fraction of a pixel
-        wide barely shows its own grey, and a free one trades with the centre at high noise."""
-        basis = (top, 1.0 - stadium, stadium - top)
-        if current is None or noise_sigma <= 0:
-            score, info = values, np.ones_like(values)
-            start = np.zeros((n, 3))
-        else:
-            start = np.column_stack(current)
-            model_values = sum(start[owner, i] * basis[i] for i in range(3))
-            score, info = clipped_likelihood_terms(values, model_values, noise_sigma)
-        G = np.zeros((n, 3, 3))
-        t = np.zeros((n, 3))
-        for i in range(3):
-            t[:, i] = sums(basis[i] * score, mask)
-            for j in range(i, 3):
-                G[:, i, j] = G[:, j, i] = sums(info * basis[i] * basis[j], mask)
-        tie = 1e-3 * np.maximum(sums(info, mask), 1e-9)
-        if current is not None and noise_sigma > 0:
-            tie = 1.0 / np.maximum((start[:, 0] - start[:, 1]) / 2.0, 1e-3) ** 2
-        t[:, 0] -= tie * (start[:, 0] - start[:, 2])
-        t[:, 2] += tie * (start[:, 0] - start[:, 2])
-        G[:, 0, 0] += tie
-        G[:, 2, 2] += tie
-        G[:, 0, 2] -= tie
-        G[:, 2, 0] -= tie
-        G += 1e-12 * np.eye(3)
-        x = start + np.linalg.solve(G, t[..., None])[..., 0]
-        return x[:, 0], x[:, 1], x[:, 2]
-
-    c = centers.copy()
-    a = np.zeros(n)
-    b = np.zeros(n)
-    wall = np.zeros(n)
-    current = None
-    schedule = [(1.2, 2), (0.7, 1), (EDGE_WIDTH_PX, iterations)]
-    last_step = np.full(n, np.inf)
-    for s, count in schedule:
-        for _ in range(count):
-            top, stadium, slope_t, slope_s, (gx, gy), (hx, hy), mask = model(c, s)
-            mask = mask.astype(float)
-            a, b, wall = levels(top, stadium, mask, current)
-            current = (a, b, wall)
-            predicted = a[owner] * top + b[owner] * (1.0 - stadium) + wall[owner] * (stadium - top)
-            score, info = clipped_likelihood_terms(values, predicted, noise_sigma)
-            k_top = (a - wall)[owner] * slope_t
-            k_stadium = (wall - b)[owner] * slope_s
-            jx, jy = k_top * gx + k_stadium * hx, k_top * gy + k_stadium * hy
-            hxx, hxy, hyy = (
-                sums(info * jx * jx, mask),
-                sums(info * jx * jy, mask),
-                sums(info * jy * jy, mask),
-            )
-            gxr, gyr = sums(jx * score, mask), sums(jy * score, mask)
-            det2 = hxx * hyy - hxy * hxy
-            det2 = np.where(np.abs(det2) < 1e-18 * np.maximum(hxx * hyy, 1e-30), np.nan, det2)
-            step = np.column_stack([(hyy * gxr - hxy * gyr) / det2, (hxx * gyr - hxy * gxr) / det2])
-            step = np.nan_to_num(step)
-            norm = np.linalg.norm(step, axis=1, keepdims=True)
-            step = np.where(norm > 1.0, step / np.maximum(norm, 1e-12), step)
-            c = c + step
-            last_step = norm[:, 0]
+    rad_px = radius * scale
+    e_m = np.ascontiguousarray(e_m)
+    geometry = (u, v, owner.astype(np.int64), np.ascontiguousarray(A_inv), scale, rad_px, window)
+    schedule = ((1.2, 2), (0.7, 1), (EDGE_WIDTH_PX, iterations))
+    c, a, b, wall, last_step = _fit_discs_kernel(
+        values, geometry, e_m, e_m2, centers.copy(), n, float(noise_sigma), schedule
+    )
     # Statistics at the solution: covariance of centre and grey levels (and the wall's level
     # where it shows).
-    top, stadium, slope_t, slope_s, (gx, gy), (hx, hy), mask = model(c, EDGE_WIDTH_PX)
-    mask = mask.astype(float)
+    top, stadium, slope_t, slope_s, gx, gy, hx, hy, mask = _disc_model(
+        *geometry, e_m, e_m2, c, EDGE_WIDTH_PX
+    )
     r = values - a[owner] * top - b[owner] * (1.0 - stadium) - wall[owner] * (stadium - top)
     k_top = (a - wall)[owner] * slope_t
     k_stadium = (wall - b)[owner] * slope_s
@@ -228,6 +143,139 @@ def fit_discs(
         J, r, owner, weights, used, c, a, b, ok, contrast_columns=(2, 3), sigma2=sigma2
     )
     return _converged(fits, last_step)
+
+
+@numba.njit(cache=True)
+def _disc_model(u, v, owner, A_inv, scale, rad_px, window, e_m, e_m2, c, s):
+    """Per pixel: top-disc and stadium coverages, their slopes, ∂ρ/∂c of each (= scale · A⁻ᵀ ŵ)
+    and the window mask (1 inside the disc's window, else 0), discs at centres ``c``."""
+    m = len(u)
+    top, stadium, slope_t, slope_s = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    gx, gy, hx, hy, mask = np.empty(m), np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    for p in range(m):
+        o = owner[p]
+        a11, a12, a21, a22 = A_inv[o, 0, 0], A_inv[o, 0, 1], A_inv[o, 1, 0], A_inv[o, 1, 1]
+        du = u[p] - c[o, 0]
+        dv = v[p] - c[o, 1]
+        wx = a11 * du + a12 * dv  # metres in the disc plane
+        wy = a21 * du + a22 * dv
+        d = math.sqrt(wx * wx + wy * wy)
+        z = (rad_px[o] - d * scale[o]) / s
+        inv_d = scale[o] / max(d, 1e-12)
+        gx[p] = (a11 * wx + a21 * wy) * inv_d
+        gy[p] = (a12 * wx + a22 * wy) * inv_d
+        # The stadium: distance to the segment from the top's centre to the base's.
+        ex, ey = e_m[o, 0], e_m[o, 1]
+        t = min(max((wx * ex + wy * ey) / e_m2[o], 0.0), 1.0)
+        qx, qy = wx - t * ex, wy - t * ey
+        dq = math.sqrt(qx * qx + qy * qy)
+        zq = (rad_px[o] - dq * scale[o]) / s
+        inv_q = scale[o] / max(dq, 1e-12)
+        hx[p] = (a11 * qx + a21 * qy) * inv_q
+        hy[p] = (a12 * qx + a22 * qy) * inv_q
+        top[p], stadium[p] = normal_cdf(z), normal_cdf(zq)
+        slope_t[p], slope_s[p] = normal_pdf(z) / s, normal_pdf(zq) / s
+        mask[p] = 1.0 if d < window[o] else 0.0
+    return top, stadium, slope_t, slope_s, gx, gy, hx, hy, mask
+
+
+@numba.njit(cache=True)
+def _disc_levels(values, owner, n, top, stadium, mask, start, use_start, noise_sigma):
+    """Grey levels (top a, surroundings b, wall c) of each disc by linear least squares — or,
+    from ``start`` with a noise σ (``use_start``), a scoring step on the clipped likelihood.
+    The wall's level is tied to the top's (the same material): weakly without σ (decisive only
+    where the wall does not show); with σ by a prior of sd |a − b|/2 — a wall a fraction of a
+    pixel wide barely shows its own grey, and a free one trades with the centre at high
+    noise."""
+    G = np.zeros((n, 3, 3))
+    t = np.zeros((n, 3))
+    info_sum = np.zeros(n)
+    basis = np.empty(3)
+    for p in range(len(values)):
+        if mask[p] == 0.0:
+            continue
+        o = owner[p]
+        basis[0], basis[1], basis[2] = top[p], 1.0 - stadium[p], stadium[p] - top[p]
+        if use_start:
+            model = start[o, 0] * basis[0] + start[o, 1] * basis[1] + start[o, 2] * basis[2]
+            score, info = clipped_terms(values[p], model, noise_sigma)
+        else:
+            score, info = values[p], 1.0
+        info_sum[o] += info
+        for i in range(3):
+            t[o, i] += basis[i] * score
+            for j in range(3):
+                G[o, i, j] += info * basis[i] * basis[j]
+    levels = np.empty((n, 3))
+    for o in range(n):
+        s0 = start[o] if use_start else np.zeros(3)
+        if use_start:
+            tie = 1.0 / max((s0[0] - s0[1]) / 2.0, 1e-3) ** 2
+        else:
+            tie = 1e-3 * max(info_sum[o], 1e-9)
+        g = t[o].copy()
+        g[0] -= tie * (s0[0] - s0[2])
+        g[2] += tie * (s0[0] - s0[2])
+        H = G[o] + 1e-12 * np.eye(3)
+        H[0, 0] += tie
+        H[2, 2] += tie
+        H[0, 2] -= tie
+        H[2, 0] -= tie
+        levels[o] = s0 + solve_small(H, g)
+    return levels
+
+
+@numba.njit(cache=True)
+def _fit_discs_kernel(values, geometry, e_m, e_m2, c, n, noise_sigma, schedule):
+    """Gauss–Newton (Fisher scoring with clipped noise) on the disc centres ``c`` with the grey
+    levels refreshed before each step, edge width coarse to fine along ``schedule``; returns
+    the centres, grey levels and the last step's length of each disc."""
+    u, v, owner, A_inv, scale, rad_px, window = geometry
+    levels = np.zeros((n, 3))
+    use_start = False
+    last_step = np.full(n, np.inf)
+    hxx, hxy, hyy, gxr, gyr = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    for s, count in schedule:
+        for _ in range(count):
+            top, stadium, slope_t, slope_s, gx, gy, hx, hy, mask = _disc_model(
+                u, v, owner, A_inv, scale, rad_px, window, e_m, e_m2, c, s
+            )
+            levels = _disc_levels(
+                values, owner, n, top, stadium, mask, levels, use_start, noise_sigma
+            )
+            use_start = noise_sigma > 0
+            hxx[:], hxy[:], hyy[:], gxr[:], gyr[:] = 0.0, 0.0, 0.0, 0.0, 0.0
+            for p in range(len(values)):
+                if mask[p] == 0.0:
+                    continue
+                o = owner[p]
+                a, b, wall = levels[o, 0], levels[o, 1], levels[o, 2]
+                predicted = a * top[p] + b * (1.0 - stadium[p]) + wall * (stadium[p] - top[p])
+                score, info = clipped_terms(values[p], predicted, noise_sigma)
+                k_top = (a - wall) * slope_t[p]
+                k_stadium = (wall - b) * slope_s[p]
+                jx = k_top * gx[p] + k_stadium * hx[p]
+                jy = k_top * gy[p] + k_stadium * hy[p]
+                hxx[o] += info * jx * jx
+                hxy[o] += info * jx * jy
+                hyy[o] += info * jy * jy
+                gxr[o] += jx * score
+                gyr[o] += jy * score
+            for o in range(n):
+                det2 = hxx[o] * hyy[o] - hxy[o] * hxy[o]
+                step_x = step_y = 0.0
+                if abs(det2) >= 1e-18 * max(hxx[o] * hyy[o], 1e-30):
+                    step_x = (hyy[o] * gxr[o] - hxy[o] * gyr[o]) / det2
+                    step_y = (hxx[o] * gyr[o] - hxy[o] * gxr[o]) / det2
+                    step_x = step_x if math.isfinite(step_x) else 0.0
+                    step_y = step_y if math.isfinite(step_y) else 0.0
+                norm = math.sqrt(step_x * step_x + step_y * step_y)
+                if norm > 1.0:
+                    step_x, step_y = step_x / norm, step_y / norm
+                c[o, 0] += step_x
+                c[o, 1] += step_y
+                last_step[o] = norm
+    return c, levels[:, 0].copy(), levels[:, 1].copy(), levels[:, 2].copy(), last_step
 
 
 def _converged(fits: PointFits, last_step: np.ndarray) -> PointFits:
@@ -375,79 +423,14 @@ def fit_corners(
     cross = dirs[:, 0, 0] * dirs[:, 1, 1] - dirs[:, 0, 1] * dirs[:, 1, 0]
     side = np.where(cross >= 0, 1.0, -1.0)[owner]
     params = np.column_stack([corners, np.arctan2(dirs[:, :, 1], dirs[:, :, 0])])
-
-    def sums(x: np.ndarray) -> np.ndarray:
-        return np.bincount(owner, x, minlength=n)
-
-    def terms(p: np.ndarray, s: float):
-        x = coords[:, 0] - p[owner, 0]
-        y = coords[:, 1] - p[owner, 1]
-        c1, s1 = np.cos(p[owner, 2]), np.sin(p[owner, 2])
-        c2, s2 = np.cos(p[owner, 3]), np.sin(p[owner, 3])
-        # Normals: edge 1 turned +90° and edge 2 turned −90°, times side, point inside.
-        n1x, n1y = -s1 * side, c1 * side
-        n2x, n2y = s2 * side, -c2 * side
-        d1 = (x * n1x + y * n1y) / s
-        d2 = (x * n2x + y * n2y) / s
-        f1, f2 = ndtr(d1), ndtr(d2)
-        p1 = np.exp(-0.5 * d1 * d1) / (_SQRT_2PI * s)
-        p2 = np.exp(-0.5 * d2 * d2) / (_SQRT_2PI * s)
-        inside = f1 * f2
-        # ∂inside/∂(u, v, α1, α2): ∂d_k/∂c = −n_k; ∂d1/∂α1 = −side·x·e1; ∂d2/∂α2 = side·x·e2
-        g_u = -(p1 * f2 * n1x + f1 * p2 * n2x)
-        g_v = -(p1 * f2 * n1y + f1 * p2 * n2y)
-        g_a1 = p1 * f2 * (-side) * (x * c1 + y * s1)
-        g_a2 = f1 * p2 * side * (x * c2 + y * s2)
-        return inside, np.stack([g_u, g_v, g_a1, g_a2], axis=1)
-
-    def levels(inside: np.ndarray, current=None):
-        """Grey levels by linear least squares, or a scoring step on the clipped likelihood
-        from ``current`` when the noise σ is given."""
-        other = 1.0 - inside
-        if current is None or noise_sigma <= 0:
-            score, info, a0, b0 = values, np.ones_like(values), np.zeros(n), np.zeros(n)
-        else:
-            a0, b0 = current
-            score, info = clipped_likelihood_terms(
-                values, b0[owner] + (a0 - b0)[owner] * inside, noise_sigma
-            )
-        s11, s12 = sums(info * inside * inside), sums(info * inside * other)
-        s22 = sums(info * other * other)
-        t1, t2 = sums(inside * score), sums(other * score)
-        det = s11 * s22 - s12 * s12
-        det = np.where(np.abs(det) < 1e-12 * np.maximum(s11 * s22, 1e-30), np.nan, det)
-        return a0 + (s22 * t1 - s12 * t2) / det, b0 + (s11 * t2 - s12 * t1) / det
-
-    max_step = np.array([1.0, 1.0, 0.05, 0.05])
-    last_step = np.full(n, np.inf)
-    current = None
-    for s, count in ((1.2, 1), (0.7, 1), (EDGE_WIDTH_PX, iterations)):
-        for _ in range(count):
-            inside, g = terms(params, s)
-            a, b = levels(inside, current)
-            current = (a, b)
-            score, info = clipped_likelihood_terms(
-                values, b[owner] + (a - b)[owner] * inside, noise_sigma
-            )
-            J = (a - b)[owner][:, None] * g
-            H = np.zeros((n, 4, 4))
-            for i in range(4):
-                for j in range(i, 4):
-                    H[:, i, j] = H[:, j, i] = sums(info * J[:, i] * J[:, j])
-            grad = np.stack([sums(J[:, i] * score) for i in range(4)], axis=1)
-            H += 1e-9 * np.eye(4)
-            try:
-                step = np.linalg.solve(H, grad[..., None])[..., 0]
-            except np.linalg.LinAlgError:
-                step = (np.linalg.pinv(H) @ grad[..., None])[..., 0]
-            step = np.nan_to_num(step)
-            ratio = np.max(np.abs(step) / max_step, axis=1, keepdims=True)
-            step = np.where(ratio > 1.0, step / np.maximum(ratio, 1e-12), step)
-            params = params + step
-            last_step = np.linalg.norm(step[:, :2], axis=1)
+    x, y, owner = coords[:, 0].copy(), coords[:, 1].copy(), owner.astype(np.int64)
+    schedule = ((1.2, 1), (0.7, 1), (EDGE_WIDTH_PX, iterations))
+    params, a, b, last_step = _fit_wedges_kernel(
+        values, x, y, owner, n, side, params, float(noise_sigma), schedule
+    )
     # Statistics: covariance of all six parameters (corner, angles, grey levels).
-    inside, g = terms(params, EDGE_WIDTH_PX)
-    a, b = levels(inside, current)
+    inside, g = _wedge_model(x, y, owner, side, params, EDGE_WIDTH_PX)
+    a, b = _wedge_levels(values, owner, n, inside, a, b, noise_sigma > 0, noise_sigma)
     r = values - b[owner] - (a - b)[owner] * inside
     J = np.column_stack([(a - b)[owner][:, None] * g, inside, 1.0 - inside])
     used = np.bincount(owner, minlength=n).astype(float)
@@ -469,3 +452,103 @@ def fit_corners(
         sigma2=sigma2,
     )
     return _converged(fits, last_step)
+
+
+@numba.njit(cache=True)
+def _wedge_model(x, y, owner, side, params, s):
+    """Per pixel: the wedge's coverage Φ(d₁/s)·Φ(d₂/s) and its derivatives (M,4) in the corner
+    (u, v) and the two edge angles."""
+    m = len(x)
+    inside = np.empty(m)
+    g = np.empty((m, 4))
+    for p in range(m):
+        o = owner[p]
+        dx, dy = x[p] - params[o, 0], y[p] - params[o, 1]
+        c1, s1 = math.cos(params[o, 2]), math.sin(params[o, 2])
+        c2, s2 = math.cos(params[o, 3]), math.sin(params[o, 3])
+        # Normals: edge 1 turned +90° and edge 2 turned −90°, times side, point inside.
+        n1x, n1y = -s1 * side[p], c1 * side[p]
+        n2x, n2y = s2 * side[p], -c2 * side[p]
+        d1 = (dx * n1x + dy * n1y) / s
+        d2 = (dx * n2x + dy * n2y) / s
+        f1, f2 = normal_cdf(d1), normal_cdf(d2)
+        p1, p2 = normal_pdf(d1) / s, normal_pdf(d2) / s
+        inside[p] = f1 * f2
+        # ∂inside/∂(u, v, α1, α2): ∂d_k/∂c = −n_k; ∂d1/∂α1 = −side·x·e1; ∂d2/∂α2 = side·x·e2
+        g[p, 0] = -(p1 * f2 * n1x + f1 * p2 * n2x)
+        g[p, 1] = -(p1 * f2 * n1y + f1 * p2 * n2y)
+        g[p, 2] = p1 * f2 * (-side[p]) * (dx * c1 + dy * s1)
+        g[p, 3] = f1 * p2 * side[p] * (dx * c2 + dy * s2)
+    return inside, g
+
+
+@numba.njit(cache=True)
+def _wedge_levels(values, owner, n, inside, a0, b0, use_start, noise_sigma):
+    """Grey levels (inside a, outside b) of each wedge by linear least squares, or a scoring
+    step on the clipped likelihood from (``a0``, ``b0``) when ``use_start`` (noise σ given);
+    NaN where the levels are not determined."""
+    s11, s12, s22, t1, t2 = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    for p in range(len(values)):
+        o = owner[p]
+        cover, other = inside[p], 1.0 - inside[p]
+        if use_start:
+            score, info = clipped_terms(values[p], b0[o] + (a0[o] - b0[o]) * cover, noise_sigma)
+        else:
+            score, info = values[p], 1.0
+        s11[o] += info * cover * cover
+        s12[o] += info * cover * other
+        s22[o] += info * other * other
+        t1[o] += cover * score
+        t2[o] += other * score
+    a, b = np.empty(n), np.empty(n)
+    for o in range(n):
+        start_a, start_b = (a0[o], b0[o]) if use_start else (0.0, 0.0)
+        det = s11[o] * s22[o] - s12[o] * s12[o]
+        if abs(det) < 1e-12 * max(s11[o] * s22[o], 1e-30):
+            a[o], b[o] = np.nan, np.nan
+        else:
+            a[o] = start_a + (s22[o] * t1[o] - s12[o] * t2[o]) / det
+            b[o] = start_b + (s11[o] * t2[o] - s12[o] * t1[o]) / det
+    return a, b
+
+
+@numba.njit(cache=True)
+def _fit_wedges_kernel(values, x, y, owner, n, side, params, noise_sigma, schedule):
+    """Gauss–Newton (Fisher scoring with clipped noise) on each wedge's corner and edge angles
+    with its grey levels refreshed before each step, edge width coarse to fine along
+    ``schedule``; returns the parameters, grey levels and the last step's length (px)."""
+    max_step = np.array([1.0, 1.0, 0.05, 0.05])
+    last_step = np.full(n, np.inf)
+    a, b = np.zeros(n), np.zeros(n)
+    use_start = False
+    params = params.copy()
+    H = np.empty((n, 4, 4))
+    grad = np.empty((n, 4))
+    for s, count in schedule:
+        for _ in range(count):
+            inside, g = _wedge_model(x, y, owner, side, params, s)
+            a, b = _wedge_levels(values, owner, n, inside, a, b, use_start, noise_sigma)
+            use_start = noise_sigma > 0
+            H[:] = 0.0
+            grad[:] = 0.0
+            for p in range(len(values)):
+                o = owner[p]
+                contrast = a[o] - b[o]
+                score, info = clipped_terms(values[p], b[o] + contrast * inside[p], noise_sigma)
+                for i in range(4):
+                    ji = contrast * g[p, i]
+                    grad[o, i] += ji * score
+                    for j in range(4):
+                        H[o, i, j] += info * ji * contrast * g[p, j]
+            for o in range(n):
+                step = solve_small(H[o] + 1e-9 * np.eye(4), grad[o])
+                ratio = 0.0
+                for i in range(4):
+                    if not math.isfinite(step[i]):
+                        step[i] = 0.0
+                    ratio = max(ratio, abs(step[i]) / max_step[i])
+                if ratio > 1.0:
+                    step /= ratio
+                params[o] += step
+                last_step[o] = math.sqrt(step[0] * step[0] + step[1] * step[1])
+    return params, a, b, last_step

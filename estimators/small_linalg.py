@@ -1,0 +1,35 @@
+"""Tiny dense solves inside compiled per-pixel fits, where a LAPACK call per feature would cost
+more than the arithmetic (and could not report a singular system without raising)."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True)
+def solve_small(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """H⁻¹·g for a small square H by Gaussian elimination with partial pivoting (NaN if
+    singular)."""
+    m = len(g)
+    A = H.copy()
+    x = g.copy()
+    for col in range(m):
+        pivot = col + np.argmax(np.abs(A[col:, col]))
+        if A[pivot, col] == 0.0:
+            return np.full(m, np.nan)
+        if pivot != col:
+            for j in range(m):
+                A[col, j], A[pivot, j] = A[pivot, j], A[col, j]
+            x[col], x[pivot] = x[pivot], x[col]
+        for row in range(col + 1, m):
+            f = A[row, col] / A[col, col]
+            for j in range(col, m):
+                A[row, j] -= f * A[col, j]
+            x[row] -= f * x[col]
+    for row in range(m - 1, -1, -1):
+        acc = x[row]
+        for j in range(row + 1, m):
+            acc -= A[row, j] * x[j]
+        x[row] = acc / A[row, row]
+    return x
