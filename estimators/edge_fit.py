@@ -88,6 +88,9 @@ def _profile_levels(values, d, delta, wall, s, levels, sigma):
     n = len(values)
     levels = levels.copy()
     tie = 1e-3 * n
+    basis = np.empty((n, 3))  # fixed while the levels change: computed once
+    for i in range(n):
+        basis[i, 0], basis[i, 1], basis[i, 2], _, _, _ = _profile_at(d[i], delta[i], wall[i], s)
     tie_vector = np.empty(3)
     start = np.zeros(3)
     for _ in range(8 if sigma > 0 else 1):
@@ -101,18 +104,16 @@ def _profile_levels(values, d, delta, wall, s, levels, sigma):
         H = np.outer(tie_vector, tie_vector) + 1e-12 * np.eye(3)
         g = -tie_vector * (tie_vector @ start)
         for i in range(n):
-            b0, b1, b2, _, _, _ = _profile_at(d[i], delta[i], wall[i], s)
+            row = basis[i]
             if sigma > 0:
-                score, info = clipped_terms(
-                    values[i], b0 * levels[0] + b1 * levels[1] + b2 * levels[2], sigma
-                )
+                intensity = row[0] * levels[0] + row[1] * levels[1] + row[2] * levels[2]
+                score, info = clipped_terms(values[i], intensity, sigma)
             else:
                 score, info = values[i], 1.0
-            basis = (b0, b1, b2)
             for r in range(3):
-                g[r] += basis[r] * score
+                g[r] += row[r] * score
                 for c in range(3):
-                    H[r, c] += info * basis[r] * basis[c]
+                    H[r, c] += info * row[r] * row[c]
         step = solve_small(H, g)
         if not np.all(np.isfinite(step)):
             return np.full(3, np.nan)
@@ -139,6 +140,7 @@ def _fit_offsets(values, d, strip, k, grid, half_width, wall_of_strip, noise_sig
     )
     # 1. One common offset for the whole edge: grid search of the step fit on a fixed band.
     best_cost, delta0, a, b = np.inf, 0.0, np.nan, np.nan
+    vv = np.sum(values * values)
     for offset in grid:
         s11 = s12 = s22 = t1 = t2 = 0.0
         for i in range(n):
@@ -153,10 +155,9 @@ def _fit_offsets(values, d, strip, k, grid, half_width, wall_of_strip, noise_sig
         if n < 3 or abs(det) < 1e-9 * max(s11 * s22, 1e-12):
             continue
         a_try, b_try = (s22 * t1 - s12 * t2) / det, (s11 * t2 - s12 * t1) / det
-        cost = 0.0
-        for i in range(n):
-            r = values[i] - b_try - (a_try - b_try) * normal_cdf((d[i] - offset) / 1.2)
-            cost += r * r
+        # Σ(v − a·step − b·other)², expanded: the sums above already hold it.
+        cost = vv - 2.0 * (a_try * t1 + b_try * t2)
+        cost += a_try * a_try * s11 + 2.0 * a_try * b_try * s12 + b_try * b_try * s22
         if cost < best_cost:
             best_cost, delta0, a, b = cost, offset, a_try, b_try
     if not math.isfinite(a):
@@ -249,47 +250,66 @@ def _band_pixels(pixels, centers, normals, half_length, reach_across):
     """Pixels near a predicted edge: their values, offsets across the edge from their strip's
     centre along its normal (d), strip index and coordinates — one flat array each (None
     when the band misses the image)."""
-    h, w = pixels.shape
-    k = len(centers)
     first, last = centers[0], centers[-1]
     chord = last - first
     chord_length = float(np.linalg.norm(chord))
     direction = (
         chord / chord_length if chord_length > 1e-9 else np.array([-normals[0, 1], normals[0, 0]])
     )
-    spacing = chord_length / max(k - 1, 1)
-    parts_u, parts_v, parts_strip = [], [], []
+    values, d, strip, coords = _band_kernel(
+        pixels, centers, normals, direction, float(half_length), float(reach_across)
+    )
+    return None if len(values) == 0 else (values, d, strip, coords)
+
+
+@numba.njit(cache=True)
+def _band_kernel(pixels, centers, normals, direction, half_length, reach_across):
+    h, w = pixels.shape
+    k = len(centers)
+    first = centers[0]
+    spacing = math.sqrt(np.sum((centers[-1] - first) ** 2)) / max(k - 1, 1)
+    boxes = []
+    total = 0
     for i0 in range(0, k, _BAND_CHUNK_STRIPS):
         i1 = min(i0 + _BAND_CHUNK_STRIPS, k) - 1
-        ends = np.array(
-            [centers[i0] - half_length * direction, centers[i1] + half_length * direction]
-        )
         # Bounding box of this part of the band (the edge may curve a little: a margin).
-        lo = np.maximum(np.floor(ends.min(axis=0) - reach_across - 2).astype(int), 0)
-        hi = np.minimum(np.ceil(ends.max(axis=0) + reach_across + 2).astype(int), [w - 1, h - 1])
-        if np.any(hi < lo):
+        xs = (
+            centers[i0, 0] - half_length * direction[0],
+            centers[i1, 0] + half_length * direction[0],
+        )
+        ys = (
+            centers[i0, 1] - half_length * direction[1],
+            centers[i1, 1] + half_length * direction[1],
+        )
+        u0 = max(math.floor(min(xs) - reach_across - 2), 0)
+        v0 = max(math.floor(min(ys) - reach_across - 2), 0)
+        u1 = min(math.ceil(max(xs) + reach_across + 2), w - 1)
+        v1 = min(math.ceil(max(ys) + reach_across + 2), h - 1)
+        if u1 < u0 or v1 < v0:
             continue
-        u, v = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
-        u = u.ravel().astype(float)
-        v = v.ravel().astype(float)
-        t = (u - first[0]) * direction[0] + (v - first[1]) * direction[1]
-        strip = np.clip(np.round(t / spacing) if spacing > 0 else np.zeros_like(t), 0, k - 1)
-        strip = strip.astype(int)
-        mine = (strip >= i0) & (strip <= i1)  # each pixel belongs to one chunk
-        parts_u.append(u[mine])
-        parts_v.append(v[mine])
-        parts_strip.append(strip[mine])
-    if not parts_u:
-        return None
-    u, v, strip = np.concatenate(parts_u), np.concatenate(parts_v), np.concatenate(parts_strip)
-    c = centers[strip]
-    n = normals[strip]
-    d = (u - c[:, 0]) * n[:, 0] + (v - c[:, 1]) * n[:, 1]
-    along = -(u - c[:, 0]) * n[:, 1] + (v - c[:, 1]) * n[:, 0]
-    keep = (np.abs(d) <= reach_across) & (np.abs(along) <= half_length)
-    values = pixels[v[keep].astype(int), u[keep].astype(int)].astype(float)
-    coords = np.column_stack([u[keep], v[keep]])
-    return values, d[keep], strip[keep], coords
+        boxes.append((i0, i1, u0, v0, u1, v1))
+        total += (u1 - u0 + 1) * (v1 - v0 + 1)
+    values, d_out = np.empty(total), np.empty(total)
+    strip_out, coords = np.empty(total, np.int64), np.empty((total, 2))
+    m = 0
+    for i0, i1, u0, v0, u1, v1 in boxes:
+        for v in range(v0, v1 + 1):
+            for u in range(u0, u1 + 1):
+                t = (u - first[0]) * direction[0] + (v - first[1]) * direction[1]
+                j = min(max(round(t / spacing) if spacing > 0 else 0.0, 0.0), k - 1.0)
+                j = int(j)
+                if j < i0 or j > i1:  # each pixel belongs to one chunk
+                    continue
+                du, dv = u - centers[j, 0], v - centers[j, 1]
+                across = du * normals[j, 0] + dv * normals[j, 1]
+                along = -du * normals[j, 1] + dv * normals[j, 0]
+                if abs(across) <= reach_across and abs(along) <= half_length:
+                    values[m] = pixels[v, u]
+                    d_out[m] = across
+                    strip_out[m] = j
+                    coords[m, 0], coords[m, 1] = u, v
+                    m += 1
+    return values[:m], d_out[:m], strip_out[:m], coords[:m]
 
 
 def fit_edge_points(
@@ -331,7 +351,7 @@ def fit_edge_points(
     grid = np.arange(-search_px, search_px + 1e-9, 1.0) if search_px > 0 else np.zeros(1)
     wall = np.zeros(k) if wall_px is None else np.clip(np.nan_to_num(wall_px), 0.0, 3.0)
     delta, sigma, ok, a, b, contrast_sigma, noise = _fit_offsets(
-        values, d, strip.astype(np.int64), k, grid, float(half_width_px), wall, float(noise_sigma)
+        values, d, strip, k, grid, float(half_width_px), wall, float(noise_sigma)
     )
     if not ok.any() and not math.isfinite(a):
         return _no_points(k)
@@ -462,31 +482,41 @@ class Line2D:
         return np.asarray(points, dtype=float) @ self.normal - self.offset
 
 
-def _median(values: np.ndarray) -> float:
-    """The median of a 1-D array (np.partition: several times cheaper than np.median on the
-    short arrays of an edge)."""
-    n = len(values)
-    if n == 0:
-        return math.nan
-    half = n // 2
-    if n % 2:
-        return float(np.partition(values, half)[half])
-    part = np.partition(values, (half - 1, half))
-    return 0.5 * float(part[half - 1] + part[half])
-
-
-def _weighted_tls(points: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+@numba.njit(cache=True)
+def _weighted_tls(points: np.ndarray, weights: np.ndarray):
     """Weighted total least squares: the line through the weighted centroid along the major
     axis of the weighted scatter (closed form for 2×2: θ = ½·atan2(2sxy, sxx − syy))."""
     total = weights.sum()
-    centroid = (weights[:, None] * points).sum(axis=0) / total
-    x = points - centroid
-    sxx = float(np.sum(weights * x[:, 0] * x[:, 0]))
-    syy = float(np.sum(weights * x[:, 1] * x[:, 1]))
-    sxy = float(np.sum(weights * x[:, 0] * x[:, 1]))
+    cx = np.sum(weights * points[:, 0]) / total
+    cy = np.sum(weights * points[:, 1]) / total
+    x, y = points[:, 0] - cx, points[:, 1] - cy
+    sxx = np.sum(weights * x * x)
+    syy = np.sum(weights * y * y)
+    sxy = np.sum(weights * x * y)
     theta = 0.5 * math.atan2(2.0 * sxy, sxx - syy)  # direction of the major axis
-    normal = np.array([-math.sin(theta), math.cos(theta)])
-    return normal, float(normal @ centroid), centroid
+    nx, ny = -math.sin(theta), math.cos(theta)
+    return nx, ny, nx * cx + ny * cy, cx, cy
+
+
+@numba.njit(cache=True)
+def _robust_line(points, sigma, tukey_c, iterations):
+    """``fit_line_robust``'s iterations: (normal x, normal y, offset, centroid x, centroid y,
+    inlier flags); the flags all False when fewer than 3 points are inliers."""
+    base = 1.0 / np.maximum(sigma, 1e-9) ** 2
+    nx, ny, offset, cx, cy = _weighted_tls(points, base)
+    for _ in range(iterations):
+        residual = (points[:, 0] * nx + points[:, 1] * ny - offset) / sigma
+        # Scale the threshold by the robust spread so that mis-stated σ does not reject all.
+        spread = max(1.0, 1.4826 * np.median(np.abs(residual)))
+        u = residual / (tukey_c * spread)
+        tukey = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+        if tukey.sum() < 3 or np.count_nonzero(tukey) < 3:
+            break
+        nx, ny, offset, cx, cy = _weighted_tls(points, base * tukey)
+    residual = (points[:, 0] * nx + points[:, 1] * ny - offset) / sigma
+    spread = max(1.0, 1.4826 * np.median(np.abs(residual)))
+    inliers = np.abs(residual) < tukey_c * spread
+    return nx, ny, offset, cx, cy, inliers
 
 
 def fit_line_robust(
@@ -494,30 +524,16 @@ def fit_line_robust(
 ) -> Line2D | None:
     """Weighted total least squares with Tukey reweighting of normalised residuals; None with
     fewer than 3 points. Points whose normalised residual exceeds ``tukey_c`` are outliers."""
-    points = np.asarray(points, dtype=float).reshape(-1, 2)
-    sigma = np.asarray(sigma_px, dtype=float).reshape(-1)
+    points = np.ascontiguousarray(points, dtype=float).reshape(-1, 2)
+    sigma = np.ascontiguousarray(sigma_px, dtype=float).reshape(-1)
     if len(points) < 3:
         return None
-    base = 1.0 / np.maximum(sigma, 1e-9) ** 2
-    weights = base.copy()
-    normal, offset, centroid = _weighted_tls(points, weights)
-    for _ in range(iterations):
-        residual = (points @ normal - offset) / sigma
-        # Scale the threshold by the robust spread so that mis-stated σ does not reject all.
-        spread = max(1.0, 1.4826 * _median(np.abs(residual)))
-        u = residual / (tukey_c * spread)
-        tukey = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
-        if tukey.sum() < 3 or np.count_nonzero(tukey) < 3:
-            break
-        weights = base * tukey
-        normal, offset, centroid = _weighted_tls(points, weights)
-    residual = (points @ normal - offset) / sigma
-    spread = max(1.0, 1.4826 * _median(np.abs(residual)))
-    inliers = np.abs(residual) < tukey_c * spread
+    nx, ny, offset, cx, cy, inliers = _robust_line(points, sigma, tukey_c, iterations)
     if inliers.sum() < 3:
         return None
+    normal = np.array([nx, ny])
     rms = float(np.sqrt(np.mean((points[inliers] @ normal - offset) ** 2)))
-    return Line2D(normal, offset, centroid, inliers, rms)
+    return Line2D(normal, float(offset), np.array([cx, cy]), inliers, rms)
 
 
 def intersect(a: Line2D, b: Line2D) -> np.ndarray | None:
