@@ -35,9 +35,10 @@ import numpy as np
 
 from estimators.circle_pose import CirclePose
 from estimators.conics import circle_plane_basis
-from estimators.geometry import Pose, as_points
+from estimators.geometry import Pose, as_points, nearest_rotation
+from estimators.least_squares import Huber, Solution, covariance, solve
 from estimators.planar_pose import PointObservations
-from estimators.robust_lsq import Solution, gauss_newton, marginal_covariance
+from estimators.so3 import exp_so3
 from estimators.target import Circle3D
 
 
@@ -102,7 +103,7 @@ def _finish(
         r, sigmas = r[:-1], sigmas[:-1]
     return FitResult(
         pose=pose,
-        covariance=marginal_covariance(solution.information, n_pose),
+        covariance=covariance(solution.information, keep=n_pose),
         residuals=r,
         inliers=tuple(np.abs(ri) <= 3.0 * s for ri, s in zip(r, sigmas, strict=True)),
         sigma_px=sigmas,
@@ -114,59 +115,146 @@ def _finish(
     )
 
 
-class _ConicModel:
-    """Residuals (Sampson distances of each edge set to its circle's image conic) and their
-    Jacobian for a parameter increment.
+# --- the conic observation -------------------------------------------------------------------
 
-    ``geometry(deltas)`` maps a batch of increments (B, P) to the circles' centres (B, S, 3),
-    normals (B, S, 3) and radii (B, S) in C; their cones (``conics.circle_cone``) give the
-    image conics. The Jacobian uses the chain rule through the 3×3 conics, with ∂Q/∂θ by
-    differences of the (cheap, batched) conics: for r = f/g, f = hᵀQh and g = 2‖(Qh)₁,₂‖,
-    ∂r/∂θ = (hᵀ Q' h)/g − f·(4 (Qh)₁,₂ · (Q'h)₁,₂ / g)/g².
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ConicObservations:
+    """Edge sets against the image conics of their circles: residuals and their analytic
+    Jacobian w.r.t. the circles' geometry.
+
+    A circle (centre c, unit normal n, radius ρ, in C) is the base of the cone of rays x
+    (normalised coordinates) with xᵀ·A·x = 0,
+    A = (c·c − ρ²)·n nᵀ − s·(c nᵀ + n cᵀ) + s²·I, s = n·c (``conics.circle_cone``); its image
+    conic is Q = K⁻ᵀ·A·K⁻¹. An edge point h = (u, v, 1) has the Sampson distance r = f/g with
+    f = hᵀQh and g = 2‖(Qh)₁,₂‖ (Kanatani 1996). Differentiating (Q symmetric),
+    ∂r = (hᵀ Q' h)/g − (f/g²)·4·((Qh)₁(Q'h)₁ + (Qh)₂(Q'h)₂)/g with Q' = K⁻ᵀ·A'·K⁻¹ and
+    A' = a'·n nᵀ + a·(n' nᵀ + n n'ᵀ) − s'·(c nᵀ + n cᵀ) − s·(c' nᵀ + c n'ᵀ + n' cᵀ + n c'ᵀ)
+    + 2 s s'·I, where a = c·c − ρ², a' = 2 c·c' − 2ρρ', s' = n'·c + n·c'. The parametrisations
+    (``CircleProblem``, ``TargetProblem``) supply c', n' (⊥ n) and ρ' for each parameter.
     """
 
-    _STEP = 1e-6
+    edge_sets: tuple[EdgeSet, ...]
+    K: np.ndarray
+    _h: tuple[np.ndarray, ...] = field(default=(), repr=False)
+    _hh: tuple[np.ndarray, ...] = field(default=(), repr=False)
+    _K_inv: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
 
-    def __init__(self, edge_sets: Sequence[EdgeSet], geometry, n_params: int, K: np.ndarray):
-        self.h = [np.column_stack([s.uv, np.ones(len(s.uv))]) for s in edge_sets]
-        self.geometry = geometry
-        self.n_params = n_params
-        self.K_inv = np.linalg.inv(K)
+    def __post_init__(self) -> None:
+        h = tuple(np.column_stack([s.uv, np.ones(len(s.uv))]) for s in self.edge_sets)
+        object.__setattr__(self, "edge_sets", tuple(self.edge_sets))
+        object.__setattr__(self, "_h", h)
+        object.__setattr__(
+            self, "_hh", tuple((x[:, :, None] * x[:, None, :]).reshape(-1, 9) for x in h)
+        )
+        object.__setattr__(self, "_K_inv", np.linalg.inv(np.asarray(self.K, dtype=float)))
 
-    def conics(self, deltas: np.ndarray) -> np.ndarray:
-        """Image conics (B, S, 3, 3) for a batch of increments."""
-        c, n, r = self.geometry(np.atleast_2d(deltas))
-        n = n / np.linalg.norm(n, axis=-1, keepdims=True)
-        s = np.einsum("...i,...i->...", n, c)
-        cn = c[..., :, None] * n[..., None, :]
-        nn = n[..., :, None] * n[..., None, :]
-        A = (np.einsum("...i,...i->...", c, c) - r**2)[..., None, None] * nn
-        A = A - s[..., None, None] * (cn + np.swapaxes(cn, -1, -2))
-        A = A + (s**2)[..., None, None] * np.eye(3)
-        return self.K_inv.T @ A @ self.K_inv
+    @property
+    def sizes(self) -> tuple[int, ...]:
+        return tuple(len(h) for h in self._h)
 
-    def residuals(self, delta: np.ndarray) -> list[np.ndarray]:
+    def conics(self, centers: np.ndarray, normals: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        """Image conics (S,3,3) of the circles (centres (S,3), unit normals (S,3), radii (S,))."""
+        s = np.einsum("si,si->s", normals, centers)
+        nn = normals[:, :, None] * normals[:, None, :]
+        cn = centers[:, :, None] * normals[:, None, :]
+        A = (np.einsum("si,si->s", centers, centers) - radii**2)[:, None, None] * nn
+        A = (
+            A
+            - s[:, None, None] * (cn + np.swapaxes(cn, -1, -2))
+            + (s**2)[:, None, None] * np.eye(3)
+        )
+        return self._K_inv.T @ A @ self._K_inv
+
+    def _sampson(self, Q: np.ndarray, k: int):
+        Qh = self._h[k] @ Q
+        f = self._hh[k] @ Q.reshape(9)
+        g = np.maximum(2.0 * np.hypot(Qh[:, 0], Qh[:, 1]), 1e-300)
+        return f, g, Qh
+
+    def residuals(
+        self, centers: np.ndarray, normals: np.ndarray, radii: np.ndarray
+    ) -> list[np.ndarray]:
+        """Sampson distances (px) of each set's points to its circle's image conic."""
         out = []
-        for Q, h in zip(self.conics(delta)[0], self.h, strict=True):
-            Qh = h @ Q
-            value = np.einsum("ni,ni->n", Qh, h)
-            out.append(value / np.maximum(2.0 * np.hypot(Qh[:, 0], Qh[:, 1]), 1e-300))
+        for k, Q in enumerate(self.conics(centers, normals, radii)):
+            f, g, _ = self._sampson(Q, k)
+            out.append(f / g)
         return out
 
-    def jacobian(self) -> np.ndarray:
-        deltas = np.vstack([np.zeros(self.n_params), self._STEP * np.eye(self.n_params)])
-        Q = self.conics(deltas)  # (P+1, S, 3, 3)
-        dQ = (Q[1:] - Q[0]) / self._STEP  # (P, S, 3, 3)
-        blocks = []
-        for k, h in enumerate(self.h):
-            Qh = h @ Q[0, k]
-            f = np.einsum("ni,ni->n", Qh, h)
-            g = np.maximum(2.0 * np.hypot(Qh[:, 0], Qh[:, 1]), 1e-300)
-            DQh = np.einsum("ni,pij->npj", h, dQ[:, k])  # (N,P,3): (Q' h) per parameter
-            df = np.einsum("npj,nj->np", DQh, h)
-            dg = 4.0 * (Qh[:, 0:1] * DQh[:, :, 0] + Qh[:, 1:2] * DQh[:, :, 1]) / g[:, None]
+    def linearize(
+        self,
+        centers: np.ndarray,
+        normals: np.ndarray,
+        radii: np.ndarray,
+        d_centers: np.ndarray,
+        d_normals: np.ndarray,
+        d_radii: np.ndarray,
+    ) -> tuple[list[np.ndarray], np.ndarray]:
+        """Residual groups and their Jacobian (N_total, P), given the derivatives of the
+        circles' centres (P,S,3), normals (P,S,3) and radii (P,S) w.r.t. P parameters."""
+        c, n, rho = centers, normals, radii
+        a = np.einsum("si,si->s", c, c) - rho**2
+        s = np.einsum("si,si->s", n, c)
+        da = 2.0 * np.einsum("psi,si->ps", d_centers, c) - 2.0 * rho * d_radii
+        ds = np.einsum("psi,si->ps", d_normals, c) + np.einsum("si,psi->ps", n, d_centers)
+        nn = n[:, :, None] * n[:, None, :]
+        cn = c[:, :, None] * n[:, None, :]
+        cn = cn + np.swapaxes(cn, -1, -2)
+        dnn = d_normals[..., :, None] * n[None, :, None, :]
+        dnn = dnn + np.swapaxes(dnn, -1, -2)
+        dcn = (
+            d_centers[..., :, None] * n[None, :, None, :]
+            + c[None, :, :, None] * d_normals[..., None, :]
+        )
+        dcn = dcn + np.swapaxes(dcn, -1, -2)
+        dA = (
+            da[..., None, None] * nn
+            + a[None, :, None, None] * dnn
+            - ds[..., None, None] * cn
+            - s[None, :, None, None] * dcn
+            + (2.0 * s * ds)[..., None, None] * np.eye(3)
+        )
+        dQ = self._K_inv.T @ dA @ self._K_inv  # (P,S,3,3)
+        P = dQ.shape[0]
+        groups, blocks = [], []
+        for k, Q in enumerate(self.conics(c, n, rho)):
+            f, g, Qh = self._sampson(Q, k)
+            groups.append(f / g)
+            dQk = dQ[:, k]
+            df = self._hh[k] @ dQk.reshape(P, 9).T  # hᵀQ'h (N,P)
+            dQh = self._h[k] @ dQk[:, :2, :].transpose(2, 0, 1).reshape(3, 2 * P)  # (Q'h)₁,₂
+            dQh = dQh.reshape(-1, P, 2)
+            dg = 4.0 * (Qh[:, 0:1] * dQh[:, :, 0] + Qh[:, 1:2] * dQh[:, :, 1]) / g[:, None]
             blocks.append(df / g[:, None] - (f / g**2)[:, None] * dg)
-        return np.vstack(blocks)
+        return groups, (np.vstack(blocks) if blocks else np.zeros((0, P)))
+
+
+def _free_radii(edge_sets: Sequence[EdgeSet]) -> tuple[np.ndarray, list[int]]:
+    return np.array([s.circle.radius for s in edge_sets]), [
+        i for i, s in enumerate(edge_sets) if s.free_radius
+    ]
+
+
+def _radius_derivatives(n_params: int, first: int, n_sets: int, free: list[int]) -> np.ndarray:
+    """∂ρ/∂δ (P,S): the nuisance offsets at parameters ``first``, ``first`` + 1, …"""
+    d = np.zeros((n_params, n_sets))
+    for j, i in enumerate(free):
+        d[first + j, i] = 1.0
+    return d
+
+
+# --- the 5-DOF circle ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CircleState:
+    """Centre c (m, C), unit normal n, the tangent basis (u, v) of n, nuisance radii (m)."""
+
+    c: np.ndarray
+    n: np.ndarray
+    basis: np.ndarray
+    dr: np.ndarray
 
 
 def _coaxial_heights(edge_sets: Sequence[EdgeSet], reference: Circle3D) -> np.ndarray:
@@ -184,43 +272,63 @@ def _coaxial_heights(edge_sets: Sequence[EdgeSet], reference: Circle3D) -> np.nd
     return np.array(heights)
 
 
-def _circle_problem(edge_sets, reference, K, center, normal, radius_offsets=None):
-    """The 5-DOF model at (centre, normal): (model, state, commit)."""
-    heights = _coaxial_heights(edge_sets, reference)
-    radii = np.array([s.circle.radius for s in edge_sets])
-    free = [i for i, s in enumerate(edge_sets) if s.free_radius]
-    state = {
-        "c": np.asarray(center, dtype=float).copy(),
-        "n": np.asarray(normal, dtype=float).copy(),
-        "dr": np.zeros(len(free)) if radius_offsets is None else np.array(radius_offsets),
-    }
-    if state["n"] @ state["c"] > 0:  # on the camera side, so the fit stays there
-        state["n"] = -state["n"]
-    state["basis"] = np.array(circle_plane_basis(state["n"]))
+@dataclass(frozen=True, slots=True, eq=False)
+class CircleProblem:
+    """Edge sets on circles coaxial with ``reference``, as a ``least_squares.Problem`` over
+    [δc, α, β, δρ_free…] (c ← c + δc, n ← normalise(n + α·u + β·v), ρ ← ρ + δρ)."""
 
-    def moved(deltas: np.ndarray):
-        """Centre (B,3), unit normal (B,3) and radius offsets (B,F) for increments (B,P)."""
-        c = state["c"] + deltas[:, :3]
-        n = state["n"] + deltas[:, 3:5] @ state["basis"]
-        n = n / np.linalg.norm(n, axis=1, keepdims=True)
-        return c, n, state["dr"] + deltas[:, 5:]
+    observations: ConicObservations
+    reference: Circle3D
+    _heights: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
 
-    def geometry(deltas: np.ndarray):
-        c, n, dr = moved(deltas)
-        r = np.broadcast_to(radii, (len(deltas), len(radii))).copy()
-        r[:, free] += dr
-        return (
-            c[:, None, :] + heights[None, :, None] * n[:, None, :],
-            n[:, None, :].repeat(len(radii), axis=1),
-            r,
+    def __post_init__(self) -> None:
+        heights = _coaxial_heights(self.observations.edge_sets, self.reference)
+        object.__setattr__(self, "_heights", heights)
+
+    @property
+    def n_params(self) -> int:
+        return 5 + len(_free_radii(self.observations.edge_sets)[1])
+
+    def state(self, center, normal, radius_offsets=None) -> CircleState:
+        """The state at a centre and normal (turned to the camera side, so the fit stays
+        there)."""
+        c = np.asarray(center, dtype=float).copy()
+        n = np.asarray(normal, dtype=float)
+        n = n / np.linalg.norm(n)
+        if n @ c > 0:
+            n = -n
+        free = _free_radii(self.observations.edge_sets)[1]
+        dr = (
+            np.zeros(len(free)) if radius_offsets is None else np.array(radius_offsets, dtype=float)
+        )
+        return CircleState(c, n, np.array(circle_plane_basis(n)), dr)
+
+    def _geometry(self, state: CircleState):
+        radii, free = _free_radii(self.observations.edge_sets)
+        radii[free] += state.dr
+        centers = state.c + self._heights[:, None] * state.n
+        return centers, np.broadcast_to(state.n, centers.shape), radii
+
+    def residuals(self, state: CircleState) -> list[np.ndarray]:
+        return self.observations.residuals(*self._geometry(state))
+
+    def linearize(self, state: CircleState) -> tuple[list[np.ndarray], np.ndarray]:
+        free = _free_radii(self.observations.edge_sets)[1]
+        S, P = len(self._heights), self.n_params
+        dN = np.zeros((P, S, 3))
+        dN[3:5] = state.basis[:, None, :]
+        dC = self._heights[None, :, None] * dN
+        dC[0:3] = np.eye(3)[:, None, :]
+        return self.observations.linearize(
+            *self._geometry(state), dC, dN, _radius_derivatives(P, 5, S, free)
         )
 
-    def commit(delta: np.ndarray) -> None:
-        c, n, dr = moved(delta[None, :])
-        state["c"], state["n"], state["dr"] = c[0], n[0], dr[0]
-        state["basis"] = np.array(circle_plane_basis(state["n"]))
-
-    return _ConicModel(edge_sets, geometry, 5 + len(free), K), state, commit
+    def retract(self, state: CircleState, delta: np.ndarray) -> CircleState:
+        n = state.n + delta[3:5] @ state.basis
+        n = n / np.linalg.norm(n)
+        return CircleState(
+            state.c + delta[:3], n, np.array(circle_plane_basis(n)), state.dr + delta[5:]
+        )
 
 
 def fit_circle_pose(
@@ -236,93 +344,104 @@ def fit_circle_pose(
     ValueError if a circle is not coaxial (its centre off the reference axis or its normal not
     parallel) — such circles need the 6-DOF ``fit_target_pose``.
     """
-    model, state, commit = _circle_problem(
-        edge_sets, reference, K, initial.center_C, initial.normal_C
+    problem = CircleProblem(ConicObservations(tuple(edge_sets), K), reference)
+    solution = solve(
+        problem,
+        problem.state(initial.center_C, initial.normal_C),
+        loss=Huber(),
+        iterations=iterations,
     )
-    solution = gauss_newton(
-        model.residuals, model.n_params, commit, iterations=iterations, jacobian=model.jacobian
-    )
-    return _finish(CirclePose(state["c"], state["n"]), solution, 5, state["dr"])
+    state = solution.state
+    return _finish(CirclePose(state.c, state.n), solution, 5, state.dr)
 
 
-def _exp_so3(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices (B,3,3) of rotation vectors (B,3) (Rodrigues' formula)."""
-    w = np.atleast_2d(w)
-    angle = np.linalg.norm(w, axis=1)
-    W = np.zeros((len(w), 3, 3))
-    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
-    W = W - np.swapaxes(W, 1, 2)
-    small = angle < 1e-12
-    a = np.where(small, 1.0, np.sin(angle) / np.where(small, 1.0, angle))
-    b = np.where(small, 0.5, (1.0 - np.cos(angle)) / np.where(small, 1.0, angle) ** 2)
-    return np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
+# --- the 6-DOF target ------------------------------------------------------------------------
 
 
-def _target_problem(edge_sets, K, X_CT: Pose, radius_offsets=None):
-    """The 6-DOF model at ``X_CT``: (model, state, commit)."""
-    centers_T = np.array([s.circle.center_T for s in edge_sets])
-    normals_T = np.array([s.circle.normal_T for s in edge_sets])
-    radii = np.array([s.circle.radius for s in edge_sets])
-    free = [i for i, s in enumerate(edge_sets) if s.free_radius]
-    state = {
-        "R": X_CT.R.copy(),
-        "p": X_CT.p.copy(),
-        "dr": np.zeros(len(free)) if radius_offsets is None else np.array(radius_offsets),
-    }
+@dataclass(frozen=True, slots=True, eq=False)
+class TargetState:
+    """``X_CT`` as (R, p) and the nuisance radii (m)."""
 
-    def moved(deltas: np.ndarray):
-        R = _exp_so3(deltas[:, :3]) @ state["R"]
-        return R, state["p"] + deltas[:, 3:6], state["dr"] + deltas[:, 6:]
-
-    def geometry(deltas: np.ndarray):
-        R, p, dr = moved(deltas)
-        r = np.broadcast_to(radii, (len(deltas), len(radii))).copy()
-        r[:, free] += dr
-        centers = np.einsum("bij,sj->bsi", R, centers_T) + p[:, None, :]
-        return centers, np.einsum("bij,sj->bsi", R, normals_T), r
-
-    def commit(delta: np.ndarray) -> None:
-        R, p, dr = moved(delta[None, :])
-        U, _, Vt = np.linalg.svd(R[0])
-        state["R"], state["p"], state["dr"] = U @ Vt, p[0], dr[0]
-
-    return _ConicModel(edge_sets, geometry, 6 + len(free), K), state, commit
+    R: np.ndarray
+    p: np.ndarray
+    dr: np.ndarray
 
 
-class _WithPoints:
-    """A 6-DOF edge model plus labeled points: the points' whitened reprojection errors are
-    one more residual group (no dependence on the nuisance radii)."""
+@dataclass(frozen=True, slots=True, eq=False)
+class TargetProblem:
+    """Edge sets on any circles of the target (and labeled points, whose whitened
+    reprojection errors are one more residual group), as a ``least_squares.Problem`` over
+    [δθ, δp, δρ_free…] (R ← Exp(δθ)·R, p ← p + δp, ρ ← ρ + δρ)."""
 
-    def __init__(self, model: _ConicModel, state: dict, points: PointObservations, K):
-        self.model, self.state, self.points, self.K = model, state, points, K
-        self.n_params = model.n_params
+    observations: ConicObservations
+    points: PointObservations | None = None
 
-    def _pose(self, delta: np.ndarray) -> Pose:
-        return Pose(_exp_so3(delta[None, :3])[0] @ self.state["R"], self.state["p"] + delta[3:6])
+    @property
+    def n_params(self) -> int:
+        return 6 + len(_free_radii(self.observations.edge_sets)[1])
 
-    def residuals(self, delta: np.ndarray) -> list[np.ndarray]:
-        _, r_w, _ = self.points.linearize(self._pose(delta), self.K)
-        return [*self.model.residuals(delta), r_w]
+    def state(self, X_CT: Pose, radius_offsets=None) -> TargetState:
+        free = _free_radii(self.observations.edge_sets)[1]
+        dr = (
+            np.zeros(len(free)) if radius_offsets is None else np.array(radius_offsets, dtype=float)
+        )
+        return TargetState(np.array(X_CT.R, dtype=float), np.array(X_CT.p, dtype=float), dr)
 
-    def point_jacobian(self) -> np.ndarray:
-        """The points' rows of the Jacobian (2N, P) at the current state."""
-        _, _, J_w = self.points.linearize(self._pose(np.zeros(6)), self.K)
+    def _geometry(self, state: TargetState):
+        sets = self.observations.edge_sets
+        radii, free = _free_radii(sets)
+        radii[free] += state.dr
+        q = np.array([s.circle.center_T for s in sets]) @ state.R.T  # R·c_T
+        m = np.array([s.circle.normal_T for s in sets]) @ state.R.T  # R·n_T
+        return q, m, radii
+
+    def _point_group(self, state: TargetState, jacobian: bool):
+        if self.points is None:
+            return [], None
+        _, r_w, J_w = self.points.linearize(Pose.unchecked(state.R, state.p), self.observations.K)
+        if not jacobian:
+            return [r_w], None
         padded = np.zeros((len(J_w), self.n_params))
         padded[:, :6] = J_w
-        return padded
+        return [r_w], padded
 
-    def jacobian(self) -> np.ndarray:
-        return np.vstack([self.model.jacobian(), self.point_jacobian()])
+    def residuals(self, state: TargetState) -> list[np.ndarray]:
+        q, m, radii = self._geometry(state)
+        edges = self.observations.residuals(q + state.p, m, radii)
+        return edges + self._point_group(state, False)[0]
+
+    def linearize(self, state: TargetState) -> tuple[list[np.ndarray], np.ndarray]:
+        q, m, radii = self._geometry(state)
+        S, P = len(q), self.n_params
+        axes = np.eye(3)[:, None, :]
+        dC = np.zeros((P, S, 3))
+        dN = np.zeros((P, S, 3))
+        dC[0:3] = np.cross(axes, q[None])  # e_j × R·c_T
+        dN[0:3] = np.cross(axes, m[None])  # e_j × R·n_T
+        dC[3:6] = axes
+        free = _free_radii(self.observations.edge_sets)[1]
+        groups, J = self.observations.linearize(
+            q + state.p, m, radii, dC, dN, _radius_derivatives(P, 6, S, free)
+        )
+        point_groups, J_points = self._point_group(state, True)
+        if J_points is not None:
+            J = np.vstack([J, J_points])
+        return groups + point_groups, J
+
+    def retract(self, state: TargetState, delta: np.ndarray) -> TargetState:
+        R = nearest_rotation(exp_so3(delta[:3]) @ state.R)
+        return TargetState(R, state.p + delta[3:6], state.dr + delta[6:])
 
 
-def _group_settings(n_sets: int, points, edge_weight: float):
-    """(group weights, noise-scale floors) for edge sets followed by the points' group."""
+def _group_settings(n_sets: int, points, edge_weight: float) -> Huber:
+    """The Huber loss for edge sets followed by the points' group: edge sets with information
+    scale ``edge_weight`` and noise floor 0.05 px, points with weight 1 and floor 1."""
     weights = [edge_weight] * n_sets
     floors = [0.05] * n_sets
     if points is not None:
         weights.append(1.0)
         floors.append(1.0)
-    return weights, floors
+    return Huber(floors=tuple(floors), group_weights=tuple(weights))
 
 
 def fit_target_pose(
@@ -336,26 +455,21 @@ def fit_target_pose(
 ) -> FitResult:
     """6-DOF pose ``X_CT`` from edge sets on any circles of the target (and labeled points,
     when given; see the module docstring for ``edge_weight``)."""
-    model, state, commit = _target_problem(edge_sets, K, initial)
-    if points is not None and points.count:
-        model = _WithPoints(model, state, points, K)
-    else:
+    if points is not None and not points.count:
         points = None
-    weights, floors = _group_settings(len(edge_sets), points, edge_weight)
-    solution = gauss_newton(
-        model.residuals,
-        model.n_params,
-        commit,
+    problem = TargetProblem(ConicObservations(tuple(edge_sets), K), points)
+    solution = solve(
+        problem,
+        problem.state(initial),
+        loss=_group_settings(len(edge_sets), points, edge_weight),
         iterations=iterations,
-        jacobian=model.jacobian,
-        group_weights=weights,
-        sigma_floors=floors,
     )
+    state = solution.state
     return _finish(
-        Pose(state["R"], state["p"]),
+        Pose(state.R, state.p),
         solution,
         6,
-        state["dr"],
+        state.dr,
         with_points=points is not None,
         edge_weight=edge_weight,
     )
@@ -379,27 +493,26 @@ def covariance_at(
     tangent says the tilt is well known while the cost is nearly flat back to head-on; the
     covariance at the head-on pose does not make that mistake.
     """
+    observations = ConicObservations(tuple(edge_sets), K)
+    if points is not None and not points.count:
+        points = None
     if isinstance(pose, Pose):
-        model, state, _ = _target_problem(edge_sets, K, pose, fit.radius_offsets)
+        problem = TargetProblem(observations, points)
+        _, J = problem.linearize(problem.state(pose, fit.radius_offsets))
         keep = 6
     else:
         if reference is None:
             raise ValueError("a 5-DOF covariance needs the reference circle")
-        model, _, _ = _circle_problem(
-            edge_sets, reference, K, pose.center_C, pose.normal_C, fit.radius_offsets
-        )
-        keep = 5
-    J = model.jacobian()
-    weights = np.concatenate(
-        [
-            np.full(len(h), fit.edge_weight / sigma**2)
-            for h, sigma in zip(model.h, fit.sigma_px, strict=True)
-        ]
-    )
-    information = J.T @ (J * weights[:, None])
-    if points is not None and points.count:
-        if keep != 6:
+        if points is not None:
             raise ValueError("points need the 6-DOF pose")
-        J_points = _WithPoints(model, state, points, K).point_jacobian()
-        information = information + J_points.T @ J_points / fit.point_sigma**2
-    return marginal_covariance(information, keep)
+        circle = CircleProblem(observations, reference)
+        _, J = circle.linearize(circle.state(pose.center_C, pose.normal_C, fit.radius_offsets))
+        keep = 5
+    weights = [
+        np.full(size, fit.edge_weight / sigma**2)
+        for size, sigma in zip(observations.sizes, fit.sigma_px, strict=True)
+    ]
+    if points is not None:
+        weights.append(np.full(points.size, 1.0 / fit.point_sigma**2))
+    w = np.concatenate(weights)
+    return covariance(J.T @ (J * w[:, None]), keep=keep)
