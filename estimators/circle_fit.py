@@ -35,10 +35,9 @@ import numpy as np
 
 from estimators.circle_pose import CirclePose
 from estimators.conics import circle_plane_basis
-from estimators.geometry import Pose, as_points, nearest_rotation
+from estimators.geometry import Pose, as_points
 from estimators.least_squares import Huber, Solution, covariance, solve
-from estimators.planar_pose import PointObservations
-from estimators.so3 import exp_so3
+from estimators.planar_pose import PointObservations, retract_raw
 from estimators.target import Circle3D
 
 
@@ -123,64 +122,111 @@ class ConicObservations:
     """Edge sets against the image conics of their circles: residuals and their analytic
     Jacobian w.r.t. the circles' geometry.
 
-    A circle (centre c, unit normal n, radius ρ, in C) is the base of the cone of rays x
-    (normalised coordinates) with xᵀ·A·x = 0,
-    A = (c·c − ρ²)·n nᵀ − s·(c nᵀ + n cᵀ) + s²·I, s = n·c (``conics.circle_cone``); its image
-    conic is Q = K⁻ᵀ·A·K⁻¹. An edge point h = (u, v, 1) has the Sampson distance r = f/g with
-    f = hᵀQh and g = 2‖(Qh)₁,₂‖ (Kanatani 1996). Differentiating (Q symmetric),
-    ∂r = (hᵀ Q' h)/g − (f/g²)·4·((Qh)₁(Q'h)₁ + (Qh)₂(Q'h)₂)/g with Q' = K⁻ᵀ·A'·K⁻¹ and
-    A' = a'·n nᵀ + a·(n' nᵀ + n n'ᵀ) − s'·(c nᵀ + n cᵀ) − s·(c' nᵀ + c n'ᵀ + n' cᵀ + n c'ᵀ)
-    + 2 s s'·I, where a = c·c − ρ², a' = 2 c·c' − 2ρρ', s' = n'·c + n·c'. The parametrisations
-    (``CircleProblem``, ``TargetProblem``) supply c', n' (⊥ n) and ρ' for each parameter.
+    A circle (centre c, unit normal n, radius ρ, in C) is the base of the cone of rays x with
+    xᵀ·A·x = 0, A = a·n nᵀ − s·(c nᵀ + n cᵀ) + s²·I, a = c·c − ρ², s = n·c
+    (``conics.circle_cone``); its image conic is Q = K⁻ᵀ·A·K⁻¹. An edge point h = (u, v, 1),
+    x = K⁻¹·h, has the Sampson distance r = f/g with f = hᵀQh = xᵀAx and
+    g = 2‖(Qh)₁,₂‖ = 2‖(K⁻ᵀ·A·x)₁,₂‖ (Kanatani 1996). Differentiating,
+    ∂r = (xᵀA'x)/g − (f/g²)·4·((Qh)₁(K⁻ᵀA'x)₁ + (Qh)₂(K⁻ᵀA'x)₂)/g with
+    A' = M + Mᵀ + a'·n nᵀ + 2 s s'·I, M = (a·n' − s·c')·nᵀ − s·c n'ᵀ − s'·c nᵀ,
+    a' = 2 c·c' − 2ρρ', s' = n'·c + n·c' (n' ⊥ n keeps n a unit vector). The
+    parametrisations (``CircleProblem``, ``TargetProblem``) supply c', n' and ρ' for each
+    parameter. The points of all sets are kept in one array, each set a contiguous slice.
     """
 
     edge_sets: tuple[EdgeSet, ...]
     K: np.ndarray
-    _h: tuple[np.ndarray, ...] = field(default=(), repr=False)
-    _hh: tuple[np.ndarray, ...] = field(default=(), repr=False)
-    _K_inv: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
+    _x: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
+    _xx: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
+    _slices: tuple[slice, ...] = field(default=(), repr=False)
+    _K_inv_T2: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
+    _model: tuple = field(default=(), repr=False)
 
     def __post_init__(self) -> None:
-        h = tuple(np.column_stack([s.uv, np.ones(len(s.uv))]) for s in self.edge_sets)
-        object.__setattr__(self, "edge_sets", tuple(self.edge_sets))
-        object.__setattr__(self, "_h", h)
+        sets = tuple(self.edge_sets)
         object.__setattr__(
-            self, "_hh", tuple((x[:, :, None] * x[:, None, :]).reshape(-1, 9) for x in h)
+            self,
+            "_model",
+            (
+                np.array([s.circle.center_T for s in sets], dtype=float).reshape(-1, 3),
+                np.array([s.circle.normal_T for s in sets], dtype=float).reshape(-1, 3),
+                np.array([s.circle.radius for s in sets], dtype=float),
+                [i for i, s in enumerate(sets) if s.free_radius],
+            ),
         )
-        object.__setattr__(self, "_K_inv", np.linalg.inv(np.asarray(self.K, dtype=float)))
+        K_inv = np.linalg.inv(np.asarray(self.K, dtype=float))
+        uv = np.concatenate([s.uv for s in sets]) if sets else np.zeros((0, 2))
+        x = np.column_stack([uv, np.ones(len(uv))]) @ K_inv.T  # rays K⁻¹·h (N,3)
+        ends = np.cumsum([0] + [len(s.uv) for s in sets])
+        object.__setattr__(self, "edge_sets", sets)
+        object.__setattr__(self, "_x", x)
+        object.__setattr__(self, "_xx", (x[:, :, None] * x[:, None, :]).reshape(-1, 9))
+        object.__setattr__(self, "_slices", tuple(map(slice, ends[:-1], ends[1:])))
+        object.__setattr__(self, "_K_inv_T2", K_inv.T[:2])
 
     @property
     def sizes(self) -> tuple[int, ...]:
-        return tuple(len(h) for h in self._h)
+        return tuple(len(s.uv) for s in self.edge_sets)
 
-    def conics(self, centers: np.ndarray, normals: np.ndarray, radii: np.ndarray) -> np.ndarray:
-        """Image conics (S,3,3) of the circles (centres (S,3), unit normals (S,3), radii (S,))."""
+    @property
+    def circles_T(self) -> tuple[np.ndarray, np.ndarray]:
+        """The model circles' centres and normals (S,3) in T."""
+        return self._model[0], self._model[1]
+
+    @property
+    def free_count(self) -> int:
+        """How many sets have a free (nuisance) radius."""
+        return len(self._model[3])
+
+    def offsets(self, radius_offsets=None) -> np.ndarray:
+        """The nuisance radii (m) as an array (zeros when not given)."""
+        if radius_offsets is None:
+            return np.zeros(self.free_count)
+        return np.array(radius_offsets, dtype=float).reshape(self.free_count)
+
+    def radii(self, offsets: np.ndarray) -> np.ndarray:
+        """The circles' radii (S,) with the nuisance ``offsets`` added to the free ones."""
+        radii = self._model[2].copy()
+        radii[self._model[3]] += offsets
+        return radii
+
+    def radius_jacobian(self, n_params: int, first: int) -> np.ndarray:
+        """∂ρ/∂δ (P,S) for nuisance radii at parameters ``first``, ``first`` + 1, …"""
+        d = np.zeros((n_params, len(self.edge_sets)))
+        d[first + np.arange(self.free_count), self._model[3]] = 1.0
+        return d
+
+    def _split(self, values: np.ndarray) -> list[np.ndarray]:
+        return [values[rows] for rows in self._slices]
+
+    @staticmethod
+    def cones(centers: np.ndarray, normals: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        """Cones A (S,3,3) of the circles (centres (S,3), unit normals (S,3), radii (S,))."""
         s = np.einsum("si,si->s", normals, centers)
-        nn = normals[:, :, None] * normals[:, None, :]
-        cn = centers[:, :, None] * normals[:, None, :]
-        A = (np.einsum("si,si->s", centers, centers) - radii**2)[:, None, None] * nn
-        A = (
-            A
-            - s[:, None, None] * (cn + np.swapaxes(cn, -1, -2))
-            + (s**2)[:, None, None] * np.eye(3)
-        )
-        return self._K_inv.T @ A @ self._K_inv
+        a = np.einsum("si,si->s", centers, centers) - radii**2
+        M = (0.5 * a[:, None] * normals - s[:, None] * centers)[:, :, None] * normals[:, None, :]
+        return M + np.swapaxes(M, -1, -2) + (s**2)[:, None, None] * np.eye(3)
 
-    def _sampson(self, Q: np.ndarray, k: int):
-        Qh = self._h[k] @ Q
-        f = self._hh[k] @ Q.reshape(9)
+    def _sampson(self, A: np.ndarray):
+        """f = xᵀAx (N,), (Qh)₁,₂ = (K⁻ᵀAx)₁,₂ (N,2) and g (N,) of each point against its
+        own circle's cone A (S,3,3)."""
+        B = self._K_inv_T2 @ A  # (S,2,3)
+        f = np.empty(len(self._x))
+        Qh = np.empty((len(self._x), 2))
+        for k, rows in enumerate(self._slices):
+            f[rows] = self._xx[rows] @ A[k].reshape(9)
+            Qh[rows] = self._x[rows] @ B[k].T
         g = np.maximum(2.0 * np.hypot(Qh[:, 0], Qh[:, 1]), 1e-300)
-        return f, g, Qh
+        return f, Qh, g
 
     def residuals(
         self, centers: np.ndarray, normals: np.ndarray, radii: np.ndarray
     ) -> list[np.ndarray]:
         """Sampson distances (px) of each set's points to its circle's image conic."""
-        out = []
-        for k, Q in enumerate(self.conics(centers, normals, radii)):
-            f, g, _ = self._sampson(Q, k)
-            out.append(f / g)
-        return out
+        if not self.edge_sets:
+            return []
+        f, _, g = self._sampson(self.cones(centers, normals, radii))
+        return self._split(f / g)
 
     def linearize(
         self,
@@ -193,55 +239,33 @@ class ConicObservations:
     ) -> tuple[list[np.ndarray], np.ndarray]:
         """Residual groups and their Jacobian (N_total, P), given the derivatives of the
         circles' centres (P,S,3), normals (P,S,3) and radii (P,S) w.r.t. P parameters."""
+        P = d_radii.shape[0]
+        if not self.edge_sets:
+            return [], np.zeros((0, P))
         c, n, rho = centers, normals, radii
         a = np.einsum("si,si->s", c, c) - rho**2
         s = np.einsum("si,si->s", n, c)
         da = 2.0 * np.einsum("psi,si->ps", d_centers, c) - 2.0 * rho * d_radii
         ds = np.einsum("psi,si->ps", d_normals, c) + np.einsum("si,psi->ps", n, d_centers)
-        nn = n[:, :, None] * n[:, None, :]
-        cn = c[:, :, None] * n[:, None, :]
-        cn = cn + np.swapaxes(cn, -1, -2)
-        dnn = d_normals[..., :, None] * n[None, :, None, :]
-        dnn = dnn + np.swapaxes(dnn, -1, -2)
-        dcn = (
-            d_centers[..., :, None] * n[None, :, None, :]
-            + c[None, :, :, None] * d_normals[..., None, :]
-        )
-        dcn = dcn + np.swapaxes(dcn, -1, -2)
+        M = (a[:, None] * d_normals - s[:, None] * d_centers - ds[..., None] * c)[..., :, None] * n[
+            :, None, :
+        ] - (s[:, None] * c)[:, :, None] * d_normals[..., None, :]
         dA = (
-            da[..., None, None] * nn
-            + a[None, :, None, None] * dnn
-            - ds[..., None, None] * cn
-            - s[None, :, None, None] * dcn
+            M
+            + np.swapaxes(M, -1, -2)
+            + da[..., None, None] * (n[:, :, None] * n[:, None, :])
             + (2.0 * s * ds)[..., None, None] * np.eye(3)
         )
-        dQ = self._K_inv.T @ dA @ self._K_inv  # (P,S,3,3)
-        P = dQ.shape[0]
-        groups, blocks = [], []
-        for k, Q in enumerate(self.conics(c, n, rho)):
-            f, g, Qh = self._sampson(Q, k)
-            groups.append(f / g)
-            dQk = dQ[:, k]
-            df = self._hh[k] @ dQk.reshape(P, 9).T  # hᵀQ'h (N,P)
-            dQh = self._h[k] @ dQk[:, :2, :].transpose(2, 0, 1).reshape(3, 2 * P)  # (Q'h)₁,₂
-            dQh = dQh.reshape(-1, P, 2)
-            dg = 4.0 * (Qh[:, 0:1] * dQh[:, :, 0] + Qh[:, 1:2] * dQh[:, :, 1]) / g[:, None]
-            blocks.append(df / g[:, None] - (f / g**2)[:, None] * dg)
-        return groups, (np.vstack(blocks) if blocks else np.zeros((0, P)))
-
-
-def _free_radii(edge_sets: Sequence[EdgeSet]) -> tuple[np.ndarray, list[int]]:
-    return np.array([s.circle.radius for s in edge_sets]), [
-        i for i, s in enumerate(edge_sets) if s.free_radius
-    ]
-
-
-def _radius_derivatives(n_params: int, first: int, n_sets: int, free: list[int]) -> np.ndarray:
-    """∂ρ/∂δ (P,S): the nuisance offsets at parameters ``first``, ``first`` + 1, …"""
-    d = np.zeros((n_params, n_sets))
-    for j, i in enumerate(free):
-        d[first + j, i] = 1.0
-    return d
+        f, Qh, g = self._sampson(self.cones(c, n, rho))
+        dB = self._K_inv_T2 @ dA  # (P,S,2,3)
+        df = np.empty((len(self._x), P))  # xᵀA'x
+        dQh = np.empty((len(self._x), P, 2))  # (K⁻ᵀA'x)₁,₂
+        for k, rows in enumerate(self._slices):
+            df[rows] = self._xx[rows] @ dA[:, k].reshape(P, 9).T
+            dQh[rows] = (self._x[rows] @ dB[:, k].reshape(2 * P, 3).T).reshape(-1, P, 2)
+        dg = 4.0 * (Qh[:, 0:1] * dQh[:, :, 0] + Qh[:, 1:2] * dQh[:, :, 1]) / g[:, None]
+        J = df / g[:, None] - (f / g**2)[:, None] * dg
+        return self._split(f / g), J
 
 
 # --- the 5-DOF circle ------------------------------------------------------------------------
@@ -287,7 +311,7 @@ class CircleProblem:
 
     @property
     def n_params(self) -> int:
-        return 5 + len(_free_radii(self.observations.edge_sets)[1])
+        return 5 + self.observations.free_count
 
     def state(self, center, normal, radius_offsets=None) -> CircleState:
         """The state at a centre and normal (turned to the camera side, so the fit stays
@@ -297,15 +321,11 @@ class CircleProblem:
         n = n / np.linalg.norm(n)
         if n @ c > 0:
             n = -n
-        free = _free_radii(self.observations.edge_sets)[1]
-        dr = (
-            np.zeros(len(free)) if radius_offsets is None else np.array(radius_offsets, dtype=float)
-        )
+        dr = self.observations.offsets(radius_offsets)
         return CircleState(c, n, np.array(circle_plane_basis(n)), dr)
 
     def _geometry(self, state: CircleState):
-        radii, free = _free_radii(self.observations.edge_sets)
-        radii[free] += state.dr
+        radii = self.observations.radii(state.dr)
         centers = state.c + self._heights[:, None] * state.n
         return centers, np.broadcast_to(state.n, centers.shape), radii
 
@@ -313,14 +333,13 @@ class CircleProblem:
         return self.observations.residuals(*self._geometry(state))
 
     def linearize(self, state: CircleState) -> tuple[list[np.ndarray], np.ndarray]:
-        free = _free_radii(self.observations.edge_sets)[1]
         S, P = len(self._heights), self.n_params
         dN = np.zeros((P, S, 3))
         dN[3:5] = state.basis[:, None, :]
         dC = self._heights[None, :, None] * dN
         dC[0:3] = np.eye(3)[:, None, :]
         return self.observations.linearize(
-            *self._geometry(state), dC, dN, _radius_derivatives(P, 5, S, free)
+            *self._geometry(state), dC, dN, self.observations.radius_jacobian(P, 5)
         )
 
     def retract(self, state: CircleState, delta: np.ndarray) -> CircleState:
@@ -367,6 +386,15 @@ class TargetState:
     dr: np.ndarray
 
 
+def _axes_cross(v: np.ndarray) -> np.ndarray:
+    """e_j × v_s (3,S,3) for the unit axes e_j and vectors v (S,3) (np.cross is slow here)."""
+    out = np.zeros((3, len(v), 3))
+    out[0, :, 1], out[0, :, 2] = -v[:, 2], v[:, 1]
+    out[1, :, 0], out[1, :, 2] = v[:, 2], -v[:, 0]
+    out[2, :, 0], out[2, :, 1] = -v[:, 1], v[:, 0]
+    return out
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class TargetProblem:
     """Edge sets on any circles of the target (and labeled points, whose whitened
@@ -378,27 +406,21 @@ class TargetProblem:
 
     @property
     def n_params(self) -> int:
-        return 6 + len(_free_radii(self.observations.edge_sets)[1])
+        return 6 + self.observations.free_count
 
     def state(self, X_CT: Pose, radius_offsets=None) -> TargetState:
-        free = _free_radii(self.observations.edge_sets)[1]
-        dr = (
-            np.zeros(len(free)) if radius_offsets is None else np.array(radius_offsets, dtype=float)
-        )
+        dr = self.observations.offsets(radius_offsets)
         return TargetState(np.array(X_CT.R, dtype=float), np.array(X_CT.p, dtype=float), dr)
 
     def _geometry(self, state: TargetState):
-        sets = self.observations.edge_sets
-        radii, free = _free_radii(sets)
-        radii[free] += state.dr
-        q = np.array([s.circle.center_T for s in sets]) @ state.R.T  # R·c_T
-        m = np.array([s.circle.normal_T for s in sets]) @ state.R.T  # R·n_T
-        return q, m, radii
+        centers_T, normals_T = self.observations.circles_T
+        # R·c_T and R·n_T (S,3)
+        return centers_T @ state.R.T, normals_T @ state.R.T, self.observations.radii(state.dr)
 
     def _point_group(self, state: TargetState, jacobian: bool):
         if self.points is None:
             return [], None
-        _, r_w, J_w = self.points.linearize(Pose.unchecked(state.R, state.p), self.observations.K)
+        _, r_w, J_w = self.points.linearize(state, self.observations.K)  # type: ignore[arg-type]
         if not jacobian:
             return [r_w], None
         padded = np.zeros((len(J_w), self.n_params))
@@ -413,15 +435,13 @@ class TargetProblem:
     def linearize(self, state: TargetState) -> tuple[list[np.ndarray], np.ndarray]:
         q, m, radii = self._geometry(state)
         S, P = len(q), self.n_params
-        axes = np.eye(3)[:, None, :]
         dC = np.zeros((P, S, 3))
         dN = np.zeros((P, S, 3))
-        dC[0:3] = np.cross(axes, q[None])  # e_j × R·c_T
-        dN[0:3] = np.cross(axes, m[None])  # e_j × R·n_T
-        dC[3:6] = axes
-        free = _free_radii(self.observations.edge_sets)[1]
+        dC[0:3] = _axes_cross(q)  # e_j × R·c_T
+        dN[0:3] = _axes_cross(m)  # e_j × R·n_T
+        dC[3:6] = np.eye(3)[:, None, :]
         groups, J = self.observations.linearize(
-            q + state.p, m, radii, dC, dN, _radius_derivatives(P, 6, S, free)
+            q + state.p, m, radii, dC, dN, self.observations.radius_jacobian(P, 6)
         )
         point_groups, J_points = self._point_group(state, True)
         if J_points is not None:
@@ -429,8 +449,8 @@ class TargetProblem:
         return groups + point_groups, J
 
     def retract(self, state: TargetState, delta: np.ndarray) -> TargetState:
-        R = nearest_rotation(exp_so3(delta[:3]) @ state.R)
-        return TargetState(R, state.p + delta[3:6], state.dr + delta[6:])
+        X_CT = retract_raw(state, delta[:6])
+        return TargetState(X_CT.R, X_CT.p, state.dr + delta[6:])
 
 
 def _group_settings(n_sets: int, points, edge_weight: float) -> Huber:

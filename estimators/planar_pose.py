@@ -364,12 +364,12 @@ class PoseFit:
 
 def retract(X_CT: Pose, delta: np.ndarray) -> Pose:
     """The pose moved by δ = [δθ, δp]: (Exp(δθ)·R, p + δp)."""
-    moved = _retract_raw(X_CT, delta)
+    moved = retract_raw(X_CT, delta)
     return Pose(moved.R, moved.p)
 
 
 @dataclass(frozen=True, slots=True)
-class _RawPose:
+class RawPose:
     """R and p without ``Pose``'s validation, for the inner loop of the least squares (the
     result is validated once, when it becomes a ``Pose``)."""
 
@@ -380,11 +380,12 @@ class _RawPose:
         return points @ self.R.T + self.p
 
 
-def _retract_raw(X_CT: Pose | _RawPose, delta: np.ndarray) -> _RawPose:
+def retract_raw(X_CT: Pose | RawPose, delta: np.ndarray) -> RawPose:
+    """``retract`` without validation: R re-orthonormalised only when rounding has drifted."""
     R = exp_so3(np.asarray(delta[:3], dtype=float)) @ X_CT.R
     if abs(float(np.linalg.det(R)) - 1.0) > 1e-9:
         R = nearest_rotation(R)
-    return _RawPose(R, X_CT.p + delta[3:])
+    return RawPose(R, X_CT.p + delta[3:])
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -399,17 +400,17 @@ class PoseProblem:
     strict: bool = False
     n_params: int = 6
 
-    def residuals(self, X_CT: Pose | _RawPose) -> list[np.ndarray]:
+    def residuals(self, X_CT: Pose | RawPose) -> list[np.ndarray]:
         return self.linearize(X_CT)[0]
 
-    def linearize(self, X_CT: Pose | _RawPose) -> tuple[list[np.ndarray], np.ndarray]:
+    def linearize(self, X_CT: Pose | RawPose) -> tuple[list[np.ndarray], np.ndarray]:
         _, r_w, J_w = _linearize_all(self.observations, X_CT, self.K)  # type: ignore[arg-type]
         if self.strict and not np.all(np.isfinite(r_w)):
             raise ValueError("model points behind the camera")
         return [r_w], J_w
 
-    def retract(self, X_CT: Pose | _RawPose, delta: np.ndarray) -> _RawPose:
-        return _retract_raw(X_CT, delta)
+    def retract(self, X_CT: Pose | RawPose, delta: np.ndarray) -> RawPose:
+        return retract_raw(X_CT, delta)
 
 
 def _fit_at(
