@@ -237,10 +237,11 @@ def solve(
             break
         if not levenberg:
             w, sigmas = loss.weights(groups)
+        unit = isinstance(loss, NoLoss)  # unit weights: skip the products
         JB = J if basis is None else J @ B
-        information = J.T @ (J * w[:, None])
-        H = JB.T @ (JB * w[:, None]) if basis is not None else information
-        g = JB.T @ (w * flat)
+        information = J.T @ (J if unit else J * w[:, None])
+        H = information if basis is None else JB.T @ (JB if unit else JB * w[:, None])
+        g = JB.T @ (flat if unit else w * flat)
         if not levenberg:
             delta = _step(H, g, np.diag(np.diag(H)) * 1e-9 + np.eye(k) * 1e-12)
             if delta is None:

@@ -323,7 +323,8 @@ class CorrelatedEdgeObservations:
 
     def linearize(self, X_CT: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         r, r_w, J_w = self.edges.linearize(X_CT, K)
-        return r, self.whiten(r_w), self.whiten(J_w)
+        whitened = self.whiten(np.column_stack([r_w, J_w]))  # one pass over the edges for both
+        return r, whitened[:, 0], whitened[:, 1:]
 
 
 def _linearize_all(observations: Sequence[Observations], X_CT: Pose, K: np.ndarray):
