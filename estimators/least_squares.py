@@ -190,13 +190,48 @@ class Solution:
     converged: bool
 
 
-def _step(H: np.ndarray, g: np.ndarray, damping: float) -> np.ndarray | None:
+def _step(H: np.ndarray, g: np.ndarray, damping: np.ndarray) -> np.ndarray | None:
     """δ = −(H + damping)⁻¹·g, None when it does not exist."""
     try:
         delta = -np.linalg.solve(H + damping, g)
     except np.linalg.LinAlgError:
         return None
     return delta if np.all(np.isfinite(delta)) else None
+
+
+def _normal_equations(J, w, flat, B, unit: bool):
+    """(information JᵀWJ, H = (JB)ᵀW(JB), g = (JB)ᵀW·r); ``unit`` weights skip the products."""
+    information = J.T @ (J if unit else J * w[:, None])
+    if B is None:
+        return information, information, J.T @ (flat if unit else w * flat)
+    JB = J @ B
+    return (
+        information,
+        JB.T @ (JB if unit else JB * w[:, None]),
+        JB.T @ (flat if unit else w * flat),
+    )
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _Linearized:
+    """A state with its residual groups, Jacobian, weights, noise scales and (for
+    Levenberg–Marquardt) cost, ∞ where the residuals are not finite."""
+
+    state: Any
+    groups: list[np.ndarray]
+    J: np.ndarray
+    w: np.ndarray
+    sigmas: tuple[float, ...]
+    cost: float
+
+
+def _linearized(problem: Problem, loss: Loss, state: Any, with_cost: bool) -> _Linearized:
+    groups, J = problem.linearize(state)
+    w, sigmas = loss.weights(groups)
+    cost = 0.0
+    if with_cost:
+        cost = loss.cost(groups, sigmas) if np.all(np.isfinite(_flatten(groups))) else np.inf
+    return _Linearized(state, groups, J, w, sigmas, cost)
 
 
 def solve(
@@ -217,77 +252,52 @@ def solve(
     refuses steps to non-finite ones.
     """
     n = problem.n_params
-    B = np.eye(n) if basis is None else np.asarray(basis, dtype=float).reshape(n, -1)
-    k = B.shape[1]
+    B = None if basis is None else np.asarray(basis, dtype=float).reshape(n, -1)
+    k = n if B is None else B.shape[1]
+    unit = isinstance(loss, NoLoss)
     information = np.eye(n)
-    sigmas: tuple[float, ...] = ()
-    groups, J = problem.linearize(state)
-    done = 0
-    converged = False
-    cost = 0.0
-    if levenberg:
-        w, sigmas = loss.weights(groups)
-        cost = loss.cost(groups, sigmas)
-        if not (np.all(np.isfinite(_flatten(groups))) and np.isfinite(cost)):
-            raise ValueError("least squares: the residuals at the start are not finite")
-    damping = 0.0
+    now = _linearized(problem, loss, state, levenberg)
+    if levenberg and not np.isfinite(now.cost):
+        raise ValueError("least squares: the residuals at the start are not finite")
+    done, converged, damping = 0, False, 0.0
     for done in range(1, iterations + 1):
-        flat = _flatten(groups)
+        flat = _flatten(now.groups)
         if len(flat) < k:
             break
-        if not levenberg:
-            w, sigmas = loss.weights(groups)
-        unit = isinstance(loss, NoLoss)  # unit weights: skip the products
-        JB = J if basis is None else J @ B
-        information = J.T @ (J if unit else J * w[:, None])
-        H = information if basis is None else JB.T @ (JB if unit else JB * w[:, None])
-        g = JB.T @ (flat if unit else w * flat)
-        if not levenberg:
+        information, H, g = _normal_equations(now.J, now.w, flat, B, unit)
+        if not levenberg:  # Gauss–Newton: take the step
             delta = _step(H, g, np.diag(np.diag(H)) * 1e-9 + np.eye(k) * 1e-12)
             if delta is None:
                 break
-            state = problem.retract(state, B @ delta)
+            state = problem.retract(state, delta if B is None else B @ delta)
             if float(delta @ H @ delta) < tolerance**2:
                 converged = True
                 break
             if done < iterations:
-                groups, J = problem.linearize(state)
+                now = _linearized(problem, loss, state, False)
             continue
-        taken = None
+        # Levenberg–Marquardt: damp the step until the cost falls.
+        before = now.cost
         for _ in range(12):
-            delta = _step(H, g, damping * np.diag(np.diag(H) + 1e-12))
+            damped = damping * np.diag(np.diag(H) + 1e-12)
+            delta = _step(H, g, damped)
             if delta is None:
-                delta = -np.linalg.lstsq(H + damping * np.diag(np.diag(H) + 1e-12), g, rcond=None)[
-                    0
-                ]
-            candidate = problem.retract(state, B @ delta)
-            new_groups, new_J = problem.linearize(candidate)
-            new_w, new_sigmas = loss.weights(new_groups)
-            new_flat = _flatten(new_groups)
-            new_cost = (
-                loss.cost(new_groups, new_sigmas) if np.all(np.isfinite(new_flat)) else np.inf
-            )
-            if new_cost <= cost:
-                taken = cost - new_cost
-                state, groups, J, w, sigmas, cost = (
-                    candidate,
-                    new_groups,
-                    new_J,
-                    new_w,
-                    new_sigmas,
-                    new_cost,
-                )
+                delta = -np.linalg.lstsq(H + damped, g, rcond=None)[0]
+            moved = problem.retract(now.state, delta if B is None else B @ delta)
+            candidate = _linearized(problem, loss, moved, True)
+            if candidate.cost <= now.cost:
+                now = candidate
                 damping = 0.0 if damping < 1e-3 else damping / 10.0
                 break
             damping = 1e-4 if damping == 0.0 else damping * 10.0
+        state = now.state
         # Converged when no step lowers the cost (a minimum to numerical precision) or the last
         # one changed it by a negligible fraction of one unit of χ²: further digits are noise.
-        if taken is None or taken <= 1e-6 * (1.0 + cost):
+        if before - now.cost <= 1e-6 * (1.0 + now.cost):
             converged = True
             break
-    final = groups if levenberg else problem.residuals(state)
-    if not sigmas or len(sigmas) != len(final):
-        _, sigmas = loss.weights(final)
+    final = now.groups if levenberg else problem.residuals(state)
+    sigmas = now.sigmas if len(now.sigmas) == len(final) else loss.weights(final)[1]
     return Solution(state, information, tuple(final), tuple(sigmas), done, converged)
 
 
