@@ -6,14 +6,17 @@ with Huber weights (iteratively reweighted least squares) — the geometric refi
 Kanatani ("Statistical optimization for geometric computation", 1996) applied to the pose
 instead of the conic, so that every circle constrains the same few parameters. Each edge set
 carries its own noise scale (estimated from its residuals), and the covariance is the inverse
-of the weighted normal matrix at the solution (the Gauss–Newton / Cramér–Rao approximation).
+of the weighted normal matrix at the last linearisation (the Gauss–Newton / Cramér–Rao
+approximation). The loop is ``least_squares.solve`` with its ``Huber`` loss;
+``ConicObservations`` gives the residuals and their analytic Jacobian.
 
-Two parametrisations, matching ``estimators.measurement``:
+Two parametrisations, matching ``estimators.measurement`` (``CircleProblem``, ``TargetProblem``):
 
 * 5-DOF (circles coaxial with a reference circle, e.g. the ring's two edges): centre c and unit
   normal n of the reference circle; update c ← c + δc, n ← normalise(n + α·u + β·v) with
   (u, v) = ``circle_plane_basis(n)``.
-* 6-DOF (any circles of the target): ``X_CT`` with R ← Exp(δθ)·R, p ← p + δp.
+* 6-DOF (any circles of the target): ``X_CT`` with R ← Exp(δθ)·R, p ← p + δp (rotation
+  perturbed on the left, translation added).
 
 An edge set may have a free radius (a nuisance parameter, metres): its circle then contributes
 its position and shape but not its size — for circles whose apparent size is biased (a thin

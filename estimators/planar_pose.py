@@ -14,7 +14,9 @@ Algorithms:
   2014 (OpenCV's ``SOLVEPNP_IPPE``): both poses of the planar two-fold ambiguity in closed form.
 * Gauss–Newton / Levenberg–Marquardt on the whitened reprojection residuals (the reference's
   GLSDC, "Gaussian least-squares differential correction", is Gauss–Newton on this cost);
-  covariance s²·(JᵀJ)⁻¹ with s² = χ²/(m − 6) from the residuals.
+  covariance s²·(JᵀJ)⁻¹ with s² = χ²/(m − 6) from the residuals. The loop is
+  ``least_squares.solve`` (``PoseProblem`` adapts the observations to it): no loss for
+  ``refine_pose``, Cauchy weights for ``refine_pose_robust``.
 * Orthogonal iteration — C.-P. Lu, G. D. Hager and E. Mjolsness, "Fast and globally
   convergent pose estimation from video images", IEEE PAMI 22(6), 2000: minimises the
   object-space collinearity error by alternating translation and absolute orientation.
@@ -399,7 +401,10 @@ class PoseProblem:
     observations: Sequence[Observations]
     K: np.ndarray
     strict: bool = False
-    n_params: int = 6
+
+    @property
+    def n_params(self) -> int:
+        return 6
 
     def residuals(self, X_CT: Pose | RawPose) -> list[np.ndarray]:
         return self.linearize(X_CT)[0]
