@@ -6,14 +6,17 @@ with Huber weights (iteratively reweighted least squares) — the geometric refi
 Kanatani ("Statistical optimization for geometric computation", 1996) applied to the pose
 instead of the conic, so that every circle constrains the same few parameters. Each edge set
 carries its own noise scale (estimated from its residuals), and the covariance is the inverse
-of the weighted normal matrix at the solution (the Gauss–Newton / Cramér–Rao approximation).
+of the weighted normal matrix at the last linearisation (the Gauss–Newton / Cramér–Rao
+approximation). The loop is ``least_squares.solve`` with its ``Huber`` loss;
+``ConicObservations`` gives the residuals and their analytic Jacobian.
 
-Two parametrisations, matching ``estimators.measurement``:
+Two parametrisations, matching ``estimators.measurement`` (``CircleProblem``, ``TargetProblem``):
 
 * 5-DOF (circles coaxial with a reference circle, e.g. the ring's two edges): centre c and unit
   normal n of the reference circle; update c ← c + δc, n ← normalise(n + α·u + β·v) with
   (u, v) = ``circle_plane_basis(n)``.
-* 6-DOF (any circles of the target): ``X_CT`` with R ← Exp(δθ)·R, p ← p + δp.
+* 6-DOF (any circles of the target): ``X_CT`` with R ← Exp(δθ)·R, p ← p + δp (rotation
+  perturbed on the left, translation added).
 
 An edge set may have a free radius (a nuisance parameter, metres): its circle then contributes
 its position and shape but not its size — for circles whose apparent size is biased (a thin
@@ -36,8 +39,8 @@ import numpy as np
 from estimators.circle_pose import CirclePose
 from estimators.conics import circle_plane_basis
 from estimators.geometry import Pose, as_points
-from estimators.planar_pose import PointObservations
-from estimators.robust_lsq import Solution, gauss_newton, marginal_covariance
+from estimators.least_squares import Huber, Solution, covariance, solve
+from estimators.planar_pose import PointObservations, retract_raw
 from estimators.target import Circle3D
 
 
@@ -102,7 +105,7 @@ def _finish(
         r, sigmas = r[:-1], sigmas[:-1]
     return FitResult(
         pose=pose,
-        covariance=marginal_covariance(solution.information, n_pose),
+        covariance=covariance(solution.information, keep=n_pose),
         residuals=r,
         inliers=tuple(np.abs(ri) <= 3.0 * s for ri, s in zip(r, sigmas, strict=True)),
         sigma_px=sigmas,
@@ -114,59 +117,171 @@ def _finish(
     )
 
 
-class _ConicModel:
-    """Residuals (Sampson distances of each edge set to its circle's image conic) and their
-    Jacobian for a parameter increment.
+# --- the conic observation -------------------------------------------------------------------
 
-    ``geometry(deltas)`` maps a batch of increments (B, P) to the circles' centres (B, S, 3),
-    normals (B, S, 3) and radii (B, S) in C; their cones (``conics.circle_cone``) give the
-    image conics. The Jacobian uses the chain rule through the 3×3 conics, with ∂Q/∂θ by
-    differences of the (cheap, batched) conics: for r = f/g, f = hᵀQh and g = 2‖(Qh)₁,₂‖,
-    ∂r/∂θ = (hᵀ Q' h)/g − f·(4 (Qh)₁,₂ · (Q'h)₁,₂ / g)/g².
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ConicObservations:
+    """Edge sets against the image conics of their circles: residuals and their analytic
+    Jacobian w.r.t. the circles' geometry.
+
+    A circle (centre c, unit normal n, radius ρ, in C) is the base of the cone of rays x with
+    xᵀ·A·x = 0, A = a·n nᵀ − s·(c nᵀ + n cᵀ) + s²·I, a = c·c − ρ², s = n·c
+    (``conics.circle_cone``); its image conic is Q = K⁻ᵀ·A·K⁻¹. An edge point h = (u, v, 1),
+    x = K⁻¹·h, has the Sampson distance r = f/g with f = hᵀQh = xᵀAx and
+    g = 2‖(Qh)₁,₂‖ = 2‖(K⁻ᵀ·A·x)₁,₂‖ (Kanatani 1996). Differentiating,
+    ∂r = (xᵀA'x)/g − (f/g²)·4·((Qh)₁(K⁻ᵀA'x)₁ + (Qh)₂(K⁻ᵀA'x)₂)/g with
+    A' = M + Mᵀ + a'·n nᵀ + 2 s s'·I, M = (a·n' − s·c')·nᵀ − s·c n'ᵀ − s'·c nᵀ,
+    a' = 2 c·c' − 2ρρ', s' = n'·c + n·c' (n' ⊥ n keeps n a unit vector). The
+    parametrisations (``CircleProblem``, ``TargetProblem``) supply c', n' and ρ' for each
+    parameter. The points of all sets are kept in one array, each set a contiguous slice.
     """
 
-    _STEP = 1e-6
+    edge_sets: tuple[EdgeSet, ...]
+    K: np.ndarray
+    _x: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
+    _xx: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
+    _slices: tuple[slice, ...] = field(default=(), repr=False)
+    _K_inv_T2: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
+    _model: tuple = field(default=(), repr=False)
 
-    def __init__(self, edge_sets: Sequence[EdgeSet], geometry, n_params: int, K: np.ndarray):
-        self.h = [np.column_stack([s.uv, np.ones(len(s.uv))]) for s in edge_sets]
-        self.geometry = geometry
-        self.n_params = n_params
-        self.K_inv = np.linalg.inv(K)
+    def __post_init__(self) -> None:
+        sets = tuple(self.edge_sets)
+        object.__setattr__(
+            self,
+            "_model",
+            (
+                np.array([s.circle.center_T for s in sets], dtype=float).reshape(-1, 3),
+                np.array([s.circle.normal_T for s in sets], dtype=float).reshape(-1, 3),
+                np.array([s.circle.radius for s in sets], dtype=float),
+                [i for i, s in enumerate(sets) if s.free_radius],
+            ),
+        )
+        K_inv = np.linalg.inv(np.asarray(self.K, dtype=float))
+        uv = np.concatenate([s.uv for s in sets]) if sets else np.zeros((0, 2))
+        x = np.column_stack([uv, np.ones(len(uv))]) @ K_inv.T  # rays K⁻¹·h (N,3)
+        ends = np.cumsum([0] + [len(s.uv) for s in sets])
+        object.__setattr__(self, "edge_sets", sets)
+        object.__setattr__(self, "_x", x)
+        object.__setattr__(self, "_xx", (x[:, :, None] * x[:, None, :]).reshape(-1, 9))
+        object.__setattr__(self, "_slices", tuple(map(slice, ends[:-1], ends[1:])))
+        object.__setattr__(self, "_K_inv_T2", K_inv.T[:2])
 
-    def conics(self, deltas: np.ndarray) -> np.ndarray:
-        """Image conics (B, S, 3, 3) for a batch of increments."""
-        c, n, r = self.geometry(np.atleast_2d(deltas))
-        n = n / np.linalg.norm(n, axis=-1, keepdims=True)
-        s = np.einsum("...i,...i->...", n, c)
-        cn = c[..., :, None] * n[..., None, :]
-        nn = n[..., :, None] * n[..., None, :]
-        A = (np.einsum("...i,...i->...", c, c) - r**2)[..., None, None] * nn
-        A = A - s[..., None, None] * (cn + np.swapaxes(cn, -1, -2))
-        A = A + (s**2)[..., None, None] * np.eye(3)
-        return self.K_inv.T @ A @ self.K_inv
+    @property
+    def sizes(self) -> tuple[int, ...]:
+        return tuple(len(s.uv) for s in self.edge_sets)
 
-    def residuals(self, delta: np.ndarray) -> list[np.ndarray]:
-        out = []
-        for Q, h in zip(self.conics(delta)[0], self.h, strict=True):
-            Qh = h @ Q
-            value = np.einsum("ni,ni->n", Qh, h)
-            out.append(value / np.maximum(2.0 * np.hypot(Qh[:, 0], Qh[:, 1]), 1e-300))
-        return out
+    @property
+    def circles_T(self) -> tuple[np.ndarray, np.ndarray]:
+        """The model circles' centres and normals (S,3) in T."""
+        return self._model[0], self._model[1]
 
-    def jacobian(self) -> np.ndarray:
-        deltas = np.vstack([np.zeros(self.n_params), self._STEP * np.eye(self.n_params)])
-        Q = self.conics(deltas)  # (P+1, S, 3, 3)
-        dQ = (Q[1:] - Q[0]) / self._STEP  # (P, S, 3, 3)
-        blocks = []
-        for k, h in enumerate(self.h):
-            Qh = h @ Q[0, k]
-            f = np.einsum("ni,ni->n", Qh, h)
-            g = np.maximum(2.0 * np.hypot(Qh[:, 0], Qh[:, 1]), 1e-300)
-            DQh = np.einsum("ni,pij->npj", h, dQ[:, k])  # (N,P,3): (Q' h) per parameter
-            df = np.einsum("npj,nj->np", DQh, h)
-            dg = 4.0 * (Qh[:, 0:1] * DQh[:, :, 0] + Qh[:, 1:2] * DQh[:, :, 1]) / g[:, None]
-            blocks.append(df / g[:, None] - (f / g**2)[:, None] * dg)
-        return np.vstack(blocks)
+    @property
+    def free_count(self) -> int:
+        """How many sets have a free (nuisance) radius."""
+        return len(self._model[3])
+
+    def offsets(self, radius_offsets=None) -> np.ndarray:
+        """The nuisance radii (m) as an array (zeros when not given)."""
+        if radius_offsets is None:
+            return np.zeros(self.free_count)
+        return np.array(radius_offsets, dtype=float).reshape(self.free_count)
+
+    def radii(self, offsets: np.ndarray) -> np.ndarray:
+        """The circles' radii (S,) with the nuisance ``offsets`` added to the free ones."""
+        radii = self._model[2].copy()
+        radii[self._model[3]] += offsets
+        return radii
+
+    def radius_jacobian(self, n_params: int, first: int) -> np.ndarray:
+        """∂ρ/∂δ (P,S) for nuisance radii at parameters ``first``, ``first`` + 1, …"""
+        d = np.zeros((n_params, len(self.edge_sets)))
+        d[first + np.arange(self.free_count), self._model[3]] = 1.0
+        return d
+
+    def _split(self, values: np.ndarray) -> list[np.ndarray]:
+        return [values[rows] for rows in self._slices]
+
+    @staticmethod
+    def cones(centers: np.ndarray, normals: np.ndarray, radii: np.ndarray) -> np.ndarray:
+        """Cones A (S,3,3) of the circles (centres (S,3), unit normals (S,3), radii (S,))."""
+        s = np.einsum("si,si->s", normals, centers)
+        a = np.einsum("si,si->s", centers, centers) - radii**2
+        M = (0.5 * a[:, None] * normals - s[:, None] * centers)[:, :, None] * normals[:, None, :]
+        return M + np.swapaxes(M, -1, -2) + (s**2)[:, None, None] * np.eye(3)
+
+    def _sampson(self, A: np.ndarray):
+        """f = xᵀAx (N,), (Qh)₁,₂ = (K⁻ᵀAx)₁,₂ (N,2) and g (N,) of each point against its
+        own circle's cone A (S,3,3)."""
+        B = self._K_inv_T2 @ A  # (S,2,3)
+        f = np.empty(len(self._x))
+        Qh = np.empty((len(self._x), 2))
+        for k, rows in enumerate(self._slices):
+            f[rows] = self._xx[rows] @ A[k].reshape(9)
+            Qh[rows] = self._x[rows] @ B[k].T
+        g = np.maximum(2.0 * np.hypot(Qh[:, 0], Qh[:, 1]), 1e-300)
+        return f, Qh, g
+
+    def residuals(
+        self, centers: np.ndarray, normals: np.ndarray, radii: np.ndarray
+    ) -> list[np.ndarray]:
+        """Sampson distances (px) of each set's points to its circle's image conic."""
+        if not self.edge_sets:
+            return []
+        f, _, g = self._sampson(self.cones(centers, normals, radii))
+        return self._split(f / g)
+
+    def linearize(
+        self,
+        centers: np.ndarray,
+        normals: np.ndarray,
+        radii: np.ndarray,
+        d_centers: np.ndarray,
+        d_normals: np.ndarray,
+        d_radii: np.ndarray,
+    ) -> tuple[list[np.ndarray], np.ndarray]:
+        """Residual groups and their Jacobian (N_total, P), given the derivatives of the
+        circles' centres (P,S,3), normals (P,S,3) and radii (P,S) w.r.t. P parameters."""
+        P = d_radii.shape[0]
+        if not self.edge_sets:
+            return [], np.zeros((0, P))
+        c, n, rho = centers, normals, radii
+        a = np.einsum("si,si->s", c, c) - rho**2
+        s = np.einsum("si,si->s", n, c)
+        da = 2.0 * np.einsum("psi,si->ps", d_centers, c) - 2.0 * rho * d_radii
+        ds = np.einsum("psi,si->ps", d_normals, c) + np.einsum("si,psi->ps", n, d_centers)
+        M = (a[:, None] * d_normals - s[:, None] * d_centers - ds[..., None] * c)[..., :, None] * n[
+            :, None, :
+        ] - (s[:, None] * c)[:, :, None] * d_normals[..., None, :]
+        dA = (
+            M
+            + np.swapaxes(M, -1, -2)
+            + da[..., None, None] * (n[:, :, None] * n[:, None, :])
+            + (2.0 * s * ds)[..., None, None] * np.eye(3)
+        )
+        f, Qh, g = self._sampson(self.cones(c, n, rho))
+        dB = self._K_inv_T2 @ dA  # (P,S,2,3)
+        df = np.empty((len(self._x), P))  # xᵀA'x
+        dQh = np.empty((len(self._x), P, 2))  # (K⁻ᵀA'x)₁,₂
+        for k, rows in enumerate(self._slices):
+            df[rows] = self._xx[rows] @ dA[:, k].reshape(P, 9).T
+            dQh[rows] = (self._x[rows] @ dB[:, k].reshape(2 * P, 3).T).reshape(-1, P, 2)
+        dg = 4.0 * (Qh[:, 0:1] * dQh[:, :, 0] + Qh[:, 1:2] * dQh[:, :, 1]) / g[:, None]
+        J = df / g[:, None] - (f / g**2)[:, None] * dg
+        return self._split(f / g), J
+
+
+# --- the 5-DOF circle ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CircleState:
+    """Centre c (m, C), unit normal n, the tangent basis (u, v) of n, nuisance radii (m)."""
+
+    c: np.ndarray
+    n: np.ndarray
+    basis: np.ndarray
+    dr: np.ndarray
 
 
 def _coaxial_heights(edge_sets: Sequence[EdgeSet], reference: Circle3D) -> np.ndarray:
@@ -184,43 +299,58 @@ def _coaxial_heights(edge_sets: Sequence[EdgeSet], reference: Circle3D) -> np.nd
     return np.array(heights)
 
 
-def _circle_problem(edge_sets, reference, K, center, normal, radius_offsets=None):
-    """The 5-DOF model at (centre, normal): (model, state, commit)."""
-    heights = _coaxial_heights(edge_sets, reference)
-    radii = np.array([s.circle.radius for s in edge_sets])
-    free = [i for i, s in enumerate(edge_sets) if s.free_radius]
-    state = {
-        "c": np.asarray(center, dtype=float).copy(),
-        "n": np.asarray(normal, dtype=float).copy(),
-        "dr": np.zeros(len(free)) if radius_offsets is None else np.array(radius_offsets),
-    }
-    if state["n"] @ state["c"] > 0:  # on the camera side, so the fit stays there
-        state["n"] = -state["n"]
-    state["basis"] = np.array(circle_plane_basis(state["n"]))
+@dataclass(frozen=True, slots=True, eq=False)
+class CircleProblem:
+    """Edge sets on circles coaxial with ``reference``, as a ``least_squares.Problem`` over
+    [δc, α, β, δρ_free…] (c ← c + δc, n ← normalise(n + α·u + β·v), ρ ← ρ + δρ)."""
 
-    def moved(deltas: np.ndarray):
-        """Centre (B,3), unit normal (B,3) and radius offsets (B,F) for increments (B,P)."""
-        c = state["c"] + deltas[:, :3]
-        n = state["n"] + deltas[:, 3:5] @ state["basis"]
-        n = n / np.linalg.norm(n, axis=1, keepdims=True)
-        return c, n, state["dr"] + deltas[:, 5:]
+    observations: ConicObservations
+    reference: Circle3D
+    _heights: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
 
-    def geometry(deltas: np.ndarray):
-        c, n, dr = moved(deltas)
-        r = np.broadcast_to(radii, (len(deltas), len(radii))).copy()
-        r[:, free] += dr
-        return (
-            c[:, None, :] + heights[None, :, None] * n[:, None, :],
-            n[:, None, :].repeat(len(radii), axis=1),
-            r,
+    def __post_init__(self) -> None:
+        heights = _coaxial_heights(self.observations.edge_sets, self.reference)
+        object.__setattr__(self, "_heights", heights)
+
+    @property
+    def n_params(self) -> int:
+        return 5 + self.observations.free_count
+
+    def state(self, center, normal, radius_offsets=None) -> CircleState:
+        """The state at a centre and normal (turned to the camera side, so the fit stays
+        there)."""
+        c = np.asarray(center, dtype=float).copy()
+        n = np.asarray(normal, dtype=float)
+        n = n / np.linalg.norm(n)
+        if n @ c > 0:
+            n = -n
+        dr = self.observations.offsets(radius_offsets)
+        return CircleState(c, n, np.array(circle_plane_basis(n)), dr)
+
+    def _geometry(self, state: CircleState):
+        radii = self.observations.radii(state.dr)
+        centers = state.c + self._heights[:, None] * state.n
+        return centers, np.broadcast_to(state.n, centers.shape), radii
+
+    def residuals(self, state: CircleState) -> list[np.ndarray]:
+        return self.observations.residuals(*self._geometry(state))
+
+    def linearize(self, state: CircleState) -> tuple[list[np.ndarray], np.ndarray]:
+        S, P = len(self._heights), self.n_params
+        dN = np.zeros((P, S, 3))
+        dN[3:5] = state.basis[:, None, :]
+        dC = self._heights[None, :, None] * dN
+        dC[0:3] = np.eye(3)[:, None, :]
+        return self.observations.linearize(
+            *self._geometry(state), dC, dN, self.observations.radius_jacobian(P, 5)
         )
 
-    def commit(delta: np.ndarray) -> None:
-        c, n, dr = moved(delta[None, :])
-        state["c"], state["n"], state["dr"] = c[0], n[0], dr[0]
-        state["basis"] = np.array(circle_plane_basis(state["n"]))
-
-    return _ConicModel(edge_sets, geometry, 5 + len(free), K), state, commit
+    def retract(self, state: CircleState, delta: np.ndarray) -> CircleState:
+        n = state.n + delta[3:5] @ state.basis
+        n = n / np.linalg.norm(n)
+        return CircleState(
+            state.c + delta[:3], n, np.array(circle_plane_basis(n)), state.dr + delta[5:]
+        )
 
 
 def fit_circle_pose(
@@ -236,93 +366,105 @@ def fit_circle_pose(
     ValueError if a circle is not coaxial (its centre off the reference axis or its normal not
     parallel) — such circles need the 6-DOF ``fit_target_pose``.
     """
-    model, state, commit = _circle_problem(
-        edge_sets, reference, K, initial.center_C, initial.normal_C
+    problem = CircleProblem(ConicObservations(tuple(edge_sets), K), reference)
+    solution = solve(
+        problem,
+        problem.state(initial.center_C, initial.normal_C),
+        loss=Huber(),
+        iterations=iterations,
     )
-    solution = gauss_newton(
-        model.residuals, model.n_params, commit, iterations=iterations, jacobian=model.jacobian
-    )
-    return _finish(CirclePose(state["c"], state["n"]), solution, 5, state["dr"])
+    state = solution.state
+    return _finish(CirclePose(state.c, state.n), solution, 5, state.dr)
 
 
-def _exp_so3(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices (B,3,3) of rotation vectors (B,3) (Rodrigues' formula)."""
-    w = np.atleast_2d(w)
-    angle = np.linalg.norm(w, axis=1)
-    W = np.zeros((len(w), 3, 3))
-    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
-    W = W - np.swapaxes(W, 1, 2)
-    small = angle < 1e-12
-    a = np.where(small, 1.0, np.sin(angle) / np.where(small, 1.0, angle))
-    b = np.where(small, 0.5, (1.0 - np.cos(angle)) / np.where(small, 1.0, angle) ** 2)
-    return np.eye(3) + a[:, None, None] * W + b[:, None, None] * (W @ W)
+# --- the 6-DOF target ------------------------------------------------------------------------
 
 
-def _target_problem(edge_sets, K, X_CT: Pose, radius_offsets=None):
-    """The 6-DOF model at ``X_CT``: (model, state, commit)."""
-    centers_T = np.array([s.circle.center_T for s in edge_sets])
-    normals_T = np.array([s.circle.normal_T for s in edge_sets])
-    radii = np.array([s.circle.radius for s in edge_sets])
-    free = [i for i, s in enumerate(edge_sets) if s.free_radius]
-    state = {
-        "R": X_CT.R.copy(),
-        "p": X_CT.p.copy(),
-        "dr": np.zeros(len(free)) if radius_offsets is None else np.array(radius_offsets),
-    }
+@dataclass(frozen=True, slots=True, eq=False)
+class TargetState:
+    """``X_CT`` as (R, p) and the nuisance radii (m)."""
 
-    def moved(deltas: np.ndarray):
-        R = _exp_so3(deltas[:, :3]) @ state["R"]
-        return R, state["p"] + deltas[:, 3:6], state["dr"] + deltas[:, 6:]
-
-    def geometry(deltas: np.ndarray):
-        R, p, dr = moved(deltas)
-        r = np.broadcast_to(radii, (len(deltas), len(radii))).copy()
-        r[:, free] += dr
-        centers = np.einsum("bij,sj->bsi", R, centers_T) + p[:, None, :]
-        return centers, np.einsum("bij,sj->bsi", R, normals_T), r
-
-    def commit(delta: np.ndarray) -> None:
-        R, p, dr = moved(delta[None, :])
-        U, _, Vt = np.linalg.svd(R[0])
-        state["R"], state["p"], state["dr"] = U @ Vt, p[0], dr[0]
-
-    return _ConicModel(edge_sets, geometry, 6 + len(free), K), state, commit
+    R: np.ndarray
+    p: np.ndarray
+    dr: np.ndarray
 
 
-class _WithPoints:
-    """A 6-DOF edge model plus labeled points: the points' whitened reprojection errors are
-    one more residual group (no dependence on the nuisance radii)."""
+def _axes_cross(v: np.ndarray) -> np.ndarray:
+    """e_j × v_s (3,S,3) for the unit axes e_j and vectors v (S,3) (np.cross is slow here)."""
+    out = np.zeros((3, len(v), 3))
+    out[0, :, 1], out[0, :, 2] = -v[:, 2], v[:, 1]
+    out[1, :, 0], out[1, :, 2] = v[:, 2], -v[:, 0]
+    out[2, :, 0], out[2, :, 1] = -v[:, 1], v[:, 0]
+    return out
 
-    def __init__(self, model: _ConicModel, state: dict, points: PointObservations, K):
-        self.model, self.state, self.points, self.K = model, state, points, K
-        self.n_params = model.n_params
 
-    def _pose(self, delta: np.ndarray) -> Pose:
-        return Pose(_exp_so3(delta[None, :3])[0] @ self.state["R"], self.state["p"] + delta[3:6])
+@dataclass(frozen=True, slots=True, eq=False)
+class TargetProblem:
+    """Edge sets on any circles of the target (and labeled points, whose whitened
+    reprojection errors are one more residual group), as a ``least_squares.Problem`` over
+    [δθ, δp, δρ_free…] (R ← Exp(δθ)·R, p ← p + δp, ρ ← ρ + δρ)."""
 
-    def residuals(self, delta: np.ndarray) -> list[np.ndarray]:
-        _, r_w, _ = self.points.linearize(self._pose(delta), self.K)
-        return [*self.model.residuals(delta), r_w]
+    observations: ConicObservations
+    points: PointObservations | None = None
 
-    def point_jacobian(self) -> np.ndarray:
-        """The points' rows of the Jacobian (2N, P) at the current state."""
-        _, _, J_w = self.points.linearize(self._pose(np.zeros(6)), self.K)
+    @property
+    def n_params(self) -> int:
+        return 6 + self.observations.free_count
+
+    def state(self, X_CT: Pose, radius_offsets=None) -> TargetState:
+        dr = self.observations.offsets(radius_offsets)
+        return TargetState(np.array(X_CT.R, dtype=float), np.array(X_CT.p, dtype=float), dr)
+
+    def _geometry(self, state: TargetState):
+        centers_T, normals_T = self.observations.circles_T
+        # R·c_T and R·n_T (S,3)
+        return centers_T @ state.R.T, normals_T @ state.R.T, self.observations.radii(state.dr)
+
+    def _point_group(self, state: TargetState, jacobian: bool):
+        if self.points is None:
+            return [], None
+        _, r_w, J_w = self.points.linearize(state, self.observations.K)  # type: ignore[arg-type]
+        if not jacobian:
+            return [r_w], None
         padded = np.zeros((len(J_w), self.n_params))
         padded[:, :6] = J_w
-        return padded
+        return [r_w], padded
 
-    def jacobian(self) -> np.ndarray:
-        return np.vstack([self.model.jacobian(), self.point_jacobian()])
+    def residuals(self, state: TargetState) -> list[np.ndarray]:
+        q, m, radii = self._geometry(state)
+        edges = self.observations.residuals(q + state.p, m, radii)
+        return edges + self._point_group(state, False)[0]
+
+    def linearize(self, state: TargetState) -> tuple[list[np.ndarray], np.ndarray]:
+        q, m, radii = self._geometry(state)
+        S, P = len(q), self.n_params
+        dC = np.zeros((P, S, 3))
+        dN = np.zeros((P, S, 3))
+        dC[0:3] = _axes_cross(q)  # e_j × R·c_T
+        dN[0:3] = _axes_cross(m)  # e_j × R·n_T
+        dC[3:6] = np.eye(3)[:, None, :]
+        groups, J = self.observations.linearize(
+            q + state.p, m, radii, dC, dN, self.observations.radius_jacobian(P, 6)
+        )
+        point_groups, J_points = self._point_group(state, True)
+        if J_points is not None:
+            J = np.vstack([J, J_points])
+        return groups + point_groups, J
+
+    def retract(self, state: TargetState, delta: np.ndarray) -> TargetState:
+        X_CT = retract_raw(state, delta[:6])
+        return TargetState(X_CT.R, X_CT.p, state.dr + delta[6:])
 
 
-def _group_settings(n_sets: int, points, edge_weight: float):
-    """(group weights, noise-scale floors) for edge sets followed by the points' group."""
+def _group_settings(n_sets: int, points, edge_weight: float) -> Huber:
+    """The Huber loss for edge sets followed by the points' group: edge sets with information
+    scale ``edge_weight`` and noise floor 0.05 px, points with weight 1 and floor 1."""
     weights = [edge_weight] * n_sets
     floors = [0.05] * n_sets
     if points is not None:
         weights.append(1.0)
         floors.append(1.0)
-    return weights, floors
+    return Huber(floors=tuple(floors), group_weights=tuple(weights))
 
 
 def fit_target_pose(
@@ -336,26 +478,21 @@ def fit_target_pose(
 ) -> FitResult:
     """6-DOF pose ``X_CT`` from edge sets on any circles of the target (and labeled points,
     when given; see the module docstring for ``edge_weight``)."""
-    model, state, commit = _target_problem(edge_sets, K, initial)
-    if points is not None and points.count:
-        model = _WithPoints(model, state, points, K)
-    else:
+    if points is not None and not points.count:
         points = None
-    weights, floors = _group_settings(len(edge_sets), points, edge_weight)
-    solution = gauss_newton(
-        model.residuals,
-        model.n_params,
-        commit,
+    problem = TargetProblem(ConicObservations(tuple(edge_sets), K), points)
+    solution = solve(
+        problem,
+        problem.state(initial),
+        loss=_group_settings(len(edge_sets), points, edge_weight),
         iterations=iterations,
-        jacobian=model.jacobian,
-        group_weights=weights,
-        sigma_floors=floors,
     )
+    state = solution.state
     return _finish(
-        Pose(state["R"], state["p"]),
+        Pose(state.R, state.p),
         solution,
         6,
-        state["dr"],
+        state.dr,
         with_points=points is not None,
         edge_weight=edge_weight,
     )
@@ -379,27 +516,26 @@ def covariance_at(
     tangent says the tilt is well known while the cost is nearly flat back to head-on; the
     covariance at the head-on pose does not make that mistake.
     """
+    observations = ConicObservations(tuple(edge_sets), K)
+    if points is not None and not points.count:
+        points = None
     if isinstance(pose, Pose):
-        model, state, _ = _target_problem(edge_sets, K, pose, fit.radius_offsets)
+        problem = TargetProblem(observations, points)
+        _, J = problem.linearize(problem.state(pose, fit.radius_offsets))
         keep = 6
     else:
         if reference is None:
             raise ValueError("a 5-DOF covariance needs the reference circle")
-        model, _, _ = _circle_problem(
-            edge_sets, reference, K, pose.center_C, pose.normal_C, fit.radius_offsets
-        )
-        keep = 5
-    J = model.jacobian()
-    weights = np.concatenate(
-        [
-            np.full(len(h), fit.edge_weight / sigma**2)
-            for h, sigma in zip(model.h, fit.sigma_px, strict=True)
-        ]
-    )
-    information = J.T @ (J * weights[:, None])
-    if points is not None and points.count:
-        if keep != 6:
+        if points is not None:
             raise ValueError("points need the 6-DOF pose")
-        J_points = _WithPoints(model, state, points, K).point_jacobian()
-        information = information + J_points.T @ J_points / fit.point_sigma**2
-    return marginal_covariance(information, keep)
+        circle = CircleProblem(observations, reference)
+        _, J = circle.linearize(circle.state(pose.center_C, pose.normal_C, fit.radius_offsets))
+        keep = 5
+    weights = [
+        np.full(size, fit.edge_weight / sigma**2)
+        for size, sigma in zip(observations.sizes, fit.sigma_px, strict=True)
+    ]
+    if points is not None:
+        weights.append(np.full(points.size, 1.0 / fit.point_sigma**2))
+    w = np.concatenate(weights)
+    return covariance(J.T @ (J * w[:, None]), keep=keep)

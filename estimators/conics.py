@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimators.geometry import as_points
-from estimators.robust_lsq import gauss_newton
+from estimators.least_squares import Huber, VectorProblem, solve
 
 
 @dataclass(frozen=True, slots=True)
@@ -286,21 +286,16 @@ def refine_ellipse(
     Returns (ellipse, residuals (N,) px, robust noise scale px).
     """
     uv = as_points(uv, 2, "uv")
-    state = np.array([initial.cx, initial.cy, np.log(initial.a), np.log(initial.b), initial.angle])
+    start = np.array([initial.cx, initial.cy, np.log(initial.a), np.log(initial.b), initial.angle])
 
-    def conic(delta: np.ndarray) -> np.ndarray:
-        cx, cy, log_a, log_b, angle = state + delta
+    def conic(state: np.ndarray) -> np.ndarray:
+        cx, cy, log_a, log_b, angle = state
         # A trial step on a short, noisy arc may ask for absurd axes: keep them finite (the
         # step is then refused for its cost, not for an overflow).
         a, b = np.exp(np.clip([log_a, log_b], _LOG_AXIS_MIN, _LOG_AXIS_MAX))
         return _conic_from_parameters(cx, cy, a, b, angle)
 
-    def residuals(delta: np.ndarray) -> list[np.ndarray]:
-        return [sampson_distances(conic(delta), uv)]
-
-    def commit(delta: np.ndarray) -> None:
-        state[:] = state + delta
-
-    solution = gauss_newton(residuals, 5, commit, iterations=iterations, sigma_floor=0.02)
-    ellipse = ellipse_from_conic(conic(np.zeros(5)))
+    problem = VectorProblem(lambda state: [sampson_distances(conic(state), uv)], 5)
+    solution = solve(problem, start, loss=Huber(floor=0.02), iterations=iterations)
+    ellipse = ellipse_from_conic(conic(solution.state))
     return ellipse, solution.residuals[0], solution.sigmas[0]

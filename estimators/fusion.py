@@ -54,7 +54,12 @@ from estimators.conics import circle_plane_basis
 from estimators.frame import readonly_array
 from estimators.geometry import Pose, skew
 from estimators.measurement import Measurement
-from estimators.so3 import exp_so3, log_so3, so3_left_jacobian, so3_left_jacobian_inverse
+from estimators.so3 import (
+    exp_so3,
+    pose_error_C,
+    so3_left_jacobian,
+    so3_left_jacobian_inverse,
+)
 from estimators.target import Circle3D, TargetModel
 
 Health = Literal["uninitialized", "ok", "coasting", "lost"]
@@ -105,12 +110,6 @@ def _tangent_log_jacobian(base: np.ndarray, n: np.ndarray) -> np.ndarray:
 
 
 # --- measurement errors (the conventions of estimators.measurement) -------------------------
-
-
-def pose_error_C(X_true: Pose, X_est: Pose) -> np.ndarray:
-    """Error [δθ, δp] (6,) of a pose estimate in the Measurement convention:
-    R_true = Exp(δθ)·R_est, p_true = p_est + δp (rad, m; in the frame both are expressed in)."""
-    return np.concatenate([log_so3(X_true.R @ X_est.R.T), X_true.p - X_est.p])
 
 
 def circle_error_C(

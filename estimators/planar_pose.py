@@ -14,7 +14,9 @@ Algorithms:
   2014 (OpenCV's ``SOLVEPNP_IPPE``): both poses of the planar two-fold ambiguity in closed form.
 * Gauss–Newton / Levenberg–Marquardt on the whitened reprojection residuals (the reference's
   GLSDC, "Gaussian least-squares differential correction", is Gauss–Newton on this cost);
-  covariance s²·(JᵀJ)⁻¹ with s² = χ²/(m − 6) from the residuals.
+  covariance s²·(JᵀJ)⁻¹ with s² = χ²/(m − 6) from the residuals. The loop is
+  ``least_squares.solve`` (``PoseProblem`` adapts the observations to it): no loss for
+  ``refine_pose``, Cauchy weights for ``refine_pose_robust``.
 * Orthogonal iteration — C.-P. Lu, G. D. Hager and E. Mjolsness, "Fast and globally
   convergent pose estimation from video images", IEEE PAMI 22(6), 2000: minimises the
   object-space collinearity error by alternating translation and absolute orientation.
@@ -29,10 +31,11 @@ from typing import Literal, Protocol
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from estimators.geometry import Pose, as_points, nearest_rotation, rotation_error_geodesic
 from estimators.geometry import undistort_pixels as _undistort
+from estimators.least_squares import Cauchy, NoLoss, covariance, solve
+from estimators.so3 import exp_so3, pose_error_C
 
 PoseMethod = Literal["gauss_newton", "lhm"]
 POSE_METHODS: tuple[str, ...] = ("gauss_newton", "lhm")
@@ -322,7 +325,8 @@ class CorrelatedEdgeObservations:
 
     def linearize(self, X_CT: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         r, r_w, J_w = self.edges.linearize(X_CT, K)
-        return r, self.whiten(r_w), self.whiten(J_w)
+        whitened = self.whiten(np.column_stack([r_w, J_w]))  # one pass over the edges for both
+        return r, whitened[:, 0], whitened[:, 1:]
 
 
 def _linearize_all(observations: Sequence[Observations], X_CT: Pose, K: np.ndarray):
@@ -361,27 +365,14 @@ class PoseFit:
         return self.chi2 / max(self.dof, 1)
 
 
-def exp_so3(rotvec: np.ndarray) -> np.ndarray:
-    """Rotation matrix of an axis-angle vector (Rodrigues' formula)."""
-    theta = float(np.sqrt(rotvec @ rotvec))
-    W = np.array(
-        [[0.0, -rotvec[2], rotvec[1]], [rotvec[2], 0.0, -rotvec[0]], [-rotvec[1], rotvec[0], 0.0]]
-    )
-    if theta < 1e-8:
-        return np.eye(3) + W + 0.5 * W @ W
-    return (
-        np.eye(3) + (math.sin(theta) / theta) * W + ((1.0 - math.cos(theta)) / theta**2) * (W @ W)
-    )
-
-
 def retract(X_CT: Pose, delta: np.ndarray) -> Pose:
     """The pose moved by δ = [δθ, δp]: (Exp(δθ)·R, p + δp)."""
-    moved = _retract_raw(X_CT, delta)
+    moved = retract_raw(X_CT, delta)
     return Pose(moved.R, moved.p)
 
 
 @dataclass(frozen=True, slots=True)
-class _RawPose:
+class RawPose:
     """R and p without ``Pose``'s validation, for the inner loop of the least squares (the
     result is validated once, when it becomes a ``Pose``)."""
 
@@ -392,25 +383,40 @@ class _RawPose:
         return points @ self.R.T + self.p
 
 
-def _retract_raw(X_CT: Pose | _RawPose, delta: np.ndarray) -> _RawPose:
+def retract_raw(X_CT: Pose | RawPose, delta: np.ndarray) -> RawPose:
+    """``retract`` without validation: R re-orthonormalised only when rounding has drifted."""
     R = exp_so3(np.asarray(delta[:3], dtype=float)) @ X_CT.R
     if abs(float(np.linalg.det(R)) - 1.0) > 1e-9:
         R = nearest_rotation(R)
-    return _RawPose(R, X_CT.p + delta[3:])
+    return RawPose(R, X_CT.p + delta[3:])
 
 
-def pose_difference(X_a: Pose, X_b: Pose) -> np.ndarray:
-    """δ with X_a = retract(X_b, δ)."""
-    return np.concatenate([Rotation.from_matrix(X_a.R @ X_b.R.T).as_rotvec(), X_a.p - X_b.p])
+@dataclass(frozen=True, slots=True, eq=False)
+class PoseProblem:
+    """Observations of a pose ``X_CT`` as a ``least_squares.Problem``: one group of whitened
+    residuals, their analytic Jacobian w.r.t. δ = [δθ, δp] (module docstring), and the
+    retraction. ``strict``: residuals that are not finite (model points behind the camera)
+    raise ValueError instead of being returned (for a solver that cannot refuse a step)."""
 
+    observations: Sequence[Observations]
+    K: np.ndarray
+    strict: bool = False
 
-def _covariance(J_w: np.ndarray, scale2: float) -> np.ndarray:
-    H = J_w.T @ J_w
-    try:
-        cov = np.linalg.inv(H) * scale2
-    except np.linalg.LinAlgError:
-        cov = np.linalg.pinv(H) * scale2
-    return 0.5 * (cov + cov.T)
+    @property
+    def n_params(self) -> int:
+        return 6
+
+    def residuals(self, X_CT: Pose | RawPose) -> list[np.ndarray]:
+        return self.linearize(X_CT)[0]
+
+    def linearize(self, X_CT: Pose | RawPose) -> tuple[list[np.ndarray], np.ndarray]:
+        _, r_w, J_w = _linearize_all(self.observations, X_CT, self.K)  # type: ignore[arg-type]
+        if self.strict and not np.all(np.isfinite(r_w)):
+            raise ValueError("model points behind the camera")
+        return [r_w], J_w
+
+    def retract(self, X_CT: Pose | RawPose, delta: np.ndarray) -> RawPose:
+        return retract_raw(X_CT, delta)
 
 
 def _fit_at(
@@ -428,7 +434,7 @@ def _fit_at(
     scale2 = max(chi2 / dof, min_scale2) if dof > 0 else 1.0
     count = sum(o.count for o in observations)
     rms = float(np.sqrt(np.sum(r_px**2) / count)) if count else math.nan
-    unit = _covariance(J_w, 1.0)
+    unit = covariance(J_w.T @ J_w)
     return PoseFit(
         X_CT=X_CT,
         covariance=unit * scale2,
@@ -459,48 +465,23 @@ def refine_pose(
     ``free`` (6×k) restricts the steps to δ = free·x (e.g. keep the start's tilt: rotations
     about one axis and translations only); the covariance is then not meaningful.
     """
-    basis = np.eye(6) if free is None else np.asarray(free, dtype=float).reshape(6, -1)
     total = sum(o.size for o in observations)
     if total < 6:
         raise ValueError(f"refine_pose needs at least 6 residuals; got {total}")
-    X = X0_CT
-    _, r_w, J_w = _linearize_all(observations, X, K)
-    cost = float(r_w @ r_w) if np.all(np.isfinite(r_w)) else math.inf
-    if not math.isfinite(cost):
-        raise ValueError("refine_pose: the start pose puts model points behind the camera")
-    damping = 0.0
-    converged = False
-    iteration = 0
-    for iteration in range(1, max_iterations + 1):  # noqa: B007 (reported)
-        J_free = J_w @ basis
-        H = J_free.T @ J_free
-        g = J_free.T @ r_w
-        step_taken = False
-        for _ in range(12):
-            A = H + damping * np.diag(np.diag(H) + 1e-12)
-            try:
-                delta = -np.linalg.solve(A, g)
-            except np.linalg.LinAlgError:
-                delta = -np.linalg.lstsq(A, g, rcond=None)[0]
-            candidate = _retract_raw(X, basis @ delta)
-            _, r_new, J_new = _linearize_all(observations, candidate, K)  # type: ignore[arg-type]
-            new_cost = float(r_new @ r_new) if np.all(np.isfinite(r_new)) else math.inf
-            if new_cost <= cost:
-                step_taken = True
-                X, r_w, J_w = candidate, r_new, J_new
-                decrease = cost - new_cost
-                cost = new_cost
-                damping = 0.0 if damping < 1e-3 else damping / 10.0
-                break
-            damping = 1e-4 if damping == 0.0 else damping * 10.0
-        if not step_taken:
-            converged = True  # no step lowers the cost: at a minimum to numerical precision
-            break
-        # Converged when the last step changed the cost by a negligible fraction of one unit
-        # of χ² (the noise moves it by ~√(2·dof)): further digits are not information.
-        if decrease <= 1e-6 * (1.0 + cost):
-            converged = True
-            break
+    try:
+        solution = solve(
+            PoseProblem(observations, K),
+            X0_CT,
+            loss=NoLoss(),
+            iterations=max_iterations,
+            levenberg=True,
+            basis=free,
+        )
+    except ValueError as error:
+        raise ValueError(
+            "refine_pose: the start pose puts model points behind the camera"
+        ) from error
+    X, iteration, converged = solution.state, solution.iterations, solution.converged
     X_final = Pose(nearest_rotation(X.R), X.p)
     return _fit_at(observations, X_final, K, iteration, converged, "gauss_newton", min_scale2)
 
@@ -518,24 +499,18 @@ def refine_pose_robust(
     share of wrong correspondences cannot pull far from a nearby start. Returns the pose and
     each point's χ² there (for an inlier test); the covariance comes from ``refine_pose`` on
     the inliers."""
-    X = X0_CT
     n = len(observations.points_T)
-    chi2 = np.zeros(n)
-    for _ in range(iterations):
-        _, r_w, J_w = observations.linearize(X, K)
-        if not np.all(np.isfinite(r_w)):
-            raise ValueError("refine_pose_robust: model points behind the camera")
-        chi2 = np.sum(r_w.reshape(n, 2) ** 2, axis=1)
-        weight = np.repeat(np.sqrt(1.0 / (1.0 + chi2 / cauchy_scale2)), 2)
-        Jw = J_w * weight[:, None]
-        H = Jw.T @ Jw + 1e-9 * np.eye(6)
-        delta = -np.linalg.solve(H, Jw.T @ (r_w * weight))
-        X = _retract_raw(X, delta)  # type: ignore[assignment]
-        if np.linalg.norm(delta[:3]) < 1e-8 and np.linalg.norm(delta[3:]) < 1e-8 * (
-            1 + np.linalg.norm(X.p)
-        ):
-            break
-    X = Pose(nearest_rotation(X.R), X.p)
+    try:
+        solution = solve(
+            PoseProblem([observations], K, strict=True),
+            X0_CT,
+            loss=Cauchy(scale2=cauchy_scale2),
+            iterations=iterations,
+            tolerance=1e-3,
+        )
+    except ValueError as error:
+        raise ValueError("refine_pose_robust: model points behind the camera") from error
+    X = Pose(nearest_rotation(solution.state.R), solution.state.p)
     _, r_w, _ = observations.linearize(X, K)
     return X, np.sum(r_w.reshape(n, 2) ** 2, axis=1)
 
@@ -678,7 +653,7 @@ _MIN_SCALE2 = 0.25
 
 
 def _distinct(a: PoseFit, b: PoseFit, mahalanobis2: float) -> bool:
-    delta = pose_difference(b.X_CT, a.X_CT)
+    delta = pose_error_C(b.X_CT, a.X_CT)
     unit = (
         a.unit_covariance if a.unit_covariance is not None else a.covariance / max(a.scale2, 1e-300)
     )

@@ -1,4 +1,5 @@
-"""SO(3): the exponential and logarithm maps and the left Jacobians, for rotation vectors in rad.
+"""SO(3): the exponential and logarithm maps and the left Jacobians, for rotation vectors in rad,
+and the pose error these define.
 
 The one home of these maps (STYLE.md, "one SO(3) module"). Conventions follow Solà, Deray &
 Atchuthan 2018, "A micro Lie theory for state estimation in robotics": Exp(φ) is the rotation
@@ -13,7 +14,7 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimators.geometry import skew
+from estimators.geometry import Pose, skew
 
 
 def exp_so3(phi: np.ndarray) -> np.ndarray:
@@ -63,3 +64,10 @@ def so3_left_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
         return np.eye(3) - 0.5 * W + W @ W / 12.0
     coefficient = 1.0 / angle**2 - (1.0 + math.cos(angle)) / (2.0 * angle * math.sin(angle))
     return np.eye(3) - 0.5 * W + coefficient * (W @ W)
+
+
+def pose_error_C(X_true: Pose, X_est: Pose) -> np.ndarray:
+    """Error [δθ, δp] (6,) of a pose estimate in the Measurement convention:
+    R_true = Exp(δθ)·R_est, p_true = p_est + δp (rad, m; in the frame both are expressed in) —
+    the δ with ``X_true = planar_pose.retract(X_est, δ)``."""
+    return np.concatenate([log_so3(X_true.R @ X_est.R.T), X_true.p - X_est.p])

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimators.circle_fit import EdgeSet, _ConicModel, _exp_so3
+from estimators.circle_fit import ConicObservations, EdgeSet, TargetProblem
 from estimators.conics import circle_points
 from estimators.ellipses import ring_hole_layout
 from estimators.geometry import Pose, intrinsics_from_fov, project
@@ -47,25 +47,14 @@ def circle_information(
         count = max(int(perimeter / spacing_px), 8)
         uv = project(X_CT.apply(circle_points(c.center_T, c.normal_T, c.radius, count)), K)
         sets.append(EdgeSet(c, uv, free_radius=name in free_radius))
-    centers_T = np.array([s.circle.center_T for s in sets])
-    normals_T = np.array([s.circle.normal_T for s in sets])
-    radii = np.array([s.circle.radius for s in sets])
-    free = [i for i, s in enumerate(sets) if s.free_radius]
-
-    def geometry(deltas: np.ndarray):
-        R = _exp_so3(deltas[:, :3]) @ X_CT.R
-        r = np.broadcast_to(radii, (len(deltas), len(radii))).copy()
-        r[:, free] += deltas[:, 6:]
-        centers = np.einsum("bij,sj->bsi", R, centers_T) + X_CT.p + deltas[:, None, 3:6]
-        return centers, np.einsum("bij,sj->bsi", R, normals_T), r
-
-    J = _ConicModel(sets, geometry, 6 + len(free), K).jacobian()
+    problem = TargetProblem(ConicObservations(tuple(sets), K))
+    _, J = problem.linearize(problem.state(X_CT))
     sigmas = {name: sigma_px for name in circles} if np.isscalar(sigma_px) else sigma_px
     weights = np.concatenate([np.full(len(s.uv), 1.0 / sigmas[s.circle.name]) for s in sets])
     Jw = J * weights[:, None]  # the model's rows run set by set, point by point
     information = Jw.T @ Jw
     A, B, D = information[:6, :6], information[:6, 6:], information[6:, 6:]
-    return A - B @ np.linalg.pinv(D) @ B.T if free else A
+    return A - B @ np.linalg.pinv(D) @ B.T if J.shape[1] > 6 else A
 
 
 def tilt_bounds(

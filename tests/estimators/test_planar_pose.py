@@ -15,12 +15,12 @@ from estimators.planar_pose import (
     ideal_pixels,
     ippe_poses,
     orthogonal_iteration,
-    pose_difference,
     project_ideal,
     refine_pose,
     refine_pose_robust,
     retract,
 )
+from estimators.so3 import pose_error_C
 
 CAMERA = load_camera("reference").camera_info()
 K = CAMERA.K
@@ -61,7 +61,7 @@ def test_refine_pose_covariance_is_calibrated_by_monte_carlo():
         measured = uv + rng.normal(0.0, sigma, uv.shape)
         obs = PointObservations(POINTS_T, measured, _isotropic(len(uv), sigma))
         fit = refine_pose([obs], X_TRUE, K)
-        delta = pose_difference(X_TRUE, fit.X_CT)
+        delta = pose_error_C(X_TRUE, fit.X_CT)
         nees.append(delta @ np.linalg.solve(fit.covariance, delta))
         errors.append(delta)
     # Mean NEES of a 6-DOF estimate with an honest covariance is 6 (± ~0.35 for 300 trials).

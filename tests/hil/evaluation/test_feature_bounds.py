@@ -5,7 +5,8 @@ import numpy as np
 from configuration.camera import load_camera
 from configuration.mockup import load_mockup
 from configuration.render import Lighting
-from estimators.planar_pose import EdgeObservations, pose_difference, project_ideal, refine_pose
+from estimators.planar_pose import EdgeObservations, project_ideal, refine_pose
+from estimators.so3 import pose_error_C
 from estimators.target import facing_camera
 from hil.evaluation.feature_bounds import (
     expected_mean_errors,
@@ -39,7 +40,7 @@ def test_panel_edge_bound_matches_a_monte_carlo_of_edge_points():
         uv = np.concatenate(uv)
         obs = EdgeObservations(ends, np.concatenate(edge), uv, np.full(len(uv), 0.22 / contrast))
         fit = refine_pose([obs], X_CT, camera.K)
-        errors.append(pose_difference(X_CT, fit.X_CT))
+        errors.append(pose_error_C(X_CT, fit.X_CT))
     empirical = np.cov(np.array(errors).T)
     ratio = np.sqrt(np.diag(empirical) / np.diag(bound))
     assert np.all((ratio > 0.75) & (ratio < 1.3))
