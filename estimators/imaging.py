@@ -25,6 +25,8 @@ from estimators.frame import Frame, frame_problem
 MIN_IMAGE_SIDE_PX = 24
 #: The least noise σ an image is taken to have (half an 8-bit step).
 QUANTISATION_NOISE = 0.5 / 255.0
+#: A region of a gradient field this large (fraction of the image) has the whole image filtered.
+WHOLE_FIELD_FRACTION = 0.5
 #: Below this spread of intensities (on [0, 1]) there is nothing to see.
 MIN_INTENSITY_SPREAD = 0.03
 
@@ -170,8 +172,10 @@ class ImageStack:
         self, sigma_px: float, roi: tuple[int, int, int, int] | None = None
     ) -> GradientField:
         """The ``GradientField`` at ``sigma_px`` over ``roi`` = (x0, y0, x1, y1) inclusive of
-        x1, y1 (clipped to the image), or the whole image; a whole-image field serves any
-        region, and only the region (with its filter margin) is filtered otherwise."""
+        x1, y1 (clipped to the image), or the whole image. Only the region (with its filter
+        margin) is filtered — inside it the values are the whole image's — unless a field
+        already computed at ``sigma_px`` covers it, or it is most of the image (then the whole
+        image is filtered once, for every later region)."""
         whole = self._cache.get(("field", sigma_px, None))
         if whole is not None:
             return whole
@@ -179,6 +183,11 @@ class ImageStack:
             h, w = self.pixels.shape
             x0, y0, x1, y1 = roi
             roi = (max(0, int(x0)), max(0, int(y0)), min(w, int(x1) + 1), min(h, int(y1) + 1))
+            for key, field_ in list(self._cache.items()):
+                if key[:2] == ("field", sigma_px) and _covers(key[2], roi):
+                    return field_
+            if (roi[2] - roi[0]) * (roi[3] - roi[1]) >= WHOLE_FIELD_FRACTION * h * w:
+                roi = None
         return self._cached(
             ("field", sigma_px, roi),
             lambda: smoothed_gradient(self.pixels, sigma_px, self.noise_sigma, roi),
@@ -191,6 +200,15 @@ class ImageStack:
             with self._lock:
                 value = self._cache.setdefault(key, value)
         return value
+
+
+def _covers(outer: tuple[int, int, int, int], inner: tuple[int, int, int, int]) -> bool:
+    return (
+        outer[0] <= inner[0]
+        and outer[1] <= inner[1]
+        and outer[2] >= inner[2]
+        and outer[3] >= inner[3]
+    )
 
 
 _last: tuple[Frame, ImageStack | str] | None = None
