@@ -330,11 +330,9 @@ def find_panel_quads(
     max_quads: int = 6,
 ) -> list[Quad]:
     """Candidate panel quadrilaterals, best supported first (see module docstring)."""
-    pixels = image.pixels
-    h, w = pixels.shape
+    h, w = image.shape
     factor = max(1, round(min(h, w) / 240))
-    small = cv2.resize(pixels, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
-    small = smooth(small, 1.0)
+    small = smooth(image.reduced(factor), 1.0)
     polarity = _polarity(target)
     # Levels spread over the image's whole range: the panel is brighter (or darker) than all
     # around it at some level between its grey and its surroundings', wherever those lie — a

@@ -440,11 +440,13 @@ def extract_ellipses(
     roi: tuple[int, int, int, int] | None = None,
     settings: ExtractorSettings | None = None,
     field: GradientField | None = None,
+    reduced: np.ndarray | None = None,
 ) -> list[ExtractedEllipse]:
     """Ellipses in ``gray`` (float32 mono in [0, 1]) or in its ``roi`` = (x0, y0, x1, y1).
 
     ``noise_sigma`` is the image noise std (``edge_search.estimate_noise_sigma``); ``field``
-    an already computed full-resolution gradient (at ``settings.fine_sigma_px``) to reuse.
+    an already computed full-resolution gradient (at ``settings.fine_sigma_px``) to reuse,
+    ``reduced`` the whole image already reduced to the arc stage's level (``roi`` None).
     Returns validated ellipses, best supported first.
     """
     settings = settings or ExtractorSettings()
@@ -457,14 +459,16 @@ def extract_ellipses(
     region = gray[y0:y1, x0:x1]
     scale = 2**settings.level
     level_image = region
-    level_noise = noise_sigma
-    for _ in range(settings.level):
-        level_image = cv2.resize(
-            level_image,
-            (level_image.shape[1] // 2, level_image.shape[0] // 2),
-            interpolation=cv2.INTER_AREA,
-        )
-        level_noise /= 2.0  # a 2×2 average of independent pixels
+    level_noise = noise_sigma / scale  # block averages of independent pixels
+    if reduced is not None and roi is None:
+        level_image = reduced
+    else:
+        for _ in range(settings.level):
+            level_image = cv2.resize(
+                level_image,
+                (level_image.shape[1] // 2, level_image.shape[0] // 2),
+                interpolation=cv2.INTER_AREA,
+            )
     arcs = find_arcs(level_image, level_noise, settings, scale=scale, offset=(x0, y0))
     groups = group_arcs(arcs, settings, tolerance_px=1.5 * scale)
     if field is None:

@@ -249,6 +249,7 @@ class EllipseEstimator:
                     stack.noise_sigma,
                     settings=extractor,
                     field=image.field(image.fine_sigma),
+                    reduced=stack.reduced(2**extractor.level),
                 )
                 found = self._acquire(image, extracted)
             if found is not None:

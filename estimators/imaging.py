@@ -159,6 +159,18 @@ class ImageStack:
         """The whole image smoothed by a Gaussian of ``sigma_px`` (``smooth``)."""
         return self._cached(("smoothed", sigma_px), lambda: smooth(self.pixels, sigma_px))
 
+    def reduced(self, factor: int) -> np.ndarray:
+        """The whole image reduced by an integer ``factor`` (each pixel the mean of a
+        factor × factor block: OpenCV's area interpolation) — the coarse level the acquisition
+        stages of every system search first."""
+        h, w = self.pixels.shape
+        return self._cached(
+            ("reduced", factor),
+            lambda: cv2.resize(
+                self.pixels, (w // factor, h // factor), interpolation=cv2.INTER_AREA
+            ),
+        )
+
     def gradients(self, sigma_px: float) -> GradientImage:
         """The ``GradientImage`` at ``sigma_px``."""
         return self._cached(
