@@ -41,6 +41,8 @@ def test_image_stack_is_prepared_once_per_frame_and_computes_each_product_once()
     assert image_stack(_structured_frame(1)) is not stack  # another frame: another stack
     assert stack.gradients(2.0) is stack.gradients(2.0)
     assert stack.gradients(2.0).smoothed is stack.smoothed(2.0)
+    assert stack.reduced(2) is stack.reduced(2) and stack.reduced(2).shape == (240, 320)
+    assert stack.reduced(2)[0, 0] == pytest.approx(stack.pixels[:2, :2].mean())
     assert stack.gradient_field(1.5, (10, 20, 100, 80)) is stack.gradient_field(
         1.5, (10, 20, 100, 80)
     )
