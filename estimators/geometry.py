@@ -13,6 +13,7 @@ coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, τx, τy]]]]
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -320,6 +321,16 @@ def field_radius(K: np.ndarray, dist: np.ndarray | None, width: int, height: int
     Beyond its calibrated field a distortion polynomial can fold back, so that points far
     outside the view "project" into the image; ``in_view`` rejects them with this radius.
     """
+    K = np.ascontiguousarray(K, dtype=float)
+    dist = np.zeros(0) if dist is None else np.ascontiguousarray(dist, dtype=float)
+    # A property of the camera asked for at every visibility test: computed once per camera.
+    return _field_radius(K.tobytes(), dist.tobytes(), len(dist), int(width), int(height))
+
+
+@functools.lru_cache(maxsize=32)
+def _field_radius(K_bytes: bytes, dist_bytes: bytes, n_dist: int, width: int, height: int) -> float:
+    K = np.frombuffer(K_bytes).reshape(3, 3)
+    dist = np.frombuffer(dist_bytes) if n_dist else None
     corners = np.array(
         [[-0.5, -0.5], [width - 0.5, -0.5], [-0.5, height - 0.5], [width - 0.5, height - 0.5]]
     )
