@@ -5,9 +5,10 @@ Every pipeline takes the frame, the camera (K, distortion), the target model and
 ``prior_X_CT`` (the same prior the estimators get) and returns an ``OpenCVEstimate``:
 
 * **corners**: Gaussian blur, ``cv2.goodFeaturesToTrack`` (Shi–Tomasi minimum eigenvalue [1])
-  in discs around the panel corners projected under the prior, ``cv2.cornerSubPix``, each model
-  corner labelled by the nearest detection, ``cv2.solvePnP`` (ITERATIVE: Levenberg–Marquardt on
-  the reprojection error) started from the prior.
+  over the frame, kept in discs around the model's point features (the corners system's: panel
+  corners, bolt and fastener discs) projected under the prior, ``cv2.cornerSubPix``, each
+  feature labelled by the nearest detection, ``cv2.solvePnP`` (ITERATIVE: Levenberg–Marquardt
+  on the reprojection error) started from the prior.
 * **lines**: Gaussian blur, ``cv2.Canny`` [2], ``cv2.HoughLinesP`` (progressive probabilistic
   Hough [3]); per predicted panel edge the segment nearest to it, then ``cv2.fitLine`` (Huber)
   on the edge pixels along that segment; the four lines intersected into corners;
@@ -67,8 +68,8 @@ GATE_MIN_PX = 4.0
 #: Outer-ring contour gate, as a fraction of the ring's band (outer − inner radius) in pixels.
 RING_GATE_FRACTION = 0.3
 ELLIPSE_SAMPLES = 90
-#: Shi–Tomasi corners kept in the discs around the predicted corners (strongest first).
-MAX_CORNERS = 40
+#: Shi–Tomasi corners kept (strongest first) per point feature searched for.
+MAX_CORNERS_PER_FEATURE = 10
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -166,20 +167,32 @@ def _pose(rvec: np.ndarray, tvec: np.ndarray) -> Pose:
 def corners_pose(
     gray: np.ndarray, info: CameraInfo, target: TargetModel, prior_X_CT: Pose
 ) -> OpenCVEstimate:
-    """Panel corners: Shi–Tomasi detections near the prior's projections, sub-pixel refined,
-    labelled by nearest projection, then ``solvePnP`` ITERATIVE from the prior."""
-    model_T = target.panel_corners_T
+    """The corners system's point features (panel corners, bolt and fastener discs):
+    Shi–Tomasi detections near their projections under the prior, sub-pixel refined, each
+    feature labelled by the nearest detection (a detection nearest to two features labels
+    neither), then ``solvePnP`` ITERATIVE from the prior on the four or more labelled."""
+    model_T = target.points_T()
     predicted = _project(model_T, prior_X_CT, info.K, info.dist)
-    gate = gate_px(info, float(np.min(prior_X_CT.apply(model_T)[:, 2])))
-    if region_around(predicted, 0.0, info) is None:
-        return OpenCVEstimate("corners", "the panel is out of view")
+    depths = prior_X_CT.apply(model_T)[:, 2]
+    inside = (
+        (depths > 0)
+        & (predicted[:, 0] >= 0)
+        & (predicted[:, 0] < info.width)
+        & (predicted[:, 1] >= 0)
+        & (predicted[:, 1] < info.height)
+    )
+    if np.count_nonzero(inside) < 4:
+        return OpenCVEstimate("corners", "fewer than 4 point features in view")
+    model_T, predicted = model_T[inside], predicted[inside]
+    gate = gate_px(info, float(np.min(depths[inside])))
     mask = np.zeros(gray.shape, np.uint8)
     for u, v in predicted:
         cv2.circle(mask, (round(u), round(v)), round(gate), 255, -1)
     blurred = cv2.GaussianBlur(gray, (0, 0), CORNER_BLUR_SIGMA_PX)
     found = cv2.goodFeaturesToTrack(
-        blurred, maxCorners=MAX_CORNERS, qualityLevel=0.05, minDistance=3, mask=mask, blockSize=5
-    )
+        blurred, maxCorners=MAX_CORNERS_PER_FEATURE * len(model_T), qualityLevel=0.05,
+        minDistance=3, mask=mask, blockSize=5,
+    )  # fmt: skip
     if found is None or len(found) < 4:
         return OpenCVEstimate("corners", "fewer than 4 corners detected")
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
@@ -187,13 +200,15 @@ def corners_pose(
     found = found.reshape(-1, 2)
     distances = np.linalg.norm(found[None, :, :] - predicted[:, None, :], axis=2)
     nearest = distances.argmin(axis=1)
-    if np.any(distances[np.arange(4), nearest] > gate) or len(set(nearest.tolist())) < 4:
-        return OpenCVEstimate("corners", "a panel corner has no detection of its own")
+    counts = np.bincount(nearest, minlength=len(found))
+    labelled = (distances[np.arange(len(model_T)), nearest] <= gate) & (counts[nearest] == 1)
+    if np.count_nonzero(labelled) < 4:
+        return OpenCVEstimate("corners", "fewer than 4 point features labelled")
     rvec, _ = cv2.Rodrigues(prior_X_CT.R)
     tvec = prior_X_CT.p.reshape(3, 1).copy()
     ok, rvec, tvec = cv2.solvePnP(
-        model_T, found[nearest].astype(np.float64), info.K, info.dist, rvec, tvec,
-        useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE,
+        model_T[labelled], found[nearest[labelled]].astype(np.float64), info.K, info.dist,
+        rvec, tvec, useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE,
     )  # fmt: skip
     if not ok:
         return OpenCVEstimate("corners", "solvePnP failed")
