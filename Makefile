@@ -41,7 +41,7 @@ lint: $(STAMP_DEV)
 # Issue 12's benchmark in one run (satgrasp against a plain OpenCV pipeline, VGA and 1280×800,
 # 3 / 2 / 1.2 / 0.5 m, noise low and high, then the full frame serial and concurrent), written
 # to docs/benchmarks.md. BENCH_FRAMES frames per cell.
-BENCH_FRAMES ?= 8
+BENCH_FRAMES ?= 10
 bench: $(STAMP_RUN)
 	$(BIN)/satgrasp bench report --out docs/benchmarks.md --frames $(BENCH_FRAMES)
 

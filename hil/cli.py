@@ -671,11 +671,11 @@ def bench_report(
     out_path: Annotated[Path, typer.Option("--out", help="Markdown file to write.")] = Path(
         "docs/benchmarks.md"
     ),
-    frames: BenchFramesOpt = 6,
+    frames: BenchFramesOpt = 10,
     seconds: Annotated[
         float,
         typer.Option(min=2.0, help="Seconds each full-frame pipeline (serial, concurrent) runs."),
-    ] = 10.0,
+    ] = 20.0,
     as_json: Annotated[
         bool, typer.Option("--json", help="Also print the rows as one JSON object on stdout.")
     ] = False,
