@@ -10,8 +10,9 @@ Every pipeline takes the frame, the camera (K, distortion), the target model and
   feature labelled by the nearest detection, ``cv2.solvePnP`` (ITERATIVE: Levenberg–Marquardt
   on the reprojection error) started from the prior.
 * **lines**: Gaussian blur, ``cv2.Canny`` [2], ``cv2.HoughLinesP`` (progressive probabilistic
-  Hough [3]); per predicted panel edge the segment nearest to it, then ``cv2.fitLine`` (Huber)
-  on the edge pixels along that segment; the four lines intersected into corners;
+  Hough [3]); per panel edge projected under the prior the segment whose ends lie nearest it,
+  then ``cv2.fitLine`` (Huber) on the edge pixels along that segment, refitted once on those
+  along the first fit; the four lines intersected into corners;
   ``cv2.solvePnPGeneric`` with IPPE (Collins & Bartoli [4]), the solution nearer the prior.
 * **ellipses**: Gaussian blur, ``cv2.Canny``, ``cv2.findContours`` (Suzuki–Abe border
   following [5]), the contours along the outer ring projected under the prior,
@@ -19,7 +20,8 @@ Every pipeline takes the frame, the camera (K, distortion), the target model and
   ellipse's cone by the standard closed form (Shiu & Ahmad [7]; Chen et al. [8]), the one whose
   normal is nearer the prior's.
 
-A distorted camera's image is remapped to its pinhole view once per frame
+Detection runs on the whole frame, as a plain pipeline does; the prior only selects and labels
+what was detected (within ``gate_px`` of its projection). A distorted camera's image is remapped to its pinhole view once per frame
 (``cv2.initUndistortRectifyMap`` computed once per camera) for lines and ellipses, whose
 geometry (straight lines, conics) only holds there; corners are detected in the raw image and
 ``solvePnP`` is given the distortion. OpenCV runs on one thread when the caller says so
