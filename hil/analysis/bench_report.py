@@ -208,6 +208,39 @@ def verdicts(rows: Sequence[ComparisonRow], full_frame: Sequence[FullFrameRow]) 
     return out
 
 
+def summary(rows: Sequence[ComparisonRow], full_frame: Sequence[FullFrameRow]) -> str:
+    """A short paragraph: how many of the targets are met, the spread of the time ratios, the
+    accuracy and the full frame — all from the numbers."""
+    checks = [s for s in verdicts(rows, full_frame) if " meet" in s]
+    met = [s for s in checks if "does not meet" not in s]
+    parts = [f"{len(met)} of {len(checks)} of issue 12's speed targets are met in this run."]
+    ratios = [r.time_ratio for r in rows if math.isfinite(r.time_ratio)]
+    if ratios:
+        parts.append(
+            f"satgrasp's tracking takes {min(ratios):.1f}–{max(ratios):.1f}× the OpenCV "
+            f"pipeline's time on the same frames (≤ 1.0× in {sum(x <= 1.0 for x in ratios)} of "
+            f"{len(ratios)} cells)"
+        )
+        pairs = [
+            (r.position_accuracy_ratio, r.attitude_accuracy_ratio)
+            for r in rows
+            if math.isfinite(r.position_accuracy_ratio) and math.isfinite(r.attitude_accuracy_ratio)
+        ]
+        better = sum(p >= 1.0 and a >= 1.0 for p, a in pairs)
+        parts[-1] += (
+            f" and is at least as accurate in position and attitude in {better} of {len(pairs)} "
+            "cells."
+        )
+    for r in full_frame:
+        if r.mode == "concurrent" and math.isfinite(r.latency_p50_ms):
+            parts.append(
+                f"A full frame through all three systems and fusion (concurrent) at "
+                f"{r.width}×{r.height}: {r.latency_p50_ms:.0f} ms median latency against "
+                f"≤ {FULL_FRAME_TARGET_MS:.0f} ms."
+            )
+    return " ".join(parts)
+
+
 def benchmarks_markdown(
     rows: Sequence[ComparisonRow],
     full_frame: Sequence[FullFrameRow],
@@ -254,6 +287,8 @@ def benchmarks_markdown(
         + (f"; measured at commit `{revision}`." if revision else "."),
         "",
         "## Issue 12's targets",
+        "",
+        summary(rows, full_frame),
         "",
         *(f"- {line}" for line in verdicts(rows, full_frame)),
         "",

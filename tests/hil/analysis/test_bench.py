@@ -17,7 +17,7 @@ from hil.analysis.bench import (
     comparison_timings,
     offset_prior,
 )
-from hil.analysis.bench_report import MachineInfo, benchmarks_markdown, verdicts
+from hil.analysis.bench_report import MachineInfo, benchmarks_markdown, summary, verdicts
 
 MACHINE = MachineInfo(
     "Test CPU @ 1 GHz", 2, 0.5, "3.11.0", "1.26.0", "4.9.0", "2026-01-01 00:00 UTC"
@@ -91,6 +91,15 @@ def test_verdicts_read_the_targets_from_the_numbers():
     assert any(s.startswith('corners tracking at 640×480 meets "no slower') for s in lines)
     assert any(s.startswith('lines tracking at 640×480 does not meet "no slower') for s in lines)
     assert any("meets (and the 16 ms aim) ≤ 33 ms" in s for s in lines)
+
+
+def test_summary_counts_the_targets_met():
+    rows = [_row("corners", tracking=5.0, acquisition=40.0, opencv=8.0)]
+    full = [FullFrameRow("reference", 640, 480, "concurrent", 30.0, 10.0, 30.0, 40.0, 50.0)]
+    text = summary(rows, full)
+    # tracking ≤ 10 ms, acquisition ≤ 50 ms, no slower than OpenCV: met; full frame: not.
+    assert text.startswith("3 of 4 of issue 12's speed targets are met in this run.")
+    assert "0.6–0.6× the OpenCV pipeline's time" in text and "in 1 of 1 cells" in text
 
 
 def test_comparison_row_to_dict_has_ratios_and_no_nan():
