@@ -38,10 +38,12 @@ lint: $(STAMP_DEV)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
+# Issue 12's benchmark in one run (satgrasp against a plain OpenCV pipeline, VGA and 1280×800,
+# 3 / 2 / 1.2 / 0.5 m, noise low and high, then the full frame serial and concurrent), written
+# to docs/benchmarks.md. BENCH_FRAMES frames per cell.
+BENCH_FRAMES ?= 10
 bench: $(STAMP_RUN)
-	$(BIN)/satgrasp bench render
-	$(BIN)/satgrasp bench estimate --system corners --system lines --system ellipses
-	$(BIN)/satgrasp bench loop
+	$(BIN)/satgrasp bench report --out docs/benchmarks.md --frames $(BENCH_FRAMES)
 
 # Mutation testing ([tool.mutmut] in pyproject.toml; not part of `make test`): mutants of the
 # supervisor, the servo limits and the Modbus drivers, killed by their own tests; the score and

@@ -569,38 +569,149 @@ def record(
     out.print(f"recording in {out_dir}", markup=False, highlight=False)
 
 
+BenchSystemsOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--system", help="Estimator(s); repeat for several [default: corners, lines, ellipses]."
+    ),
+]
+BenchFramesOpt = Annotated[
+    int, typer.Option(min=1, help="Frames per cell (system, camera, distance, noise).")
+]
+
+
+def _bench_rows_json(rows: list, full_frame: list | None = None) -> str:
+    document: dict[str, Any] = {"rows": [r.to_dict() for r in rows]}
+    if full_frame is not None:
+        document["full_frame"] = [r.to_dict() for r in full_frame]
+    return json.dumps(document, indent=2, allow_nan=False)
+
+
 @bench_app.command("estimate")
 def bench_estimate(
-    system: Annotated[list[str], typer.Option(help="Estimator(s); repeat for several.")],
-    camera: CameraOpt = "reference",
-    frames: Annotated[int, typer.Option(min=2, help="Frames per distance.")] = 20,
-    noise: NoiseOpt = Noise.low,
+    system: BenchSystemsOpt = None,
+    camera: Annotated[
+        list[str] | None,
+        typer.Option(help="Camera profile(s); repeat for several [default: reference]."),
+    ] = None,
+    distance: Annotated[
+        list[float] | None,
+        typer.Option(min=0.1, help="Distance(s) in m; repeat for several [default: 3 2 1.2 0.5]."),
+    ] = None,
+    noise: Annotated[
+        list[Noise] | None,
+        typer.Option(help="Image noise; repeat for several [default: low]."),
+    ] = None,
+    frames: BenchFramesOpt = 10,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print the rows as one JSON object on stdout.")
+    ] = False,
 ) -> None:
-    """Median and p95 time per frame of each estimator (one thread), tracking and acquisition
-    separately, at 3, 2 and 1.2 m."""
-    from rich.table import Table
-
-    from hil.analysis.bench import estimator_timings
+    """Per system, camera, distance and noise, on the same rendered frames: tracking (prior
+    1 cm / 1° off the truth) and acquisition time per frame (median, p95; one thread), and the
+    plain OpenCV pipeline given the same prior, with the time and accuracy ratios."""
+    from hil.analysis.bench import DISTANCES_M, SYSTEMS, comparison_timings
 
     try:
-        rows = estimator_timings(
-            tuple(system), camera=camera, frames=frames, noise=noise.value, progress=console
+        rows = comparison_timings(
+            tuple(system or SYSTEMS),
+            cameras=tuple(camera or ("reference",)),
+            distances_m=tuple(distance or DISTANCES_M),
+            noises=tuple(n.value for n in (noise or [Noise.low])),
+            frames=frames,
+            progress=console,
         )
     except (ConfigError, ValueError, NotImplementedError) as exc:
         raise _fail(str(exc)) from None
-    table = Table(title=f"estimator time per frame ({camera}, noise {noise.value}, one thread)")
-    for column in ("system", "mode", "distance (m)", "median (ms)", "p95 (ms)", "valid"):
+    if as_json:
+        typer.echo(_bench_rows_json(rows))
+        return
+    from rich.table import Table
+
+    table = Table(
+        title="ms per frame (median, p95; one thread); time ratio satgrasp / OpenCV; "
+        "accuracy ratio OpenCV / satgrasp error (position, attitude); frames valid"
+    )
+    columns = (
+        "system", "camera", "m", "noise", "tracking", "p95", "acquisition", "p95", "OpenCV",
+        "time ratio", "accuracy ratio", "valid",
+    )  # fmt: skip
+    for column in columns:
         table.add_column(column, justify="right")
     for r in rows:
         table.add_row(
-            r.system,
-            r.mode,
-            f"{r.distance_m:.1f}",
-            f"{r.median_ms:.1f}",
-            f"{r.p95_ms:.1f}",
-            f"{r.valid}/{r.frames}",
-        )
+            r.system, r.camera, f"{r.distance_m:.1f}", r.noise,
+            f"{r.tracking_median_ms:.1f}", f"{r.tracking_p95_ms:.1f}",
+            f"{r.acquisition_median_ms:.1f}", f"{r.acquisition_p95_ms:.1f}",
+            f"{r.opencv_median_ms:.1f}", f"{r.time_ratio:.2f}",
+            f"{r.position_accuracy_ratio:.1f}, {r.attitude_accuracy_ratio:.1f}",
+            f"{r.tracking_valid}/{r.frames}, {r.acquisition_valid}/{r.frames}, "
+            f"{r.opencv_valid}/{r.frames}",
+        )  # fmt: skip
     out.print(table)
+
+
+def _git_revision() -> str | None:
+    """The checked-out commit (short hash, ``+`` when the tree has changes), if in a git tree."""
+    import subprocess
+
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True, text=True, check=True,
+        ).stdout.strip()  # fmt: skip
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+" if dirty else "")
+
+
+@bench_app.command("report")
+def bench_report(
+    out_path: Annotated[Path, typer.Option("--out", help="Markdown file to write.")] = Path(
+        "docs/benchmarks.md"
+    ),
+    frames: BenchFramesOpt = 10,
+    seconds: Annotated[
+        float,
+        typer.Option(min=2.0, help="Seconds each full-frame pipeline (serial, concurrent) runs."),
+    ] = 20.0,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Also print the rows as one JSON object on stdout.")
+    ] = False,
+) -> None:
+    """The whole benchmark of issue 12 in one run, written as markdown (docs/benchmarks.md):
+    every system against the OpenCV pipeline at VGA (reference) and 1280×800 (oak_d_rgb),
+    3 / 2 / 1.2 / 0.5 m, noise low and high, then the full frame (three systems + fusion)
+    serial and concurrent, with the machine described and what meets the targets."""
+    from hil.analysis.bench import comparison_timings, full_frame_timings
+    from hil.analysis.bench_report import benchmarks_markdown, describe_machine
+
+    cameras = ("reference", "oak_d_rgb")
+    try:
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        rows = comparison_timings(
+            cameras=cameras, noises=("low", "high"), frames=frames, progress=console
+        )
+        full_frame = full_frame_timings(cameras, seconds=seconds, progress=console)
+    except (ConfigError, ValueError, NotImplementedError, OSError) as exc:
+        raise _fail(str(exc)) from None
+    command = f"satgrasp bench report --out {out_path} --frames {frames} --seconds {seconds:g}"
+    text = benchmarks_markdown(
+        rows, full_frame, describe_machine(), command=command, frames=frames,
+        revision=_git_revision(),
+    )  # fmt: skip
+    try:
+        out_path.write_text(text + "\n", encoding="utf-8")
+    except OSError as exc:
+        raise _fail(f"cannot write {out_path}: {exc}") from None
+    if as_json:
+        typer.echo(_bench_rows_json(rows, full_frame))
+        console.print(f"wrote {out_path}")
+    else:
+        out.print(f"wrote {out_path}", markup=False, highlight=False)
 
 
 @app.command()

@@ -151,3 +151,13 @@ def test_campaign_runs_the_seeds_asked_for_and_writes_a_summary(tmp_path):
     assert len(logs) == 1 and logs[0].startswith("logs/approach/none-s7-"), logs
     summary = (out_dir / "summary.md").read_text()
     assert "| none | 1 | 1/1 (100 %)" in summary
+
+
+def test_bench_estimate_json_parses():
+    args = ["bench", "estimate", "--system", "ellipses", "--frames", "1", "--distance", "2"]
+    result = runner.invoke(app, [*args, "--json"])
+    assert result.exit_code == 0, result.output
+    document = json.loads(result.stdout)
+    (row,) = document["rows"]
+    assert row["system"] == "ellipses" and row["distance_m"] == 2.0 and row["frames"] == 1
+    assert {"tracking_median_ms", "opencv_median_ms", "time_ratio"} <= row.keys()
