@@ -793,7 +793,7 @@ def bench_loop(
     systems serial (one process) and concurrent (a process each), side by side."""
     from rich.table import Table
 
-    from hil.analysis.bench_loop import approach_frames, control_tick_timing, pipeline_timing
+    from hil.analysis.bench_loop import control_tick_timing, pipeline_timing, tracking_frames
 
     try:
         tick = control_tick_timing(config, ticks=ticks)
@@ -804,8 +804,8 @@ def bench_loop(
         f"p50 {tick.p50_ms:.2f} ms, p99 {tick.p99_ms:.2f} ms, max {tick.max_ms:.2f} ms"
     )
     systems = ("corners", "lines", "ellipses")
-    console.print("rendering an approach from 3 m to 0.5 m …")
-    frames = approach_frames(camera, "default", frames=24)
+    console.print("rendering a stretch of the approach (2.0 → 1.5 m at 0.25 m/s, 30 fps) …")
+    frames = tracking_frames(camera, "default")
     rows = [
         pipeline_timing(mode, frames, systems, fps=fps, seconds=seconds, progress=console.print)
         for mode in ("serial", "concurrent")

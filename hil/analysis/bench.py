@@ -26,7 +26,7 @@ from estimators.geometry import Pose
 from estimators.measurement import Measurement
 from estimators.registry import build_estimator
 from estimators.target import TargetModel
-from hil.analysis.bench_loop import PipelineTiming, approach_frames, pipeline_timing
+from hil.analysis.bench_loop import PipelineTiming, pipeline_timing, tracking_frames
 from hil.evaluation.errors import measurement_error
 from hil.evaluation.opencv_pipeline import (
     NO_ERROR,
@@ -365,15 +365,16 @@ def full_frame_timings(
     progress: Console | None = None,
 ) -> list[FullFrameRow]:
     """``bench_loop.pipeline_timing`` (the same measurement as ``satgrasp bench loop``) serial
-    and concurrent, per camera, on an approach from 3 m to 0.5 m."""
+    and concurrent, per camera, on a stretch of the approach seen at camera rate
+    (``bench_loop.tracking_frames``)."""
     import cv2
 
     cv2.setNumThreads(1)
     rows = []
     for camera in cameras:
         if progress is not None:
-            progress.print(f"[bold]{camera}[/] full frame: rendering an approach from 3 m to 0.5 m")
-        frames = approach_frames(camera, mockup, frames=24)
+            progress.print(f"[bold]{camera}[/] full frame: rendering a stretch of the approach")
+        frames = tracking_frames(camera, mockup)
         info = frames[0].info
         for mode in ("serial", "concurrent"):
             timing: PipelineTiming = pipeline_timing(

@@ -310,7 +310,7 @@ def benchmarks_markdown(
             "## Full frame: three systems + fusion",
             "",
             "The real `VisionPipeline` with fusion fed a camera at "
-            f"{full_frame[0].fps:.0f} fps (an approach from 3 m to 0.5 m, cycled) for "
+            f"{full_frame[0].fps:.0f} fps (a stretch of the approach, 2.0 → 1.5 m at 0.25 m/s, played forward and back) for "
             f"{full_frame[0].seconds:.0f} s per mode: serial runs the systems one after the other "
             "in one process, concurrent runs a process per system (the measurement of "
             "`satgrasp bench loop`).",
