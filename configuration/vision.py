@@ -11,12 +11,15 @@ from pydantic import Field
 
 from configuration.base import Strict
 
-#: Time per frame of each system (ms): the medians of the estimators' own ``time_ms`` over a
-#: closed-loop approach (seed 1, low noise, two trials at once on the 2-core development
-#: machine, 2026-12-02), tracking (with a prior) and acquisition (a search of the whole image).
-#: What ``--clock sim`` charges. Re-measure after a change to the estimators (docs/realtime.md).
-BENCH_PROCESSING_MS = {"corners": 43.0, "lines": 63.0, "ellipses": 62.0}
-BENCH_ACQUISITION_MS = {"corners": 250.0, "lines": 355.0, "ellipses": 263.0}
+#: Time per frame of each system (ms) on the 2-core development machine, 2026-12-02 (after
+#: issue 12's image stack, solver and compiled fits): tracking (with a prior), the medians of
+#: the estimators' own ``time_ms`` over a closed-loop approach (``satgrasp approach --seed 1``,
+#: low noise, nothing else running); acquisition (a search of the whole image), the median of
+#: the VGA cells of ``satgrasp bench report`` (docs/benchmarks.md; a closed-loop approach
+#: acquires too rarely to measure it). What ``--clock sim`` charges. Re-measure after a change
+#: to the estimators (docs/realtime.md).
+BENCH_PROCESSING_MS = {"corners": 38.0, "lines": 47.0, "ellipses": 45.0}
+BENCH_ACQUISITION_MS = {"corners": 173.0, "lines": 193.0, "ellipses": 129.0}
 
 
 class CameraTiming(Strict):
