@@ -16,12 +16,16 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
+# After installing, the estimators' numba kernels are compiled once into numba's cache (about
+# half a minute of CPU), so that no test or vision worker compiles them itself.
 $(STAMP_RUN): pyproject.toml | $(BIN)/python
 	$(BIN)/pip install --quiet -e .
+	$(BIN)/python -m estimators.warmup
 	@touch $@
 
 $(STAMP_DEV): pyproject.toml | $(BIN)/python
 	$(BIN)/pip install --quiet -e '.[dev,cluster]'
+	$(BIN)/python -m estimators.warmup
 	@touch $@ $(STAMP_RUN)
 
 $(STAMP_MUTATION): pyproject.toml | $(BIN)/python

@@ -27,6 +27,7 @@ from estimators.geometry import Pose
 from estimators.measurement import Estimator, Measurement
 from estimators.registry import build_estimator
 from estimators.target import TargetModel
+from estimators.warmup import compile_kernels
 from hil.runtime.processes import peak_rss_mib, stop_process
 
 
@@ -153,6 +154,7 @@ def _worker_main(
     cv2.setNumThreads(1)  # one core per worker: the workers themselves are the parallelism
     try:
         estimator = build_estimator(system, target, info)
+        compile_kernels()  # before "ready": a cold numba cache would delay the first frame
     except Exception as exc:
         ready.send(f"{type(exc).__name__}: {exc}")
         return
@@ -180,7 +182,7 @@ class ProcessWorkers:
         info: CameraInfo,
         *,
         clock: Callable[[], float] = time.monotonic,
-        start_timeout_s: float = 60.0,
+        start_timeout_s: float = 120.0,
     ) -> None:
         context = mp.get_context("spawn")
         self._clock = clock

@@ -1,0 +1,52 @@
+"""Compile (or load from numba's cache) every compiled kernel of the estimators before the first
+frame needs them.
+
+numba compiles a kernel at its first call: 10–20 s for all of them on the development machine
+when nothing is cached, well under a second from the cache. A vision worker that met its first
+frame cold would deliver it tens of seconds late; ``compile_kernels`` runs each public entry
+point once on a small synthetic image, with the argument types a frame brings, so the worker
+pays that cost before it reports ready.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from estimators.clipped_noise import clipped_likelihood_terms, clipped_moments
+from estimators.edge_fit import fit_edge_points, fit_line_robust
+from estimators.point_fit import fit_corners, fit_discs
+
+
+def compile_kernels() -> None:
+    """Run every compiled kernel once (results discarded)."""
+    size = 64
+    v, u = np.mgrid[0:size, 0:size].astype(np.float32)
+    # A bright disc on a dark field, and a vertical step (an edge) — float32 like ImageStack.
+    pixels = np.where((u - 20) ** 2 + (v - 20) ** 2 < 36, 0.8, 0.2).astype(np.float32)
+    pixels[:, 40:] = 0.7
+    clipped_likelihood_terms(np.array([0.0, 0.5, 1.0]), np.array([0.1, 0.5, 0.9]), 0.1)
+    clipped_moments(np.array([0.1, 0.5]), 0.1)
+    centers = np.column_stack([np.full(8, 40.0), np.linspace(10.0, 54.0, 8)])
+    normals = np.tile([-1.0, 0.0], (8, 1))
+    for sigma in (0.0, 0.05):
+        fit_edge_points(pixels, centers, normals, 3.0, 3.0, search_px=2.0, noise_sigma=sigma)
+    fit_line_robust(centers + np.random.default_rng(0).normal(0, 0.1, centers.shape), np.ones(8))
+    A = np.tile(np.eye(2) * 1000.0, (1, 1, 1))
+    fit_discs(
+        pixels, np.array([[20.0, 20.0]]), A, np.array([0.006]), np.array([0.012]), noise_sigma=0.05
+    )
+    fit_corners(
+        pixels,
+        np.array([[40.0, 32.0]]),
+        np.array([[[0.0, 1.0], [0.0, -1.0]]]),
+        np.array([6.0]),
+        noise_sigma=0.05,
+    )
+
+
+if __name__ == "__main__":  # `python -m estimators.warmup` (make does it after installing)
+    import time
+
+    started = time.perf_counter()
+    compile_kernels()
+    print(f"estimators' compiled kernels ready ({time.perf_counter() - started:.1f} s)")

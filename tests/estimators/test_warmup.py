@@ -1,0 +1,21 @@
+from estimators import clipped_noise, edge_fit, point_fit
+from estimators.warmup import compile_kernels
+
+#: The compiled functions NumPy code calls (the others are compiled into these).
+ENTRY_POINTS = [
+    clipped_noise._terms_array,
+    clipped_noise._moments_array,
+    edge_fit._band_kernel,
+    edge_fit._fit_offsets,
+    edge_fit._robust_line,
+    point_fit._disc_model,
+    point_fit._fit_discs_kernel,
+    point_fit._wedge_model,
+    point_fit._wedge_levels,
+    point_fit._fit_wedges_kernel,
+]
+
+
+def test_warm_up_compiles_every_compiled_entry_point_of_the_estimators():
+    compile_kernels()
+    assert [k.py_func.__name__ for k in ENTRY_POINTS if not k.signatures] == []
