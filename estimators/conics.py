@@ -259,8 +259,9 @@ def covered_angle(angles: np.ndarray) -> float:
     return float(2.0 * np.pi - gaps.max())
 
 
-def _conic_from_parameters(cx: float, cy: float, a: float, b: float, angle: float) -> np.ndarray:
-    """Conic of an ellipse given by parameters without the a ≥ b ordering (for fitting)."""
+def conic_from_parameters(cx: float, cy: float, a: float, b: float, angle: float) -> np.ndarray:
+    """Conic of an ellipse given by its centre, semi-axes and the angle (rad) of axis ``a``,
+    without the a ≥ b ordering (for fitting and for other libraries' ellipses)."""
     c, s = np.cos(angle), np.sin(angle)
     R = np.array([[c, -s], [s, c]])
     A = R @ np.diag([1.0 / a**2, 1.0 / b**2]) @ R.T
@@ -293,7 +294,7 @@ def refine_ellipse(
         # A trial step on a short, noisy arc may ask for absurd axes: keep them finite (the
         # step is then refused for its cost, not for an overflow).
         a, b = np.exp(np.clip([log_a, log_b], _LOG_AXIS_MIN, _LOG_AXIS_MAX))
-        return _conic_from_parameters(cx, cy, a, b, angle)
+        return conic_from_parameters(cx, cy, a, b, angle)
 
     problem = VectorProblem(lambda state: [sampson_distances(conic(state), uv)], 5)
     solution = solve(problem, start, loss=Huber(floor=0.02), iterations=iterations)

@@ -51,6 +51,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from estimators.conics import conic_from_parameters
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, normal_angle, rotation_error_rpy_norm, translation_error
 from estimators.target import Circle3D, TargetModel
@@ -303,19 +304,9 @@ def ellipse_conic(
 ) -> np.ndarray:
     """Symmetric 3×3 conic C (xᵀ C x = 0 for homogeneous pixels x) of an OpenCV RotatedRect
     ellipse: full axis lengths ``axes_px`` (width along the direction ``angle_deg``)."""
-    cx, cy = center_px
-    a, b = axes_px[0] / 2.0, axes_px[1] / 2.0
-    t = np.radians(angle_deg)
-    c, s = np.cos(t), np.sin(t)
-    # In the ellipse's own axes u = R(−t)(x − c): u²/a² + v²/b² = 1.
-    M = np.array([[c, s], [-s, c]])
-    A = M.T @ np.diag([1.0 / a**2, 1.0 / b**2]) @ M
-    center = np.array([cx, cy])
-    conic = np.zeros((3, 3))
-    conic[:2, :2] = A
-    conic[:2, 2] = conic[2, :2] = -A @ center
-    conic[2, 2] = center @ A @ center - 1.0
-    return conic
+    return conic_from_parameters(
+        center_px[0], center_px[1], axes_px[0] / 2.0, axes_px[1] / 2.0, np.radians(angle_deg)
+    )
 
 
 def circle_poses_from_conic(
