@@ -27,6 +27,11 @@ def test_emulate_ur_refuses_a_host_off_loopback_and_an_unknown_model():
 def test_emulate_ur_serves_in_the_foreground_until_interrupted():
     host = free_loopback_host()
     answered, returned = [], threading.Event()
+    main = threading.main_thread().ident
+    # Ctrl-C as a terminal sends it: to the main thread, with Python's own handler and SIGINT
+    # deliverable — whatever an earlier test in this worker process left behind.
+    handler = signal.signal(signal.SIGINT, signal.default_int_handler)
+    mask = signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
     def client() -> None:  # ur-rtde's constructors would hold the GIL: the probe speaks RTDE
         deadline = time.monotonic() + 20.0
@@ -37,7 +42,8 @@ def test_emulate_ur_serves_in_the_foreground_until_interrupted():
             except DeviceError:  # not listening yet
                 time.sleep(0.05)
         if not returned.is_set():
-            signal.raise_signal(signal.SIGINT)  # Ctrl-C: delivered to the main thread
+            assert main is not None
+            signal.pthread_kill(main, signal.SIGINT)
 
     thread = threading.Thread(target=client, daemon=True)
     thread.start()
@@ -46,6 +52,8 @@ def test_emulate_ur_serves_in_the_foreground_until_interrupted():
     finally:
         returned.set()
         thread.join(25.0)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        signal.signal(signal.SIGINT, handler)
     assert result.exit_code == 0, result.output
     assert f"listening on {host}" in result.output and "rtde 30004" in result.output
     assert "(ur5e)" in result.output and "UR emulator stopped." in result.output
