@@ -256,18 +256,18 @@ def _band_pixels(pixels, centers, normals, half_length, reach_across):
     direction = (
         chord / chord_length if chord_length > 1e-9 else np.array([-normals[0, 1], normals[0, 0]])
     )
+    spacing = chord_length / max(len(centers) - 1, 1)
     values, d, strip, coords = _band_kernel(
-        pixels, centers, normals, direction, float(half_length), float(reach_across)
+        pixels, centers, normals, direction, spacing, float(half_length), float(reach_across)
     )
     return None if len(values) == 0 else (values, d, strip, coords)
 
 
 @numba.njit(cache=True)
-def _band_kernel(pixels, centers, normals, direction, half_length, reach_across):
+def _band_kernel(pixels, centers, normals, direction, spacing, half_length, reach_across):
     h, w = pixels.shape
     k = len(centers)
     first = centers[0]
-    spacing = math.sqrt(np.sum((centers[-1] - first) ** 2)) / max(k - 1, 1)
     boxes = []
     total = 0
     for i0 in range(0, k, _BAND_CHUNK_STRIPS):
@@ -353,7 +353,7 @@ def fit_edge_points(
     delta, sigma, ok, a, b, contrast_sigma, noise = _fit_offsets(
         values, d, strip, k, grid, float(half_width_px), wall, float(noise_sigma)
     )
-    if not ok.any() and not math.isfinite(a):
+    if not math.isfinite(a):  # no step fits the band
         return _no_points(k)
     uv = centers + delta[:, None] * normals
     return EdgePoints(uv, sigma, ok, float(a), float(b), contrast_sigma, noise)

@@ -1,8 +1,8 @@
 """Sub-pixel edge points: 1-D searches along curve normals in a smoothed gradient field.
 
 The field (``imaging.ImageStack.gradient_field``) is the image smoothed with a Gaussian whose
-scale is matched to the noise and differentiated (Sobel); it is searched along the normals of a predicted curve for the strongest gradient of the
-expected polarity; the maximum is located to sub-pixel precision by a parabola through the three
+scale is matched to the noise and differentiated (Sobel); it is searched along the normals of a
+predicted curve for the strongest gradient of the expected polarity; the maximum is located to sub-pixel precision by a parabola through the three
 samples around it (the classic gradient-maximum edge localisation, as in Canny's detector and
 "moving edges" trackers — Bouthemy 1989; Drummond & Cipolla 2002).
 """

@@ -444,7 +444,7 @@ def extract_ellipses(
 ) -> list[ExtractedEllipse]:
     """Ellipses in ``gray`` (float32 mono in [0, 1]) or in its ``roi`` = (x0, y0, x1, y1).
 
-    ``noise_sigma`` is the image noise std (``edge_search.estimate_noise_sigma``); ``field``
+    ``noise_sigma`` is the image noise std as the pixels show it (``ImageStack.noise_sigma``); ``field``
     an already computed full-resolution gradient (at ``settings.fine_sigma_px``) to reuse,
     ``reduced`` the whole image already reduced to the arc stage's level (``roi`` None).
     Returns validated ellipses, best supported first.

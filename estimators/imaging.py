@@ -126,9 +126,17 @@ def smoothed_gradient(
     if x1c - x0c < 3 or y1c - y0c < 3:
         return GradientField(np.zeros((1, 1, 2), np.float32), 0, 0, sigma_px, 1.0)
     crop = np.ascontiguousarray(gray[y0c:y1c, x0c:x1c])
-    gxy = _sobel(smooth(crop, sigma_px) if sigma_px > 0 else crop)
+    smoothed = smooth(crop, sigma_px) if sigma_px > 0 else crop
+    return _field_of(smoothed, x0c, y0c, sigma_px, noise_sigma)
+
+
+def _field_of(
+    smoothed: np.ndarray, x0: int, y0: int, sigma_px: float, noise_sigma: float
+) -> GradientField:
+    """The ``GradientField`` of an image already smoothed at ``sigma_px`` whose corner is at
+    (``x0``, ``y0``)."""
     noise = max(noise_sigma, 1e-4) * gradient_noise_gain(sigma_px)
-    return GradientField(gxy, x0c, y0c, sigma_px, noise)
+    return GradientField(_sobel(smoothed), x0, y0, sigma_px, noise)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -198,11 +206,15 @@ class ImageStack:
             for key, field_ in list(self._cache.items()):
                 if key[:2] == ("field", sigma_px) and _covers(key[2], roi):
                     return field_
-            if (roi[2] - roi[0]) * (roi[3] - roi[1]) >= WHOLE_FIELD_FRACTION * h * w:
-                roi = None
+            if (roi[2] - roi[0]) * (roi[3] - roi[1]) < WHOLE_FIELD_FRACTION * h * w:
+                return self._cached(
+                    ("field", sigma_px, roi),
+                    lambda: smoothed_gradient(self.pixels, sigma_px, self.noise_sigma, roi),
+                )
+        # The whole image: its smoothing is the one ``smoothed`` and ``gradients`` share.
         return self._cached(
-            ("field", sigma_px, roi),
-            lambda: smoothed_gradient(self.pixels, sigma_px, self.noise_sigma, roi),
+            ("field", sigma_px, None),
+            lambda: _field_of(self.smoothed(sigma_px), 0, 0, sigma_px, self.noise_sigma),
         )
 
     def _cached(self, key: tuple, compute):

@@ -1,8 +1,8 @@
 """Compile (or load from numba's cache) every compiled kernel of the estimators before the first
 frame needs them.
 
-numba compiles a kernel at its first call: 10–20 s for all of them on the development machine
-when nothing is cached, well under a second from the cache. A vision worker that met its first
+numba compiles a kernel at its first call: 25–35 CPU-seconds for all of them on the development
+machine when nothing is cached, under a second from the cache. A vision worker that met its first
 frame cold would deliver it tens of seconds late; ``compile_kernels`` runs each public entry
 point once on a small synthetic image, with the argument types a frame brings, so the worker
 pays that cost before it reports ready.
@@ -31,7 +31,7 @@ def compile_kernels() -> None:
     for sigma in (0.0, 0.05):
         fit_edge_points(pixels, centers, normals, 3.0, 3.0, search_px=2.0, noise_sigma=sigma)
     fit_line_robust(centers + np.random.default_rng(0).normal(0, 0.1, centers.shape), np.ones(8))
-    A = np.tile(np.eye(2) * 1000.0, (1, 1, 1))
+    A = (np.eye(2) * 1000.0)[None]  # 1 mm per px, one disc
     fit_discs(
         pixels, np.array([[20.0, 20.0]]), A, np.array([0.006]), np.array([0.012]), noise_sigma=0.05
     )

@@ -4,10 +4,10 @@
    gripper (no camera, no renderer), with a fused estimate already there, writing a real trial
    log — what must fit in the 8 ms period. Wall-clock time per tick, p50 / p99 / max.
 2. **The vision pipeline**: the same pre-rendered frames (a stretch of the approach at camera
-   rate, ``tracking_frames``) fed as fast as the pipeline takes them, through the real ``VisionPipeline`` and fusion, with the
-   three systems run one after the other in one process (serial) or each in a process of its
-   own (concurrent): frames fully processed per second, and latency from the frame's arrival to
-   its fusion (p50 / p95).
+   rate, ``tracking_frames``) fed as fast as the pipeline takes them, through the real
+   ``VisionPipeline`` and fusion, with the three systems run one after the other in one
+   process (serial) or each in a process of its own (concurrent): frames fully processed per
+   second, and latency from the frame's arrival to its fusion (p50 / p95).
 """
 
 from __future__ import annotations
