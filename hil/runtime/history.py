@@ -17,9 +17,9 @@ from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from estimators.geometry import Pose
+from estimators.so3 import exp_so3, log_so3
 from hil.runtime.rig import RigGeometry
 
 T = TypeVar("T")
@@ -73,7 +73,7 @@ class StampedSeries(Generic[T]):
 def interpolate_pose(X0: Pose, X1: Pose, s: float) -> Pose:
     """The pose a fraction ``s`` of the way from ``X0`` to ``X1``: position linear, rotation
     slerped."""
-    R = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([X0.R, X1.R])))([s]).as_matrix()[0]
+    R = X0.R @ exp_so3(s * log_so3(X0.R.T @ X1.R))
     return Pose(R, (1.0 - s) * X0.p + s * X1.p)
 
 

@@ -17,10 +17,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from configuration.approach import ServoConfig
 from estimators.geometry import Pose
+from estimators.so3 import log_so3
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,7 +52,7 @@ class PoseError:
 def pose_error(X_TC: Pose, X_TC_goal: Pose) -> PoseError:
     """Error of the camera pose ``X_TC`` with respect to the goal ``X_TC_goal``."""
     X_goal_C = X_TC_goal.inverse() @ X_TC
-    return PoseError(X_goal_C.p.copy(), Rotation.from_matrix(X_goal_C.R).as_rotvec())
+    return PoseError(X_goal_C.p.copy(), log_so3(X_goal_C.R))
 
 
 def pbvs_twist(X_TC: Pose, X_TC_goal: Pose, gain: float) -> np.ndarray:

@@ -32,13 +32,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from configuration.approach import ServoConfig, SupervisorConfig
 from configuration.rig import UR_JOINT_RANGE_DEG
 from drivers.base import ArmState, TrackState
 from drivers.ur_kinematics import jacobian, ur_model
 from estimators.geometry import Pose
+from estimators.so3 import log_so3
 from hil.runtime.rig import RigGeometry
 from hil.runtime.servo import speed_limit
 
@@ -321,7 +321,7 @@ def _envelope(
         )
     if snap.R_BE_start is not None:
         # Rotation vector of R_E0ᵀ·R_E: about the start flange's own axes.
-        turned = np.degrees(Rotation.from_matrix(snap.R_BE_start.T @ arm.X_BE.R).as_rotvec())
+        turned = np.degrees(log_so3(snap.R_BE_start.T @ arm.X_BE.R))
         axis = int(np.argmax(np.abs(turned)))
         if abs(turned[axis]) > config.max_flange_rotation_deg:
             fail(
