@@ -11,7 +11,6 @@ frames in between are dropped, as a real camera's newest-only queue would drop t
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import time
 from multiprocessing.connection import Connection
 
@@ -24,7 +23,12 @@ from configuration.vision import CameraTiming
 from sim_backends.camera import SimCamera, Viewpoint
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene
-from sim_backends.world_server import LatestSender, RenderRequest
+from sim_backends.world_server import (
+    CAMERA_PRIORITY,
+    LatestSender,
+    RenderRequest,
+    realtime_priority,
+)
 
 
 def camera_main(
@@ -38,7 +42,12 @@ def camera_main(
     frames: Connection,
     ready: Connection,
 ) -> None:
-    """The camera process: render requests in, frames out (each at its delivery time)."""
+    """The camera process: render requests in, frames out (each at its delivery time).
+
+    It renders at real-time priority when the system allows (below the world's): a real
+    camera's frames come on time however busy the host is, and a simulated one that waited
+    for the estimators' cores would hand them frames later than any rig would."""
+    realtime_priority(CAMERA_PRIORITY)
     with contextlib.suppress(KeyboardInterrupt), MockupScene(mockup) as scene:
         view: list[Viewpoint] = []  # each request's
         sim_camera = SimCamera(
@@ -71,4 +80,5 @@ def camera_main(
                 time.sleep(delay)
             if outgoing.broken:
                 return
-            outgoing.put(dataclasses.replace(frame, arrival_stamp=time.monotonic()))
+            outgoing.put(frame)  # the receiver stamps its arrival
+            outgoing.wait_sent(timeout_s=1.0 / timing.fps)

@@ -11,6 +11,7 @@ link would. ``RemoteCamera`` receives the camera process's frames.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from collections.abc import Callable
 from multiprocessing.connection import Connection
@@ -237,4 +238,6 @@ class RemoteCamera:
                 raise DeviceTimeout("the camera process is gone") from None
         if frame is None:
             raise DeviceTimeout("the camera process stopped")
-        return frame
+        # Arrival is when the host has it (as the OAK driver stamps it): the time the frame
+        # spent in the pipe counts.
+        return dataclasses.replace(frame, arrival_stamp=time.monotonic())

@@ -26,6 +26,9 @@ from sim_backends.world import SimRig
 
 #: SCHED_FIFO priority of the world process (the control loop runs at 50).
 WORLD_PRIORITY = 45
+#: ... and of the camera process, below the world's: on a rig both are hardware, whose timing
+#: does not depend on what the host computes.
+CAMERA_PRIORITY = 40
 #: Device methods the control side may call (anything else is refused by name).
 CALLS = {
     "arm": {"connect", "activate", "deactivate", "close", "servo", "stop"},
@@ -127,6 +130,7 @@ class LatestSender:
         self._ready = threading.Condition()
         self._closed = False
         self._drain = False
+        self._sending = False
         self.broken = False
         self._thread = threading.Thread(target=self._run, name="world-sender", daemon=True)
         self._thread.start()
@@ -140,6 +144,17 @@ class LatestSender:
         with self._ready:
             self._messages.append(message)
             self._ready.notify()
+
+    def wait_sent(self, timeout_s: float) -> bool:
+        """Wait until everything put so far has been sent (True) or ``timeout_s`` passed.
+
+        The camera process calls it before it renders again: pybullet holds the GIL while it
+        renders, so a frame still waiting for this thread would wait for the whole render."""
+        with self._ready:
+            return self._ready.wait_for(
+                lambda: self.broken or not (self._sending or self._item is not None),
+                timeout_s,
+            )
 
     def close(self, *, drain: bool = False) -> None:
         """Stop sending; with ``drain``, what is pending goes out first (a camera's last
@@ -160,12 +175,18 @@ class LatestSender:
                     return
                 outgoing = [*self._messages, *([self._item] if self._item is not None else [])]
                 self._messages, self._item = [], None
+                self._sending = True
             try:
                 for item in outgoing:
                     self._connection.send(item)
             except (BrokenPipeError, OSError):
-                self.broken = True
+                with self._ready:
+                    self.broken = True
+                    self._ready.notify_all()
                 return
+            with self._ready:
+                self._sending = False
+                self._ready.notify_all()
 
 
 def capture_requests(world: SimRig, camera: Connection | None) -> LatestSender | None:
