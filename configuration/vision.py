@@ -45,6 +45,11 @@ class VisionConfig(Strict):
     40 / 150 ms); under ``--clock wall`` the real time counts. ``workers``: ``process`` runs each system in a process
     of its own (pybullet and the estimators hold the GIL); ``inline`` runs them in the vision
     process one after the other (for comparison in ``satgrasp bench loop``).
+    ``concurrent_estimators``: at most this many systems process a frame at once; ``auto`` runs
+    every system at once under ``--clock sim`` (the modelled rig has a core per system) and,
+    under ``--clock wall``, as many as there are cores beside the control loop's. On a machine
+    with fewer cores than estimators, running them all at once only makes each result later
+    (they take turns on the same cores), and a later result is a staler one.
     ``log_frames_every_s``: frames kept in the trial log (0 keeps none).
     ``repeat_motion_m`` / ``repeat_motion_deg``: a camera whose image stays byte for byte the
     same while the camera moved this far relative to the carriage (or turned this much) since
@@ -61,9 +66,19 @@ class VisionConfig(Strict):
         default_factory=lambda: dict(BENCH_ACQUISITION_MS)
     )
     workers: Literal["process", "inline"] = "process"
+    concurrent_estimators: Annotated[int, Field(ge=1)] | Literal["auto"] = "auto"
     log_frames_every_s: Annotated[float, Field(ge=0.0)] = 1.0
     repeat_motion_m: Annotated[float, Field(gt=0.0)] = 0.005
     repeat_motion_deg: Annotated[float, Field(gt=0.0)] = 0.5
+
+    def estimator_slots(self, systems: int, cores: int | None) -> int:
+        """How many of ``systems`` may process a frame at once, on a machine with ``cores``
+        usable cores (``--clock wall``) or on the modelled rig (``cores`` None, ``--clock sim``)."""
+        if self.concurrent_estimators != "auto":
+            return min(systems, self.concurrent_estimators)
+        if cores is None:
+            return systems
+        return max(1, min(systems, cores - 1))
 
     def processing_s(self, system: str, *, acquiring: bool = False) -> float:
         """Modelled time (s) ``system`` takes over a frame, with a prior or searching without."""

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from hil.analysis.bench import ComparisonRow, FullFrameRow
+from hil.runtime.processes import usable_cores
 
 #: Issue 12's targets: tracking median per system (ms, one core) by resolution, acquisition at
 #: VGA, the full frame (three systems + fusion, concurrent) and its aim for 60 fps.
@@ -48,10 +49,9 @@ def describe_machine() -> MachineInfo:
             if line.startswith("model name"):
                 cpu = line.split(":", 1)[1].strip()
                 break
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return MachineInfo(
         cpu=cpu,
-        cores=int(cores or 1),
+        cores=usable_cores(),
         load_1min=os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan,
         python=platform.python_version(),
         numpy=np.__version__,

@@ -1,5 +1,5 @@
-"""Small helpers for the processes of a wall-clock trial: their peak memory, a bounded stop, and
-keeping a terminal's Ctrl-C away from them."""
+"""Small helpers for the processes of a wall-clock trial: the cores they share, their peak memory,
+a bounded stop, and keeping a terminal's Ctrl-C away from them."""
 
 from __future__ import annotations
 
@@ -12,6 +12,13 @@ from multiprocessing.process import BaseProcess
 
 class ProcessStartError(RuntimeError):
     """A process of the trial did not start (its reason, e.g. an emulator's address in use)."""
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity mask, where the system has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 def peak_rss_mib(pid: int | None = None) -> float:

@@ -9,6 +9,8 @@ Data flow of one frame (docs/architecture.md):
 2. ``step``: every system whose worker is free takes the newest frame it has not processed yet,
    with fusion's prior *at the frame's capture stamp* and the camera-to-carriage pose of that
    instant — so the three systems run concurrently, each as fast as it can, on the newest data.
+   With fewer ``slots`` than systems (fewer cores than estimators) they take turns: the system
+   that started longest ago goes first, and each result comes as soon as one core allows.
    While fusion has no track yet, a system's own latest pose (in the carriage frame, so the
    arm's and the track's motion since are accounted for) seeds its next search: a search
    without a prior can take longer than ``max_frame_age_s``, and its result, too old to act on,
@@ -103,8 +105,11 @@ class VisionPipeline:
         workers: Workers,
         config: VisionConfig,
         t0: float = 0.0,
+        slots: int | None = None,
     ):
         self.systems = tuple(systems)
+        #: How many systems may process a frame at once (``VisionConfig.estimator_slots``).
+        self.slots = len(self.systems) if slots is None else slots
         self.fusion = fusion
         self.history = history
         self.workers = workers
@@ -113,6 +118,9 @@ class VisionPipeline:
         self._newest: Frame | None = None
         self._newest_taken = False
         self._last_seq: dict[str, int] = {s: -1 for s in self.systems}
+        self._last_start: dict[str, float] = {s: -math.inf for s in self.systems}
+        #: Per (system, acquiring): the time (s) its last frame took (faded by ``_fade``).
+        self._took: dict[tuple[str, bool], float] = {}
         #: Per system: (capture stamp, X_MT) of its latest valid pose, to seed its next search.
         self._seeds: dict[str, tuple[float, Pose]] = {}
         self._received = self._processed = self._dropped = self._stale = 0
@@ -205,17 +213,27 @@ class VisionPipeline:
             return
         X_CM = self.history.X_CM_at(frame.stamp)
         fused_prior = None if X_CM is None else self.fusion.prior_X_CT(X_CM, frame.stamp)
-        for system in self.workers.idle():
+        idle = self.workers.idle()
+        free_slots = self.slots - (len(self.systems) - len(idle))
+        if free_slots < len(idle):  # taking turns: the longest waiting first
+            idle = sorted(idle, key=self._last_start.__getitem__)
+        for system in idle:
+            if free_slots <= 0:
+                break
             if frame.seq <= self._last_seq[system]:
                 continue
             prior = fused_prior if fused_prior is not None else self._seed(system, X_CM, frame)
             # A frame that would be stale before the system is done with it is not worth taking
             # (a search without any prior is: its pose seeds the next one).
-            duration = self.config.processing_s(system, acquiring=prior is None)
+            duration = self._expected_s(system, acquiring=prior is None)
             if prior is not None and now - frame.stamp + duration > self.config.max_frame_age_s:
+                self._last_seq[system] = frame.seq  # passed up for good: it only gets older
+                self._fade(system)
                 continue
             self.workers.start(VisionJob(system, frame, prior, now))
+            free_slots -= 1
             self._last_seq[system] = frame.seq
+            self._last_start[system] = now
             if not self._newest_taken:
                 self._newest_taken = True
                 self._processed += 1
@@ -247,6 +265,19 @@ class VisionPipeline:
         self.workers.close()
 
     # --- internals ------------------------------------------------------------------------
+    def _expected_s(self, system: str, *, acquiring: bool) -> float:
+        """How long ``system`` will take over a frame: the modelled time, or what its last frame
+        took when that was longer (on a busy machine, much longer)."""
+        modelled = self.config.processing_s(system, acquiring=acquiring)
+        return max(modelled, self._took.get((system, acquiring), 0.0))
+
+    def _fade(self, system: str) -> None:
+        """Each frame ``system`` passes up makes its recent time count a little less: on a
+        machine that has since got less busy it gets to try again."""
+        mode = (system, False)
+        if mode in self._took:
+            self._took[mode] *= 0.97
+
     def _seed(self, system: str, X_CM: Pose | None, frame: Frame) -> Pose | None:
         """``system``'s own latest pose carried to ``frame``'s capture, if recent enough."""
         seed = self._seeds.get(system)
@@ -257,6 +288,7 @@ class VisionPipeline:
     def _ingest(self, result: VisionResult, now: float) -> None:
         self._status = None
         job, m = result.job, result.measurement
+        self._took[(job.system, job.prior_X_CT is None)] = result.processing_s
         capture = job.frame.stamp
         if m.valid and m.prior is not None:
             X_CM = self.history.X_CM_at(capture)

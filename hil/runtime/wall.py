@@ -48,6 +48,7 @@ from hil.runtime.processes import (
     peak_rss_mib,
     sigint_blocked_in_children,
     stop_process,
+    usable_cores,
 )
 from hil.runtime.rig import RigGeometry
 from hil.runtime.vision import LoggedImage, VisionPipeline, VisionStatus
@@ -102,6 +103,7 @@ def vision_main(spec: VisionSpec, control: Connection, frames: Connection) -> No
             history=StateHistory(spec.geometry),
             workers=workers,
             config=spec.config,
+            slots=spec.config.estimator_slots(len(spec.systems), usable_cores()),
         )
         states = StateRing(spec.state_ring)
         try:
