@@ -11,6 +11,7 @@ frames in between are dropped, as a real camera's newest-only queue would drop t
 from __future__ import annotations
 
 import contextlib
+import os
 import time
 from multiprocessing.connection import Connection
 
@@ -23,12 +24,7 @@ from configuration.vision import CameraTiming
 from sim_backends.camera import SimCamera, Viewpoint
 from sim_backends.renderer import PybulletRenderer
 from sim_backends.scene import MockupScene
-from sim_backends.world_server import (
-    CAMERA_PRIORITY,
-    LatestSender,
-    RenderRequest,
-    realtime_priority,
-)
+from sim_backends.world_server import CAMERA_NICE, LatestSender, RenderRequest
 
 
 def camera_main(
@@ -44,10 +40,11 @@ def camera_main(
 ) -> None:
     """The camera process: render requests in, frames out (each at its delivery time).
 
-    It renders at real-time priority when the system allows (below the world's): a real
+    It renders ahead of the estimators when the system allows (``CAMERA_NICE``): a real
     camera's frames come on time however busy the host is, and a simulated one that waited
     for the estimators' cores would hand them frames later than any rig would."""
-    realtime_priority(CAMERA_PRIORITY)
+    with contextlib.suppress(OSError):  # not allowed to raise its priority: it runs as it is
+        os.nice(CAMERA_NICE)
     with contextlib.suppress(KeyboardInterrupt), MockupScene(mockup) as scene:
         view: list[Viewpoint] = []  # each request's
         sim_camera = SimCamera(

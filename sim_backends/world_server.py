@@ -26,9 +26,10 @@ from sim_backends.world import SimRig
 
 #: SCHED_FIFO priority of the world process (the control loop runs at 50).
 WORLD_PRIORITY = 45
-#: ... and of the camera process, below the world's: on a rig both are hardware, whose timing
-#: does not depend on what the host computes.
-CAMERA_PRIORITY = 40
+#: Niceness of the camera process: ahead of the host-side processes (estimators), but not
+#: real-time — a renderer that needs more than a core at close range would, at SCHED_FIFO, run
+#: into the kernel's real-time throttling and stall the control loop with it.
+CAMERA_NICE = -10
 #: Device methods the control side may call (anything else is refused by name).
 CALLS = {
     "arm": {"connect", "activate", "deactivate", "close", "servo", "stop"},
