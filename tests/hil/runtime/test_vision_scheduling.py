@@ -2,42 +2,24 @@
 system that has lately been slower than modelled passes up frames it could not finish in time."""
 
 import itertools
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
 
 from configuration.mockup import load_mockup
 from configuration.vision import VisionConfig
-from estimators.frame import Frame
+from estimators.frame import Frame, GroundTruth
 from estimators.fusion import FusionParams, PoseFusion
 from estimators.geometry import Pose
-from estimators.measurement import Measurement
 from hil.runtime.history import StateHistory, StateSample
 from hil.runtime.vision import VisionPipeline
 from hil.runtime.workers import InlineWorkers, VisionJob
-from tests.hil.runtime.loop_fakes import INFO, rig_geometry
+from tests.hil.runtime.loop_fakes import INFO, TruthEstimator, rig_geometry
 
 SYSTEMS = ("corners", "lines", "ellipses")
 X_BE = Pose(np.eye(3), np.array([0.5, 0.0, 0.8]))  # the arm stands still
 X_CT = Pose(np.eye(3), np.array([0.01, -0.02, 1.5]))
-
-
-@dataclass
-class Oracle:
-    """An estimator that sees the target where it is."""
-
-    system: str
-
-    def estimate(self, frame: Frame, prior_X_CT: Pose | None = None) -> Measurement:
-        return Measurement(
-            system=self.system,
-            status="tracking" if prior_X_CT is not None else "acquired",
-            stamp=frame.stamp,
-            seq=frame.seq,
-            X_CT=X_CT,
-            covariance=np.eye(6) * 1e-6,
-        )
+TRUTH = GroundTruth(X_CT, Pose.identity())  # what the estimators see
 
 
 class CountingWorkers(InlineWorkers):
@@ -47,7 +29,7 @@ class CountingWorkers(InlineWorkers):
     def __init__(self, charged_ms):
         self.charged_ms = charged_ms
         self._started = 0.0
-        super().__init__({s: Oracle(s) for s in SYSTEMS}, lambda *_, **__: self._charge())
+        super().__init__({s: TruthEstimator(s) for s in SYSTEMS}, lambda *_, **__: self._charge())
         self.jobs: list[VisionJob] = []
         self.most_at_once = 0
 
@@ -81,7 +63,7 @@ def run(slots: int | None, *, charged_ms, seconds: float = 3.0, fps: float = 15.
         vision.publish_state(StateSample(now, X_BE, now, 0.0))
         if now >= next_capture + 0.12:
             image = rng.integers(0, 255, (48, 64), dtype=np.uint8)
-            vision.on_frame(Frame(image, next_capture, INFO, seq), now)
+            vision.on_frame(Frame(image, next_capture, INFO, seq, TRUTH), now)
             next_capture, seq = next_capture + 1.0 / fps, seq + 1
         vision.step(now)
         records += vision.drain()
