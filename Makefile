@@ -21,11 +21,13 @@ $(BIN)/python:
 $(STAMP_RUN): pyproject.toml | $(BIN)/python
 	$(BIN)/pip install --quiet -e .
 	$(BIN)/python -m estimators.warmup
+	$(BIN)/python -m sim_backends.raster
 	@touch $@
 
 $(STAMP_DEV): pyproject.toml | $(BIN)/python
 	$(BIN)/pip install --quiet -e '.[dev,cluster]'
 	$(BIN)/python -m estimators.warmup
+	$(BIN)/python -m sim_backends.raster
 	@touch $@ $(STAMP_RUN)
 
 $(STAMP_MUTATION): pyproject.toml | $(BIN)/python

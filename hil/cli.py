@@ -223,7 +223,7 @@ def render(
     from configuration.render import Lighting, RenderConfig
     from hil.evaluation.scenarios import camera_pose_for, target_offset
     from sim_backends.camera import SimCamera, Viewpoint
-    from sim_backends.renderer import PybulletRenderer
+    from sim_backends.renderer import make_renderer
     from sim_backends.scene import MockupScene
 
     noise_config = NoiseConfig(preset=noise.value)
@@ -245,7 +245,7 @@ def render(
     config = RenderConfig(supersample=supersample, lighting=Lighting(shadows=shadows))
     with MockupScene(mockup_config) as scene:
         sim_camera = SimCamera(
-            PybulletRenderer(scene, info, config), lambda: Viewpoint(X_WC), noise_config, seed=seed
+            make_renderer(scene, info, config), lambda: Viewpoint(X_WC), noise_config, seed=seed
         )
         sim_camera.connect()
         sim_camera.activate()
@@ -281,8 +281,8 @@ def bench_render(
     mockup: MockupOpt = "default",
     repeats: Annotated[int, typer.Option(min=1, help="Frames timed per case.")] = 9,
 ) -> None:
-    """Median and p95 render time per frame at 3, 2, 1.2 and 0.5 m, with and without 2×
-    supersampling (one thread, noise included)."""
+    """Median and p95 render time per frame at 3, 2, 1.2 and 0.5 m, for each render engine,
+    with and without 2× supersampling (one thread, noise included)."""
     from hil.analysis.bench import render_timings
 
     try:
@@ -292,10 +292,11 @@ def bench_render(
     from rich.table import Table
 
     table = Table(title=f"render time per frame, camera {camera}")
-    for column in ("distance (m)", "supersample", "median (ms)", "p95 (ms)"):
+    for column in ("engine", "distance (m)", "supersample", "median (ms)", "p95 (ms)"):
         table.add_column(column, justify="right")
     for row in rows:
         table.add_row(
+            row.engine,
             f"{row.distance_m:.1f}",
             str(row.supersample),
             f"{row.median_ms:.1f}",

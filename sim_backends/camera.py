@@ -20,7 +20,7 @@ from configuration.render import NoiseConfig
 from drivers.base import DeviceError, DeviceTimeout
 from estimators.frame import CameraInfo, Frame, GroundTruth
 from estimators.geometry import Pose
-from sim_backends.renderer import PybulletRenderer
+from sim_backends.renderer import Renderer
 from sim_backends.sensor import expose, frame_rng
 
 
@@ -38,7 +38,7 @@ class SimCamera:
 
     def __init__(
         self,
-        renderer: PybulletRenderer,
+        renderer: Renderer,
         viewpoint: Callable[[], Viewpoint],
         noise: NoiseConfig | None = None,
         *,

@@ -22,7 +22,7 @@ from configuration.mockup import MockupConfig
 from configuration.render import NoiseConfig, RenderConfig
 from configuration.vision import CameraTiming
 from sim_backends.camera import SimCamera, Viewpoint
-from sim_backends.renderer import PybulletRenderer
+from sim_backends.renderer import make_renderer
 from sim_backends.scene import MockupScene
 from sim_backends.world_server import CAMERA_NICE, LatestSender, RenderRequest
 
@@ -48,7 +48,7 @@ def camera_main(
     with contextlib.suppress(KeyboardInterrupt), MockupScene(mockup) as scene:
         view: list[Viewpoint] = []  # each request's
         sim_camera = SimCamera(
-            PybulletRenderer(scene, camera.camera_info(), render),
+            make_renderer(scene, camera.camera_info(), render),
             lambda: view[-1],
             noise,
             seed=seed,

@@ -173,6 +173,36 @@ def _obj_parts(path: Path, scale: float) -> list[_Part]:
 _I3 = np.eye(3)
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class SceneMesh:
+    """Every triangle of the scene in T, for a renderer of its own (``sim_backends.raster``).
+
+    ``colors_8bit``: per triangle, the part's RGB as pybullet stores it (0–255, truncated).
+    """
+
+    vertices_T: np.ndarray  # (V, 3)
+    normals_T: np.ndarray  # (V, 3)
+    triangles: np.ndarray  # (T, 3) int64
+    colors_8bit: np.ndarray  # (T, 3) float64
+
+
+def _scene_mesh(placed: list[tuple[Mesh, Pose, tuple[float, float, float]]]) -> SceneMesh:
+    vertices, normals, triangles, colors = [], [], [], []
+    offset = 0
+    for mesh, X_TB, color in placed:
+        vertices.append(mesh.vertices @ X_TB.R.T + X_TB.p)
+        normals.append(mesh.normals @ X_TB.R.T)
+        triangles.append(mesh.indices + offset)
+        colors.append(np.tile(np.floor(255.0 * np.asarray(color)), (len(mesh.indices), 1)))
+        offset += len(mesh.vertices)
+    return SceneMesh(
+        np.vstack(vertices),
+        np.vstack(normals),
+        np.vstack(triangles).astype(np.int64),
+        np.vstack(colors),
+    )
+
+
 class MockupScene:
     """A pybullet world holding the mock-up at pose ``X_WT``.
 
@@ -183,6 +213,7 @@ class MockupScene:
         self.mockup = mockup
         self.client = connect_direct()
         self._bodies: list[tuple[int, Pose]] = []  # (body id, X_TB)
+        self._placed_meshes: list[tuple[Mesh, Pose, tuple[float, float, float]]] | None = []
         try:
             if mockup.model_file is not None:
                 self._load_model_file()
@@ -192,6 +223,10 @@ class MockupScene:
         except Exception:
             self.close()
             raise
+        #: The scene's triangles in T, or None when pybullet loaded them itself (a URDF).
+        self.mesh: SceneMesh | None = (
+            _scene_mesh(self._placed_meshes) if self._placed_meshes else None
+        )
         self._X_WT = Pose.identity()
         self._placed = False
         self.set_pose(X_WT or Pose.identity())
@@ -220,7 +255,12 @@ class MockupScene:
             raise RuntimeError(f"pybullet refused the visual shape of part {part.name!r}")
         body = pybullet.createMultiBody(baseVisualShapeIndex=shape, physicsClientId=self.client)
         X_FB = Pose(np.eye(3), np.array(part.center_T))
-        self._bodies.append((body, X_FB if X_TF is None else X_TF @ X_FB))
+        X_TB = X_FB if X_TF is None else X_TF @ X_FB
+        self._bodies.append((body, X_TB))
+        if self._placed_meshes is not None:
+            origin = (0.0, 0.0, 0.0)
+            mesh = part.mesh if part.mesh is not None else _box_mesh(part.half_extents, origin)
+            self._placed_meshes.append((mesh, X_TB, part.color))
 
     def _load_model_file(self) -> None:
         model = self.mockup.model_file
@@ -247,6 +287,7 @@ class MockupScene:
         if body < 0:
             raise RuntimeError(f"mockup.model_file.path: pybullet could not load {path}")
         self._bodies.append((body, model.X_TF))
+        self._placed_meshes = None  # pybullet holds the URDF's meshes
 
     # --- pose -----------------------------------------------------------------------------
     @property

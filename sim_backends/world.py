@@ -33,7 +33,7 @@ from sim_backends.arm import SimArm
 from sim_backends.camera import SimCamera, StreamingSimCamera, Viewpoint
 from sim_backends.gripper import GripperModel
 from sim_backends.modbus_server import DirectLink, ModbusDeviceServer
-from sim_backends.renderer import PybulletRenderer
+from sim_backends.renderer import make_renderer
 from sim_backends.scene import MockupScene
 from sim_backends.track import TrackModel
 
@@ -275,7 +275,7 @@ class SimWorld(SimRig):
         super().__init__(rig, **rig_options)
         try:
             self.scene = MockupScene(mockup, X_WT=self.track_model.X_WT())
-            self.renderer = PybulletRenderer(self.scene, camera.camera_info(), render)
+            self.renderer = make_renderer(self.scene, camera.camera_info(), render)
             self.camera = StreamingSimCamera(
                 SimCamera(self.renderer, self.viewpoint, noise, seed=seed, clock=self.clock.now),
                 latency_s=self.timing.latency_s,

@@ -10,6 +10,7 @@ through ``hil.analysis.bench_loop.pipeline_timing`` (the real ``VisionPipeline``
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -36,13 +37,14 @@ from hil.evaluation.opencv_pipeline import (
     opencv_pipeline,
 )
 from hil.evaluation.scenarios import MANEUVERS, camera_pose_for, target_offset
-from sim_backends.renderer import PybulletRenderer
+from sim_backends.renderer import Renderer, make_renderer
 from sim_backends.scene import MockupScene
 from sim_backends.sensor import expose, frame_rng
 
 
 @dataclass(frozen=True, slots=True)
 class RenderTiming:
+    engine: str
     distance_m: float
     supersample: int
     median_ms: float
@@ -55,6 +57,7 @@ def render_timings(
     *,
     distances_m: tuple[float, ...] = (3.0, 2.0, 1.2, 0.5),
     supersamples: tuple[int, ...] = (1, 2),
+    engines: tuple[str, ...] = ("pybullet", "raster"),
     repeats: int = 9,
     progress: Console | None = None,
 ) -> list[RenderTiming]:
@@ -65,8 +68,9 @@ def render_timings(
     rows = []
     offset = target_offset(0.02, -0.015, 0.0, np.radians(3.0), np.radians(-4.0), np.radians(7.0))
     with MockupScene(load_mockup(mockup)) as scene:
-        for supersample in supersamples:
-            renderer = PybulletRenderer(scene, info, RenderConfig(supersample=supersample))
+        for engine, supersample in itertools.product(engines, supersamples):
+            config = RenderConfig(engine=engine, supersample=supersample)
+            renderer = make_renderer(scene, info, config)
             for distance in distances_m:
                 X_WC, _ = camera_pose_for(distance, offset)
                 renderer.render(X_WC)  # warm-up
@@ -77,11 +81,16 @@ def render_timings(
                     expose(rendering.image, rendering.depth_m, info.K, noise, frame_rng(0, i))
                     times.append(1000.0 * (time.perf_counter() - start))
                 row = RenderTiming(
-                    distance, supersample, float(np.median(times)), float(np.percentile(times, 95))
+                    engine,
+                    distance,
+                    supersample,
+                    float(np.median(times)),
+                    float(np.percentile(times, 95)),
                 )
                 if progress is not None:
                     progress.print(
-                        f"  {distance:.1f} m, supersample {supersample}: {row.median_ms:.1f} ms"
+                        f"  {engine}, {distance:.1f} m, supersample {supersample}: "
+                        f"{row.median_ms:.1f} ms"
                     )
                 rows.append(row)
     return rows
@@ -114,7 +123,7 @@ def offset_prior(X_CT: Pose, rng: np.random.Generator) -> Pose:
 
 
 def render_bench_frames(
-    renderer: PybulletRenderer,
+    renderer: Renderer,
     info: CameraInfo,
     distance_m: float,
     noises: Sequence[str],
@@ -306,7 +315,7 @@ def comparison_timings(
     for camera in cameras:
         info = load_camera(camera).camera_info()
         with MockupScene(mockup_config) as scene:
-            renderer = PybulletRenderer(scene, info, RenderConfig())
+            renderer = make_renderer(scene, info, RenderConfig())
             for distance in distances_m:
                 if progress is not None:
                     progress.print(f"[bold]{camera}[/] {distance:.1f} m: rendering {frames} frames")

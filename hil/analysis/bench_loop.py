@@ -40,7 +40,7 @@ from hil.runtime.loop import ControlLoop
 from hil.runtime.rig import RigGeometry
 from hil.runtime.vision import VisionPipeline, VisionStatus
 from hil.runtime.workers import InlineWorkers, ProcessWorkers
-from sim_backends.renderer import PybulletRenderer
+from sim_backends.renderer import make_renderer
 from sim_backends.scene import MockupScene
 from sim_backends.sensor import expose, frame_rng
 from sim_backends.start import sample_start
@@ -188,7 +188,7 @@ def approach_frames(
     out = []
     noise_config = NoiseConfig(preset=noise)
     with MockupScene(load_mockup(mockup)) as scene:
-        renderer = PybulletRenderer(scene, info, RenderConfig())
+        renderer = make_renderer(scene, info, RenderConfig())
         for i, distance in enumerate(np.linspace(start_m, end_m, frames)):
             X_TC = Pose.from_rpy(0.02, -0.03, 0.05, np.array([0.02, -0.01, 0.0])) @ facing_camera(
                 float(distance)

@@ -30,7 +30,7 @@ from estimators.measurement import Tracker
 from estimators.registry import build_estimator
 from hil.evaluation.errors import MeasurementError, measurement_error
 from hil.evaluation.scenarios import camera_pose_for, target_offset
-from sim_backends.renderer import PybulletRenderer
+from sim_backends.renderer import make_renderer
 from sim_backends.scene import MockupScene
 from sim_backends.sensor import expose, frame_rng
 
@@ -119,7 +119,7 @@ def render_approach(
     noise_config = NoiseConfig(preset=noise)
     render = RenderConfig() if light is None else RenderConfig(lighting=light)
     with MockupScene(mockup_config) as scene:
-        renderer = PybulletRenderer(scene, info, render)
+        renderer = make_renderer(scene, info, render)
         for i in range(frames):
             distance, offset = path.offset(i / max(frames - 1, 1))
             X_WC, _ = camera_pose_for(distance, offset)

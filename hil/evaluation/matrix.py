@@ -45,7 +45,7 @@ from hil.evaluation.targets import (
     judged_errors,
     target_text,
 )
-from sim_backends.renderer import PybulletRenderer
+from sim_backends.renderer import make_renderer
 from sim_backends.scene import MockupScene
 from sim_backends.sensor import expose, frame_rng
 
@@ -142,7 +142,7 @@ def run_case_group(
         supersample=spec.supersample, lighting=named_lighting(spec.lighting, light_seed)
     )
     with MockupScene(mockup) as scene:
-        renderer = PybulletRenderer(scene, camera, render_config)
+        renderer = make_renderer(scene, camera, render_config)
         renderings = []
         for i in range(spec.frames):
             X_WC, _ = camera_pose_for(distance_m, maneuver.offset(i / spec.frames))
