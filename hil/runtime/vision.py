@@ -10,7 +10,8 @@ Data flow of one frame (docs/architecture.md):
    with fusion's prior *at the frame's capture stamp* and the camera-to-carriage pose of that
    instant — so the three systems run concurrently, each as fast as it can, on the newest data.
    With fewer ``slots`` than systems (fewer cores than estimators) they take turns: the system
-   that started longest ago goes first, and each result comes as soon as one core allows.
+   that started longest ago goes first, and each result comes as soon as one core allows; a
+   system still busy on a frame already too old to act on no longer holds its slot.
    While fusion has no track yet, a system's own latest pose (in the carriage frame, so the
    arm's and the track's motion since are accounted for) seeds its next search: a search
    without a prior can take longer than ``max_frame_age_s``, and its result, too old to act on,
@@ -119,6 +120,8 @@ class VisionPipeline:
         self._newest_taken = False
         self._last_seq: dict[str, int] = {s: -1 for s in self.systems}
         self._last_start: dict[str, float] = {s: -math.inf for s in self.systems}
+        #: The job each busy system is on.
+        self._running: dict[str, VisionJob] = {}
         #: Per (system, acquiring): the time (s) its last frame took (faded by ``_fade``).
         self._took: dict[tuple[str, bool], float] = {}
         #: Per system: (capture stamp, X_MT) of its latest valid pose, to seed its next search.
@@ -214,7 +217,7 @@ class VisionPipeline:
         X_CM = self.history.X_CM_at(frame.stamp)
         fused_prior = None if X_CM is None else self.fusion.prior_X_CT(X_CM, frame.stamp)
         idle = self.workers.idle()
-        free_slots = self.slots - (len(self.systems) - len(idle))
+        free_slots = self.slots - sum(1 for s in self.systems if self._holds_slot(s, now))
         if free_slots < len(idle):  # taking turns: the longest waiting first
             idle = sorted(idle, key=self._last_start.__getitem__)
         for system in idle:
@@ -230,7 +233,9 @@ class VisionPipeline:
                 self._last_seq[system] = frame.seq  # passed up for good: it only gets older
                 self._fade(system)
                 continue
-            self.workers.start(VisionJob(system, frame, prior, now))
+            job = VisionJob(system, frame, prior, now)
+            self.workers.start(job)
+            self._running[system] = job
             free_slots -= 1
             self._last_seq[system] = frame.seq
             self._last_start[system] = now
@@ -265,6 +270,17 @@ class VisionPipeline:
         self.workers.close()
 
     # --- internals ------------------------------------------------------------------------
+    def _holds_slot(self, system: str, now: float) -> bool:
+        """Whether ``system`` is busy on a result still worth a slot. A tracking job whose frame
+        is already older than ``max_frame_age_s`` will be discarded when it comes (a failed
+        track that falls back to a search can take 150–250 ms): the next system may start
+        beside it rather than wait for nothing."""
+        job = self._running.get(system)
+        if job is None:
+            return False
+        doomed = job.prior_X_CT is not None and now - job.frame.stamp > self.config.max_frame_age_s
+        return not doomed
+
     def _expected_s(self, system: str, *, acquiring: bool) -> float:
         """How long ``system`` will take over a frame: the modelled time, or what its last frame
         took when that was longer (on a busy machine, much longer)."""
@@ -288,6 +304,7 @@ class VisionPipeline:
     def _ingest(self, result: VisionResult, now: float) -> None:
         self._status = None
         job, m = result.job, result.measurement
+        self._running.pop(job.system, None)
         self._took[(job.system, job.prior_X_CT is None)] = result.processing_s
         capture = job.frame.stamp
         if m.valid and m.prior is not None:

@@ -23,18 +23,20 @@ TRUTH = GroundTruth(X_CT, Pose.identity())  # what the estimators see
 
 
 class CountingWorkers(InlineWorkers):
-    """``InlineWorkers`` that charge ``charged_ms(started)`` per job and remember every job
-    and the most that ran at once."""
+    """``InlineWorkers`` that charge ``charged_ms(started, system)`` per job and remember every
+    job and the most that ran at once."""
 
     def __init__(self, charged_ms):
         self.charged_ms = charged_ms
         self._started = 0.0
-        super().__init__({s: TruthEstimator(s) for s in SYSTEMS}, lambda *_, **__: self._charge())
+        super().__init__(
+            {s: TruthEstimator(s) for s in SYSTEMS}, lambda system, **_: self._charge(system)
+        )
         self.jobs: list[VisionJob] = []
         self.most_at_once = 0
 
-    def _charge(self) -> float:
-        return self.charged_ms(self._started) / 1e3
+    def _charge(self, system: str) -> float:
+        return self.charged_ms(self._started, system) / 1e3
 
     def start(self, job: VisionJob) -> None:
         self._started = job.started
@@ -71,7 +73,7 @@ def run(slots: int | None, *, charged_ms, seconds: float = 3.0, fps: float = 15.
 
 
 def test_all_systems_run_at_once_by_default():
-    workers, status, _ = run(None, charged_ms=lambda t: 40.0)
+    workers, status, _ = run(None, charged_ms=lambda t, s: 40.0)
     assert workers.most_at_once == 3
     starts = [job.started for job in workers.jobs]
     assert starts[:3] == [starts[0]] * 3  # the first frame went to the three together
@@ -79,7 +81,7 @@ def test_all_systems_run_at_once_by_default():
 
 
 def test_one_slot_runs_one_system_at_a_time_and_they_take_turns():
-    workers, status, _ = run(1, charged_ms=lambda t: 40.0)
+    workers, status, _ = run(1, charged_ms=lambda t, s: 40.0)
     assert workers.most_at_once == 1
     order = [job.system for job in workers.jobs]
     assert len(order) > 20
@@ -90,7 +92,7 @@ def test_one_slot_runs_one_system_at_a_time_and_they_take_turns():
     assert status.fusion is not None and status.fusion.last_accepted > 2.5
 
 
-def slow_after_1_s(started: float) -> float:
+def slow_after_1_s(started: float, system: str) -> float:
     """40 ms (about as modelled) for a second, then 150 ms: a frame handed over 120 ms after
     capture is 270 ms old when done, over the 250 ms limit."""
     return 40.0 if started < 1.0 else 150.0
@@ -110,6 +112,27 @@ def test_a_system_slower_than_modelled_passes_up_frames_it_cannot_finish_in_time
 def test_a_system_that_passed_frames_up_gets_to_try_again():
     # 130 ms: just too slow (120 + 130 > 250); the recent time fades with each frame passed up
     # until the system tries again, and so every system still gets the odd frame.
-    workers, _, _ = run(1, charged_ms=lambda t: 40.0 if t < 1.0 else 130.0, seconds=4.0)
+    workers, _, _ = run(1, charged_ms=lambda t, s: 40.0 if t < 1.0 else 130.0, seconds=4.0)
     late = [job.system for job in workers.jobs if job.started > 2.0]
     assert set(late) == set(SYSTEMS)
+
+
+def test_a_system_busy_on_a_frame_too_old_to_act_on_gives_up_its_slot():
+    """From 1 s on, corners' tracking fails and falls back to a 300 ms search: its result will
+    be stale, and the other two must not wait for it with one slot between the three."""
+    charged = lambda t, s: 300.0 if s == "corners" and t >= 1.0 else 40.0  # noqa: E731
+    workers, status, records = run(1, charged_ms=charged, seconds=3.0)
+    long_jobs = [j for j in workers.jobs if j.system == "corners" and j.started >= 1.0]
+    assert long_jobs
+    for job in long_jobs:
+        beside = [
+            j
+            for j in workers.jobs
+            if j.system != "corners" and job.started < j.started and j.started < job.started + 0.3
+        ]
+        assert beside, f"nothing ran beside the corners job started at {job.started:.3f} s"
+    assert workers.most_at_once == 2  # the doomed job and one other, never more
+    others = [r for r in records if r.system != "corners" and r.started_t >= 1.0]
+    assert others and all(r.outcome == "accepted" for r in others)
+    # The estimate stays fresh: results keep coming at the one slot's pace.
+    assert status.fusion is not None and status.fusion.last_accepted > 2.7
