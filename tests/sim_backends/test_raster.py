@@ -90,7 +90,7 @@ def test_auto_engine_takes_the_raster_renderer_only_where_it_draws_the_same_imag
         assert isinstance(make_renderer(scene, info, RenderConfig()), RasterRenderer)
         harsh = RenderConfig(lighting=HARSH_LIGHTING)
         assert isinstance(make_renderer(scene, info, harsh), PybulletRenderer)
-        with pytest.raises(ValueError, match="render.engine: raster draws no shadows"):
+        with pytest.raises(ValueError, match=r"render\.engine: raster draws no shadows"):
             RasterRenderer(scene, info, harsh)
         raster = RasterRenderer(scene, info, RenderConfig())
         with pytest.raises(ValueError, match="specular"):
