@@ -602,9 +602,11 @@ class CornerEstimator:
             if round_ > 0:
                 # Guided search: once a pose from the clearest features predicts the rest to
                 # about a pixel, a disc without a Shi–Tomasi response is looked for at the
-                # extremum of the matched-filter (smoothed) image next to its prediction; its
-                # fit must still pass the contrast test and the pose's χ² test.
-                for i in np.flatnonzero(visible & self.layout.is_disc):
+                # extremum of the matched-filter (smoothed) image next to its prediction, and a
+                # panel corner by a wedge fit there (close up, a corner's Shi–Tomasi peak sits
+                # farther from the corner than the last round's gate); each fit must still pass
+                # its own test and the pose's χ² test.
+                for i in np.flatnonzero(visible):
                     if int(i) not in measured and int(i) not in labels:
                         labels[int(i)] = pred[i]
             new_index, new_uv, new_cov = self._fit_discs(image, smoothed, labels, A, radius_px, X)

@@ -132,6 +132,10 @@ class EllipseSettings:
     min_holes: int = 3
     min_hole_snr: float = 4.0
     min_hole_radius_px: float = 1.0
+    #: With a prior, a frame is not searched when the prior shows less than this much of the
+    #: ring's outer edge in view (px of arc): too little to fit, and a search of the whole frame
+    #: (120–220 ms) finds nothing either — as when the camera closes in past the ring.
+    min_outer_edge_in_view_px: float = 60.0
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -225,6 +229,11 @@ class EllipseEstimator:
         if isinstance(stack, str):
             return Measurement.lost(SYSTEM, frame, stack, started=started)
         s = self.settings
+        if prior_X_CT is not None:
+            in_view_px = self._outer_edge_in_view_px(prior_X_CT)
+            if in_view_px < s.min_outer_edge_in_view_px:
+                reason = f"the ring's outer edge is out of view at the prior ({in_view_px:.0f} px)"
+                return Measurement.lost(SYSTEM, frame, reason, started=started)
         fine_sigma = float(np.clip(5.0 * stack.noise_sigma, s.fine_sigma_px, s.fine_sigma_max_px))
         # The smoothing suits a ring of the usual contrast (≈ 0.4 at this noise). A ring that
         # shows far less — a low sun from the side leaves 0.15 — has its edges below the
@@ -847,6 +856,17 @@ class EllipseEstimator:
         return self._moved_px(
             pose_with_roll(a, self.outer, 0.0), pose_with_roll(b, self.outer, 0.0)
         )
+
+    def _outer_edge_in_view_px(self, X_CT: Pose) -> float:
+        """Length (px) of the ring's outer edge that ``X_CT`` puts inside the image."""
+        circle = self.outer
+        points = circle_points(
+            X_CT.apply(circle.center_T), X_CT.R @ circle.normal_T, circle.radius, 256
+        )
+        mask, uv = visible_pixels(points, self.camera, 0.0, self._field_radius)
+        both = mask & np.roll(mask, -1)  # arcs between neighbouring samples both in view
+        steps = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1)
+        return float(np.sum(steps[both]))
 
     def _locus_in_view(self, ring: CirclePose, circle: Circle3D, radius_px: float) -> bool:
         """Whether the off-axis circle's centre can be in view at some roll."""

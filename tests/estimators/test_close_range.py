@@ -1,0 +1,39 @@
+"""In the grasp the camera closes from the 0.5 m stand-off to 0.35 m: the ring bolts and then
+the ring itself leave the view. The corner system must keep tracking on the panel, and the
+ellipse system must say at once that its ring is out of view instead of searching the frame."""
+
+import numpy as np
+import pytest
+
+from estimators.ellipses import EllipseEstimator
+from estimators.registry import build_estimator
+from tests.estimators import rendered
+
+GRASP_DISTANCES = (0.45, 0.40, 0.39, 0.37, 0.35)
+#: Nearly head-on, as the grasp advances (2 mm, 0.1°: no edge on the pixel grid).
+HEAD_ON = (0.002, -0.001, 0.0, np.radians(0.1), np.radians(-0.1), np.radians(0.1))
+
+
+@pytest.mark.parametrize("distance", GRASP_DISTANCES)
+def test_corners_track_through_the_grasp_with_the_ring_bolts_out_of_view(distance):
+    frame = rendered.frame(distance, HEAD_ON, seq=int(distance * 100))
+    truth = frame.truth.X_CT
+    estimator = build_estimator("corners", rendered.target(), frame.info)
+    m = estimator.estimate(frame, prior_X_CT=truth)
+    assert m.valid, m.reason
+    assert m.X_CT is not None
+    assert np.linalg.norm(m.X_CT.p - truth.p) < 1e-3
+
+
+def test_ellipses_report_the_ring_out_of_view_at_once_and_still_track_just_before():
+    info = rendered.frame(0.37, HEAD_ON).info
+    estimator = EllipseEstimator(rendered.target(), info)
+    near = rendered.frame(0.37, HEAD_ON)
+    assert estimator.estimate(near, prior_X_CT=near.truth.X_CT).valid
+    past = rendered.frame(0.33, HEAD_ON)
+    m = estimator.estimate(past, prior_X_CT=past.truth.X_CT)
+    assert not m.valid
+    assert "out of view at the prior" in m.reason
+    # Without a prior nothing is known about the view: the frame is searched as before.
+    m = estimator.estimate(past)
+    assert "out of view at the prior" not in (m.reason or "")
