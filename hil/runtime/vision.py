@@ -124,6 +124,9 @@ class VisionPipeline:
         self._running: dict[str, VisionJob] = {}
         #: Per (system, acquiring): the time (s) its last frame took (faded by ``_fade``).
         self._took: dict[tuple[str, bool], float] = {}
+        #: Per (system, acquiring): how much its time varies from one frame to the next (a
+        #: running mean of the absolute change, s).
+        self._jitter: dict[tuple[str, bool], float] = {}
         #: Per system: (capture stamp, X_MT) of its latest valid pose, to seed its next search.
         self._seeds: dict[str, tuple[float, Pose]] = {}
         self._received = self._processed = self._dropped = self._stale = 0
@@ -282,10 +285,14 @@ class VisionPipeline:
         return not doomed
 
     def _expected_s(self, system: str, *, acquiring: bool) -> float:
-        """How long ``system`` will take over a frame: the modelled time, or what its last frame
-        took when that was longer (on a busy machine, much longer)."""
+        """How long ``system`` may take over a frame: the modelled time, or what its last frame
+        took when that was longer (on a busy machine, much longer), plus its frame-to-frame
+        variation: a frame that would be finished in time only if this one goes as fast as the
+        last is a coin toss between a result and a stale one (which costs a slot's time too)."""
         modelled = self.config.processing_s(system, acquiring=acquiring)
-        return max(modelled, self._took.get((system, acquiring), 0.0))
+        mode = (system, acquiring)
+        recent = self._took.get(mode, 0.0) + self._jitter.get(mode, 0.0)
+        return max(modelled, recent)
 
     def _fade(self, system: str) -> None:
         """Each frame ``system`` passes up makes its recent time count a little less: on a
@@ -305,7 +312,11 @@ class VisionPipeline:
         self._status = None
         job, m = result.job, result.measurement
         self._running.pop(job.system, None)
-        self._took[(job.system, job.prior_X_CT is None)] = result.processing_s
+        mode = (job.system, job.prior_X_CT is None)
+        if mode in self._took:
+            change = abs(result.processing_s - self._took[mode])
+            self._jitter[mode] = 0.75 * self._jitter.get(mode, 0.0) + 0.25 * change
+        self._took[mode] = result.processing_s
         capture = job.frame.stamp
         if m.valid and m.prior is not None:
             X_CM = self.history.X_CM_at(capture)

@@ -136,3 +136,21 @@ def test_a_system_busy_on_a_frame_too_old_to_act_on_gives_up_its_slot():
     assert others and all(r.outcome == "accepted" for r in others)
     # The estimate stays fresh: results keep coming at the one slot's pace.
     assert status.fusion is not None and status.fusion.last_accepted > 2.7
+
+
+def test_a_system_whose_time_varies_keeps_a_margin_for_it():
+    """Each system takes 50 or 110 ms, alternately: judged by its last frame alone, a frame
+    taken 100 ms after capture after a fast one ends 270 ms old, stale (half the results were,
+    before the variation was counted). With it, such frames are passed up: as many results
+    are used, and the slot's time is not spent on ones that are thrown away."""
+    jobs = {s: 0 for s in SYSTEMS}
+
+    def alternating(started: float, system: str) -> float:
+        jobs[system] += 1
+        return 50.0 if jobs[system] % 2 else 110.0
+
+    _, _, records = run(1, charged_ms=alternating, seconds=4.0)
+    late = [r for r in records if r.started_t > 1.0]
+    stale = sum(r.outcome == "stale" for r in late)
+    assert sum(r.outcome == "accepted" for r in late) >= 18  # six a second, as without
+    assert stale <= 2, f"{stale} of {len(late)} results stale"
