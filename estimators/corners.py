@@ -42,6 +42,7 @@ from estimators.acquisition import (
     turn_axis_circle,
     warn_if_roll_ambiguous,
 )
+from estimators.deadline import NO_TIME_FOR_SEARCH, search_allowed
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import (
@@ -216,6 +217,10 @@ class CornerEstimator:
             if not solution.reason:
                 return self._measurement(frame, solution, "tracking", started)
             reasons.append(f"tracking failed ({solution.reason})")
+            if not search_allowed():
+                return Measurement.lost(
+                    SYSTEM, frame, f"{reasons[0]}; {NO_TIME_FOR_SEARCH}", started=started
+                )
         solution = self._acquire(image, gradients)
         if not solution.reason:
             return self._measurement(frame, solution, "acquired", started)

@@ -61,6 +61,7 @@ from estimators.conics import (
     sampson_distances,
 )
 from estimators.corners import FeatureLayout
+from estimators.deadline import NO_TIME_FOR_SEARCH, search_allowed
 from estimators.ellipse_detection import (
     label_with_prior,
     pose_with_roll,
@@ -244,6 +245,9 @@ class EllipseEstimator:
             found = self._track(image, prior_X_CT) if prior_X_CT is not None else None
             status = "tracking"
             extracted: list[ExtractedEllipse] = []
+            if found is None and prior_X_CT is not None and not search_allowed():
+                reason = f"tracking failed; {NO_TIME_FOR_SEARCH}"
+                return Measurement.lost(SYSTEM, frame, reason, started=started)
             if found is None:
                 status = "acquired"
                 extractor = s.extractor

@@ -236,7 +236,13 @@ class VisionPipeline:
                 self._last_seq[system] = frame.seq  # passed up for good: it only gets older
                 self._fade(system)
                 continue
-            job = VisionJob(system, frame, prior, now)
+            deadline = None
+            if fused_prior is not None:
+                # With a track to act on, a failed track's fallback search (whose own pose no
+                # longer seeds anything) must end before the frame is too old, or not start.
+                searching = self._expected_s(system, acquiring=True)
+                deadline = frame.stamp + self.config.max_frame_age_s - searching
+            job = VisionJob(system, frame, prior, now, deadline)
             self.workers.start(job)
             self._running[system] = job
             free_slots -= 1

@@ -22,6 +22,7 @@ from typing import Protocol
 
 import numpy as np
 
+from estimators.deadline import search_deadline
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose
 from estimators.measurement import Estimator, Measurement
@@ -33,12 +34,17 @@ from hil.runtime.processes import peak_rss_mib, stop_process
 
 @dataclass(frozen=True, slots=True, eq=False)
 class VisionJob:
-    """A frame for one system, with fusion's prior at the frame's capture stamp."""
+    """A frame for one system, with fusion's prior at the frame's capture stamp.
+
+    ``search_deadline``: on the wall clock, the ``time.monotonic`` instant after which the
+    estimator must not fall back from a failed track to a search (``estimators.deadline``);
+    None: no limit."""
 
     system: str
     frame: Frame
     prior_X_CT: Pose | None
     started: float
+    search_deadline: float | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -97,7 +103,9 @@ class InlineWorkers:
     ``processing_s(system, acquiring=…)`` after its job started on the caller's clock
     (``--clock sim``; acquiring: the job has no prior), or,
     with ``processing_s`` None, as soon as the estimator returns, on ``clock`` (on the wall
-    clock: the serial pipeline that ``satgrasp bench loop`` compares with ``ProcessWorkers``)."""
+    clock: the serial pipeline that ``satgrasp bench loop`` compares with ``ProcessWorkers``).
+    A job's ``search_deadline`` is not applied: under modelled times the estimator's own
+    duration means nothing, and the same frames must give the same results on any machine."""
 
     def __init__(
         self,
@@ -166,9 +174,10 @@ def _worker_main(
             return
         if message is None:
             return
-        frame, prior = message
+        frame, prior, deadline = message
         started = time.perf_counter()
-        m, error = run_estimator(estimator, frame, prior)
+        with search_deadline(deadline):
+            m, error = run_estimator(estimator, frame, prior)
         jobs.send((m, time.perf_counter() - started, error))
 
 
@@ -230,7 +239,7 @@ class ProcessWorkers:
     def start(self, job: VisionJob) -> None:
         if job.system in self._busy:
             raise RuntimeError(f"the {job.system} worker is busy")
-        self._connections[job.system].send((job.frame, job.prior_X_CT))
+        self._connections[job.system].send((job.frame, job.prior_X_CT, job.search_deadline))
         self._busy[job.system] = job
 
     def finished(self, now: float) -> list[VisionResult]:

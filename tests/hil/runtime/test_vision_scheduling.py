@@ -154,3 +154,19 @@ def test_a_system_whose_time_varies_keeps_a_margin_for_it():
     stale = sum(r.outcome == "stale" for r in late)
     assert sum(r.outcome == "accepted" for r in late) >= 18  # six a second, as without
     assert stale <= 2, f"{stale} of {len(late)} results stale"
+
+
+def test_jobs_carry_a_search_deadline_once_fusion_has_a_track():
+    """Before the first fused estimate a search's pose seeds the next one, whenever it comes:
+    no deadline. With a track, a fallback search must end before the frame is too old to
+    act on: the deadline is the frame's capture + max_frame_age_s − the system's search time."""
+    workers, _, _ = run(3, charged_ms=lambda t, s: 40.0, seconds=1.5)
+    first = workers.jobs[: len(SYSTEMS)]
+    assert all(job.search_deadline is None for job in first)
+    later = [job for job in workers.jobs if job.started > 0.8]
+    assert later
+    config = VisionConfig()
+    for job in later:
+        searching = config.processing_s(job.system, acquiring=True)
+        expected = job.frame.stamp + config.max_frame_age_s - searching
+        assert job.search_deadline == pytest.approx(expected)
