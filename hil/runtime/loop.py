@@ -294,6 +294,7 @@ class ControlLoop:
             R_BE_start=self._R_BE_start,
             target_rate=rate,
             target_rate_since=self._rate_since,
+            guided=self.sequencer.guided,
         )
         violations = problems + check(
             snapshot, self.config.supervisor, self.config.servo, self.geometry

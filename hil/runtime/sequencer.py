@@ -127,6 +127,14 @@ class ApproachSequencer:
         if phase == Phase.GRASP:
             self._grasp = _GraspState(since=stamp)
 
+    @property
+    def guided(self) -> bool:
+        """Whether the estimate steers the motion now: in the moving phases, except while the
+        gripper closes, holds or opens at the grasp pose (the arm stands still then)."""
+        if self.phase == Phase.GRASP:
+            return self._grasp.step == "advance"
+        return self.phase in (Phase.APPROACH, Phase.STANDOFF, Phase.RETREAT)
+
     def start(self, stamp: float) -> None:
         self._enter(Phase.ACQUIRE, stamp, "started")
 

@@ -22,8 +22,9 @@ Every message names the measured value and its limit. The rules, by group:
 * arm envelope: workspace box, the keep-out around the arm's own base, the flange's rotation
   from its start orientation, joint-range margins, the Jacobian's smallest singular value;
 * contact: the force and torque the arm reports at the TCP;
-* estimate (in moving phases): frames and estimate fresh and healthy, approach cone, keep-out
-  distance; the target's angular rate (also while acquiring): hold, then abort.
+* estimate (in moving phases, while it steers the arm or anything moves): frames and estimate
+  fresh and healthy, approach cone, keep-out distance; the target's angular rate (also while
+  acquiring): hold, then abort.
 """
 
 from __future__ import annotations
@@ -84,6 +85,9 @@ class SafetySnapshot:
     R_BE_start: np.ndarray | None = None
     target_rate: float | None = None
     target_rate_since: float | None = None
+    #: Whether the estimate steers the arm at this tick (``ApproachSequencer.guided``): not
+    #: while the gripper closes, holds or opens at the grasp pose.
+    guided: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -132,7 +136,10 @@ def check(
         _envelope(snap, snap.arm, config, rig, fail)
     if snap.track is not None:
         _track(snap, snap.track, u if math.isfinite(u) else 0.0, config, rig, fail)
-    if snap.phase in MOVING_PHASES:
+    moving = bool(np.any(np.abs(np.nan_to_num(V, nan=1.0)) > _STILL)) or not abs(u) <= _STILL
+    if snap.phase in MOVING_PHASES and (snap.guided or moving):
+        # An arm that stands still at the grasp pose whatever the estimate says does not need
+        # a fresh one; anything that moves, or is steered by it, does.
         _estimate(snap, config, fail)
     if snap.phase in WATCHING_PHASES:
         _target_rate(snap, config, fail)

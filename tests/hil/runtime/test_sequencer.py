@@ -47,7 +47,11 @@ class ToyRig:
 
 
 def run(
-    rig: ToyRig, config: ApproachConfig, seconds: float = 60.0, estimate=lambda rig, t: rig.X_TC
+    rig: ToyRig,
+    config: ApproachConfig,
+    seconds: float = 60.0,
+    estimate=lambda rig, t: rig.X_TC,
+    on_tick=lambda seq: None,
 ):
     seq = ApproachSequencer(config)
     dt = 1.0 / config.servo.control_rate_hz
@@ -67,6 +71,7 @@ def run(
             rig.released = t
         rig.advance(out.camera_twist_C, out.track_velocity, dt)
         phases.append(out.phase)
+        on_tick(seq)
         events.extend(out.events)
         track_speeds.append(out.track_velocity)
         t += dt
@@ -96,6 +101,22 @@ def test_sequencer_runs_a_full_approach_grasp_and_retreat():
     )
     # Retreat ends back at the stand-off.
     assert pose_error(rig.X_TC, seq.X_TC_goal).distance_m < 2 * config.standoff.position_tolerance_m
+
+
+def test_sequencer_is_guided_by_the_estimate_except_while_the_gripper_works():
+    guided: dict[str, set[bool]] = {}
+
+    def note(seq):
+        step = seq._grasp.step if seq.phase == Phase.GRASP else ""
+        guided.setdefault(f"{seq.phase}{step and ':' + step}", set()).add(seq.guided)
+
+    seq, _, _, _ = run(ToyRig(), ApproachConfig(), on_tick=note)
+    assert seq.phase == Phase.DONE
+    assert guided["acquire"] == {False}
+    for moving in ("approach", "standoff", "grasp:advance", "retreat"):
+        assert guided[moving] == {True}, moving
+    for still in ("grasp:close", "grasp:hold", "grasp:release"):
+        assert guided[still] == {False}, still
 
 
 def test_sequencer_waits_for_a_lock_and_aborts_after_the_acquire_timeout():

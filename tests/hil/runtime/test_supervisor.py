@@ -737,6 +737,25 @@ def test_supervisor_ignores_the_estimate_when_nothing_moves():
     assert ("arm_link", False) in kinds(snapshot(phase="acquire", arm_error="gone", **idle))
 
 
+def test_supervisor_needs_no_fresh_estimate_while_the_gripper_works_at_the_grasp_pose():
+    """Closing, holding or opening the gripper the arm stands still whatever the estimate
+    says (``guided`` False): a coasting estimate must not abort a grasp that is under way.
+    Anything commanded to move still needs a fresh one, and so does a guided still tick."""
+    still = dict(
+        commanded_V_BE=np.zeros(6),
+        commanded_track_velocity=0.0,
+        previous_V_BE=np.zeros(6),
+        previous_track_velocity=0.0,
+    )
+    stale = dict(estimate_health="coasting", estimate_age_s=0.6, X_TC_est=None, frame_age_s=0.6)
+    assert kinds(snapshot(phase="grasp", guided=False, **still, **stale)) == set()
+    moving = {**still, "commanded_V_BE": V_SLOW, "previous_V_BE": V_SLOW}
+    assert ("estimate", True) in kinds(snapshot(phase="grasp", guided=False, **moving, **stale))
+    creeping = {**still, "commanded_track_velocity": 0.01, "previous_track_velocity": 0.01}
+    assert ("frames", True) in kinds(snapshot(phase="grasp", guided=False, **creeping, **stale))
+    assert ("estimate", True) in kinds(snapshot(phase="grasp", guided=True, **still, **stale))
+
+
 # --- the target's angular rate ------------------------------------------------------------------
 
 
