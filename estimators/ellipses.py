@@ -322,7 +322,15 @@ class EllipseEstimator:
             if fit is None:
                 fit = self._refine_full(image, prior, off_axis, None, width)
         if fit is None:
-            ring = self._refine_ring(image, ring0, None, coarse_half_width=width)
+            # The ring alone, as the full pose above: one fine stage first. Close up, where
+            # only arcs at the image's corners are left in view, the coarse stage's window
+            # reaches outside the image and finds too little.
+            ring = self._refine_ring(image, ring0, None)
+            fine_width = self.settings.fine_half_width_px + 1.0
+            if ring is not None and self._ring_moved_px(ring0, ring.ring) > fine_width:
+                ring = None
+            if ring is None:
+                ring = self._refine_ring(image, ring0, None, coarse_half_width=width)
             if ring is None or off_axis or self._ring_moved_px(ring0, ring.ring) > width:
                 # No ring, or the ring and thruster that should be there did not verify, or the
                 # ring moved beyond the window: edges of something else may have been taken.
