@@ -12,7 +12,10 @@
 * retreat: back to the stand-off pose, then done.
 
 The sequencer proposes; the supervisor (``hil.runtime.supervisor``) vetoes. ``on_violations`` moves a
-recoverable loss back to ``acquire`` and anything else to ``abort``. Time comes in with the
+recoverable loss back to ``acquire`` and anything else to ``abort``; during the guarded move and
+the retreat a recoverable loss *holds* the phase instead — the arm stands still until the
+estimate has been healthy for ``lock_s`` again, then the move goes on from where it stopped
+(abort if it does not come back within ``acquire_timeout_s``). Time comes in with the
 inputs (an injected clock), so the same code runs faster than real time in simulation.
 """
 
@@ -104,6 +107,8 @@ class ApproachSequencer:
     _events: list[tuple[str, str]] = field(default_factory=list)
     #: The kinds of recoverable violation holding the acquisition (logged once, not per tick).
     _holding: frozenset[str] = frozenset()
+    #: Since when the guarded move or the retreat has been held for the estimate (None: not).
+    _held_since: float | None = None
 
     @property
     def X_TC_goal(self) -> Pose:
@@ -126,14 +131,24 @@ class ApproachSequencer:
             self._holding = frozenset()
         if phase == Phase.GRASP:
             self._grasp = _GraspState(since=stamp)
+        self._held_since = None
 
     @property
     def guided(self) -> bool:
         """Whether the estimate steers the motion now: in the moving phases, except while the
         gripper closes, holds or opens at the grasp pose (the arm stands still then)."""
+        if self._held_since is not None:
+            return False
         if self.phase == Phase.GRASP:
             return self._grasp.step == "advance"
         return self.phase in (Phase.APPROACH, Phase.STANDOFF, Phase.RETREAT)
+
+    @property
+    def _holdable(self) -> bool:
+        """Whether a recoverable loss holds the phase (the guarded move, the retreat)."""
+        return self.phase == Phase.RETREAT or (
+            self.phase == Phase.GRASP and self._grasp.step == "advance"
+        )
 
     def start(self, stamp: float) -> None:
         self._enter(Phase.ACQUIRE, stamp, "started")
@@ -155,7 +170,12 @@ class ApproachSequencer:
         text = "; ".join(str(v) for v in violations)
         recoverable = all(v.recoverable for v in violations)
         can_reacquire = self.phase in (Phase.APPROACH, Phase.STANDOFF, Phase.ACQUIRE)
-        if recoverable and self.config.supervisor.reacquire and can_reacquire:
+        if recoverable and self.config.supervisor.reacquire and self._holdable:
+            if self._held_since is None:
+                self._held_since = stamp
+                self._events.append(("fault", f"holding the {self.phase}: {text}"))
+            self._healthy_since = None
+        elif recoverable and self.config.supervisor.reacquire and can_reacquire:
             kinds = frozenset(v.kind for v in violations)
             if self.phase != Phase.ACQUIRE or kinds != self._holding:
                 self._events.append(("fault", text))
@@ -180,7 +200,9 @@ class ApproachSequencer:
         if inputs.X_TC_est is not None:
             error = pose_error(inputs.X_TC_est, self.X_TC_goal)
 
-        if self.phase == Phase.ACQUIRE:
+        if self._held_since is not None:
+            self._hold(inputs, t)
+        elif self.phase == Phase.ACQUIRE:
             self._healthy_since = (self._healthy_since or t) if inputs.estimate_ok else None
             if (
                 self._healthy_since is not None
@@ -217,6 +239,19 @@ class ApproachSequencer:
         twist, track = self._limit(twist, track, dt)
         events = self._drain()
         return SequencerOutput(self.phase, twist, track, gripper_command, events, error)
+
+    def _hold(self, inputs: SequencerInputs, t: float) -> None:
+        """Stand still until the estimate has been healthy for ``lock_s``, then go on."""
+        supervisor = self.config.supervisor
+        self._healthy_since = (self._healthy_since or t) if inputs.estimate_ok else None
+        assert self._held_since is not None
+        if self._healthy_since is not None and t - self._healthy_since >= supervisor.lock_s:
+            self._events.append(("info", f"estimate back: the {self.phase} goes on"))
+            self._held_since = self._healthy_since = None
+        elif t - self._held_since > supervisor.acquire_timeout_s:
+            self.abort(
+                t, f"estimate not back within {supervisor.acquire_timeout_s:.0f} s in {self.phase}"
+            )
 
     def _dwelled(self, error: PoseError, t: float) -> bool:
         standoff = self.config.standoff

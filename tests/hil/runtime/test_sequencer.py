@@ -59,6 +59,8 @@ def run(
     t, phases, events, track_speeds = 0.0, [], [], []
     while t < seconds and seq.phase not in (Phase.DONE, Phase.ABORT):
         X_TC = estimate(rig, t)
+        if X_TC is None and seq.guided:  # the supervisor's rule: no estimate to steer by
+            events.extend(seq.on_violations([Violation("estimate", "estimate is lost", True)], t))
         out = seq.step(
             SequencerInputs(
                 t, X_TC, X_TC is not None, rig.X_WC.R, AXIS_W, 0.3, rig.gripper(t, seq.X_TC_grasp)
@@ -135,6 +137,7 @@ def test_sequencer_reacquires_after_a_recoverable_violation_and_aborts_otherwise
     events = seq.on_violations([Violation("estimate", "estimate is coasting", True)], 1.0)
     assert seq.phase == Phase.ACQUIRE and any(kind == "fault" for kind, _ in events)
     seq.phase = Phase.GRASP
+    seq._grasp.step = "close"
     seq.on_violations([Violation("estimate", "estimate is lost", True)], 2.0)
     assert seq.phase == Phase.ABORT and "estimate is lost" in seq.abort_reason
     seq2 = ApproachSequencer(ApproachConfig())
@@ -142,6 +145,49 @@ def test_sequencer_reacquires_after_a_recoverable_violation_and_aborts_otherwise
     seq2.phase = Phase.APPROACH
     seq2.on_violations([Violation("arm_fault", "protective stop", False)], 1.0)
     assert seq2.phase == Phase.ABORT
+
+
+@pytest.mark.parametrize("phase", [Phase.GRASP, Phase.RETREAT])
+def test_sequencer_holds_the_guarded_move_and_the_retreat_while_the_estimate_is_away(phase):
+    """A second without an estimate in the middle of the move: the arm stands still, then the
+    move goes on from where it stopped and the trial completes."""
+    now = {"phase": Phase.IDLE, "entered": None}
+
+    def note(seq):
+        if seq.phase == phase and now["entered"] is None:
+            now["entered"] = seq._phase_since
+        now["phase"] = seq.phase
+
+    def estimate(rig, t):
+        entered = now["entered"]
+        if entered is not None and entered + 0.5 <= t < entered + 1.5:
+            return None  # from half a second into the move, for a second
+        return rig.X_TC
+
+    seq, phases, events, _ = run(ToyRig(), ApproachConfig(), estimate=estimate, on_tick=note)
+    assert seq.phase == Phase.DONE, events
+    assert ("fault", f"holding the {phase}: estimate: estimate is lost") in events
+    assert ("info", f"estimate back: the {phase} goes on") in events
+    after = phases[phases.index(phase) :]
+    assert Phase.ACQUIRE not in after  # held, not sent back to acquire
+
+
+def test_sequencer_aborts_a_held_move_when_the_estimate_does_not_come_back():
+    config = ApproachConfig()
+    seq = ApproachSequencer(config)
+    seq.start(0.0)
+    seq._enter(Phase.GRASP, 1.0, "stand-off reached")
+    seq.on_violations([Violation("estimate", "estimate is lost", True)], 1.0)
+    assert seq.phase == Phase.GRASP and not seq.guided
+    dt = 1.0 / config.servo.control_rate_hz
+    t = 1.0
+    while seq.phase == Phase.GRASP and t < 60.0:
+        t += dt
+        out = seq.step(SequencerInputs(t, None, False, np.eye(3), AXIS_W, 0.3, None), dt)
+        assert not np.any(out.camera_twist_C)
+    assert seq.phase == Phase.ABORT
+    assert "estimate not back within 15 s in grasp" in seq.abort_reason
+    assert t == pytest.approx(1.0 + config.supervisor.acquire_timeout_s, abs=2 * dt)
 
 
 def test_sequencer_aborts_when_the_gripper_closes_on_nothing():
