@@ -255,21 +255,10 @@ def _develop(
         image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
         depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
     if plan.map_x is not None:
-        image = cv2.remap(
-            image,
-            plan.map_x,
-            plan.map_y,
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=0,
-        )
+        # Outside the pinhole render: black, and nothing hit.
+        image = cv2.remap(image, plan.map_x, plan.map_y, cv2.INTER_LINEAR, borderValue=0.0)
         depth = cv2.remap(
-            depth,
-            plan.map_x,
-            plan.map_y,
-            cv2.INTER_NEAREST,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=float("inf"),
+            depth, plan.map_x, plan.map_y, cv2.INTER_NEAREST, borderValue=float("inf")
         )
     np.clip(image, 0.0, 1.0, out=image)
     X_CT = X_WC.inverse() @ X_WT
