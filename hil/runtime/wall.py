@@ -23,6 +23,7 @@ import functools
 import logging
 import multiprocessing as mp
 import os
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -279,7 +280,14 @@ def await_ready(connection: Connection, what: str, process: mp.process.BaseProce
 
 class RealtimePriority:
     """``SCHED_FIFO`` for the control thread while it runs (with a logged warning when the
-    system refuses it: a rig needs CAP_SYS_NICE or an rtprio limit for its user)."""
+    system refuses it: a rig needs CAP_SYS_NICE or an rtprio limit for its user).
+
+    The interpreter's switch interval drops from 5 ms to ``SWITCH_INTERVAL_S`` meanwhile: the
+    control thread, woken for its tick, waits for the GIL until whichever other thread holds it
+    (the status display's refresh) lets go, and that thread lets go only when its interval is
+    up — 5 ms of a tick that must start within 4 ms."""
+
+    SWITCH_INTERVAL_S = 0.0005
 
     def __init__(self, priority: int = 50):
         self.priority = priority
@@ -287,6 +295,8 @@ class RealtimePriority:
         self.reason = ""
 
     def __enter__(self) -> RealtimePriority:
+        self._previous_interval = sys.getswitchinterval()
+        sys.setswitchinterval(self.SWITCH_INTERVAL_S)
         try:
             self._previous = os.sched_getscheduler(0), os.sched_getparam(0)
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.priority))
@@ -297,6 +307,7 @@ class RealtimePriority:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        sys.setswitchinterval(self._previous_interval)
         if self.granted:
             with contextlib.suppress(OSError):
                 os.sched_setscheduler(0, self._previous[0], self._previous[1])
