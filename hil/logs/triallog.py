@@ -292,7 +292,7 @@ class TrialLogWriter:
         path: str | os.PathLike[str],
         header: Mapping[str, Any],
         *,
-        flush_interval_s: float = 1.0,
+        flush_interval_s: float = 0.25,
         clock: Callable[[], float] = time.monotonic,
     ):
         if not flush_interval_s > 0:
