@@ -65,6 +65,9 @@ from hil.runtime.servo import camera_twist_to_flange
 from hil.runtime.supervisor import SafetySnapshot, Violation, check, rate_exceeded_since
 from hil.runtime.vision import LoggedImage, VisionStatus
 
+#: Camera images that may wait for a tick with room to log them (``ControlLoop._log_vision``).
+MAX_WAITING_IMAGES = 4
+
 
 class VisionLink(Protocol):
     """The control loop's view of the vision pipeline (in-process or in another process)."""
@@ -191,6 +194,8 @@ class ControlLoop:
         self._track_states: deque[TrackState] = deque(maxlen=32)
         self._R_BE_start: np.ndarray | None = None
         self._rate_since: float | None = None
+        #: Camera images for the log, waiting for a tick with room to write them.
+        self._pending_images: deque[LoggedImage] = deque()
 
     # --- helpers ------------------------------------------------------------------------
     def _event(self, t: float, kind: str, message: str, **data: Any) -> None:
@@ -311,7 +316,7 @@ class ControlLoop:
             self._track_states.append(track)
         for kind, message in events:
             self._event(t, kind, message)
-        self._log_vision()
+        self._log_vision(work_start)
         work_s = self.clock.work_time() - work_start
         record = self._record(
             t, estimate, X_CT_est, X_TC_est, command, track_velocity, gripper_command,
@@ -364,12 +369,23 @@ class ControlLoop:
             return ServoCommand.halt(t, f"command failed: {exc}"), 0.0, None, events
         return command, output.track_velocity, output.gripper_command, events
 
-    def _log_vision(self) -> None:
+    def _log_vision(self, work_start: float | None = None) -> None:
+        """Log the vision records since the last tick, and a camera image if this tick has
+        room for it (``work_start`` None: all of them now). Writing one (~200 kB of JPEG,
+        base64 in JSON, once a second) took a tick past its 8 ms under load; it waits a few
+        ticks instead — its log time is its capture stamp either way."""
         for item in self.vision.drain():
             if isinstance(item, LoggedImage):
-                self.log.write_encoded_frame(item.stamp - self._t0, item.jpeg, encoding="jpeg")
+                self._pending_images.append(item)
             else:
                 self.log.write_vision(item)
+        room = work_start is None or self.clock.work_time() - work_start < 0.5 * self.period_s
+        # One a tick when there is room; all that wait at the end; and never more than a few
+        # waiting (a loop that never has room writes them as it did before).
+        while self._pending_images and (room or len(self._pending_images) > MAX_WAITING_IMAGES):
+            image = self._pending_images.popleft()
+            self.log.write_encoded_frame(image.stamp - self._t0, image.jpeg, encoding="jpeg")
+            room = work_start is None
 
     def _record(
         self,
@@ -496,6 +512,7 @@ class ControlLoop:
             if self._stop_request is None and self._log_error() is None:
                 self.clock.sleep_until(deadline)  # else act on it now, not a period later
         self.tick()
+        self._log_vision()  # the images still waiting for room
         return TrialOutcome(
             phase=str(self.sequencer.phase),
             completed=str(self.sequencer.phase) == "done",

@@ -13,9 +13,9 @@ from configuration.vision import VisionConfig
 from drivers.clock import SimClock
 from estimators.fusion import FusionParams, PoseFusion
 from hil.runtime.history import StateHistory
-from hil.runtime.loop import ControlLoop
+from hil.runtime.loop import MAX_WAITING_IMAGES, ControlLoop
 from hil.runtime.stepped import SteppedClock
-from hil.runtime.vision import VisionPipeline
+from hil.runtime.vision import LoggedImage, VisionPipeline
 from hil.runtime.workers import InlineWorkers
 from tests.hil.runtime.loop_fakes import (
     FakeArm,
@@ -35,6 +35,7 @@ FUSION = FusionParams(coast_timeout_s=0.4, lost_timeout_s=2.0)
 class RecordingLog:
     def __init__(self):
         self.ticks, self.events, self.vision, self.frames = [], [], [], []
+        self.frames_at_tick = []  # how many ticks were logged when each frame was
         self.event_data = []  # each event's data, beside ``events``
         self.error = None  # set by a test: the log can no longer be written
 
@@ -48,6 +49,7 @@ class RecordingLog:
 
     def write_encoded_frame(self, t, data, *, encoding="jpeg"):
         self.frames.append(t)
+        self.frames_at_tick.append(len(self.ticks))
         return True
 
     def write_event(self, t, kind, message, /, **data):
@@ -342,3 +344,31 @@ def test_loop_stop_devices_stops_the_track_when_the_arm_stop_raises():
     assert ("fault", "arm stop failed: RuntimeError: controller gone") in [
         e[1:] for e in bench.log.events
     ]
+
+
+@pytest.mark.parametrize("busy", [False, True])
+def test_loop_logs_camera_images_in_ticks_with_room_and_never_loses_one(busy):
+    """An image (~200 kB once a second) is written in a tick that has used less than half its
+    period, one a tick; the ones still waiting when the trial ends are written then."""
+    bench = make_loop(vision=VisionConfig(log_frames_every_s=0.5))
+    drained = []
+    drain = bench.vision.drain
+
+    def counting_drain():
+        items = drain()
+        drained.extend(item.stamp for item in items if isinstance(item, LoggedImage))
+        return items
+
+    bench.vision.drain = counting_drain
+    if busy:  # every tick looks as if it had used 5 ms of its 8 by the time it logs
+        clock, elapsed = bench.loop.clock, iter(range(10**9))
+        clock.work_time = lambda: 0.005 * next(elapsed)
+    outcome = bench.loop.run(max_duration_s=8.0)
+    log = bench.log
+    assert len(drained) >= 10
+    assert sorted(log.frames) == sorted(t - bench.loop._t0 for t in drained)  # none lost
+    if busy:  # only ever written when more than a few wait, and the rest at the end
+        waiting_at_end = log.frames_at_tick.count(outcome.ticks)
+        assert 1 <= waiting_at_end <= MAX_WAITING_IMAGES
+    else:
+        assert max(log.frames_at_tick) < outcome.ticks  # written as they came
