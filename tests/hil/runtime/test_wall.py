@@ -5,6 +5,7 @@ never hold up a control tick: the loop keeps its period and sees the estimate ag
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import sys
 import threading
 import time
@@ -128,3 +129,37 @@ def test_realtime_priority_shortens_the_switch_interval_while_it_holds():
     with RealtimePriority():
         assert sys.getswitchinterval() == RealtimePriority.SWITCH_INTERVAL_S < before
     assert sys.getswitchinterval() == before
+
+
+def test_vision_client_never_waits_for_a_message_still_on_its_way():
+    """A record batch with a camera image is a few hundred kB, written by the vision process in
+    pieces: the control tick takes what has arrived whole and never blocks on the rest."""
+    import pickle
+    import struct
+
+    from hil.runtime.vision import LoggedImage
+    from hil.runtime.wall import VisionClient
+
+    class NoStates:
+        def close(self):
+            pass
+
+    ours, theirs = mp.Pipe()
+    client = VisionClient(ours, NoStates())
+    image = LoggedImage(1.0, bytes(300_000))
+    payload = pickle.dumps(("records", [image]))
+    message = struct.pack("!i", len(payload)) + payload
+    fd = theirs.fileno()
+    os.write(fd, message[:100_000])  # the first third, then the writer is descheduled
+    time.sleep(0.05)
+    started = time.perf_counter()
+    assert client.drain() == []
+    assert time.perf_counter() - started < 0.005
+    os.write(fd, message[100_000:])
+    deadline = time.monotonic() + 2.0
+    items = []
+    while not items and time.monotonic() < deadline:
+        items = client.drain()
+        time.sleep(0.01)
+    assert len(items) == 1 and items[0].jpeg == image.jpeg
+    theirs.close()
