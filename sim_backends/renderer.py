@@ -178,8 +178,14 @@ class RasterRenderer:
         compile_kernel()  # now, not at the first frame (a cold numba cache takes seconds)
 
     @staticmethod
+    def draws(lighting: Lighting) -> bool:
+        """Whether this renderer draws ``lighting`` as TinyRenderer would (no shadows, no
+        specular light)."""
+        return not lighting.shadows and lighting.specular == 0.0
+
+    @staticmethod
     def _check(lighting: Lighting) -> None:
-        if lighting.shadows or lighting.specular > 0.0:
+        if not RasterRenderer.draws(lighting):
             raise ValueError(
                 "render.engine: raster draws no shadows or specular light "
                 f"(lighting.shadows={lighting.shadows}, lighting.specular={lighting.specular}); "
@@ -225,8 +231,7 @@ def make_renderer(
     config = config or RenderConfig()
     engine = config.engine
     if engine == "auto":
-        lighting = config.lighting
-        drawable = scene.mesh is not None and not lighting.shadows and lighting.specular == 0.0
+        drawable = scene.mesh is not None and RasterRenderer.draws(config.lighting)
         engine = "raster" if drawable else "pybullet"
     if engine == "raster":
         return RasterRenderer(scene, info, config)
