@@ -142,8 +142,10 @@ class URArmDevice(URArmConfig):
 
 class ModbusDevice(Strict):
     """A device on Modbus TCP at ``host``:``port``, ``device_id`` (unit id). ``timeout_s``
-    bounds connecting and every reply: a control tick waits at most that long for a silent
-    device (keep it well below a second). ``emulate``: serve the simulated model there."""
+    bounds connecting and every reply: a silent device is reported within two time-outs and
+    two ``io_period_s`` of its last reply (keep it well below a second). The device is read, and
+    commanded, every ``io_period_s`` on an I/O thread of its own (``drivers.threaded_io``), so a
+    control tick never waits on a round trip. ``emulate``: serve the simulated model there."""
 
     backend: Literal["modbus"]
     emulate: bool = False
@@ -151,6 +153,7 @@ class ModbusDevice(Strict):
     port: Annotated[int, Field(ge=1, le=65535)] = 502
     device_id: Annotated[int, Field(ge=0, le=247)]
     timeout_s: Annotated[float, Field(gt=0.0, le=5.0)] = 0.1
+    io_period_s: Annotated[float, Field(gt=0.0, le=0.5)] = 0.01
 
     def endpoint(self) -> ModbusEndpoint:
         return ModbusEndpoint(
@@ -170,6 +173,7 @@ class RobotiqGripperDevice(ModbusDevice):
     ``activation_timeout_s``."""
 
     device_id: Annotated[int, Field(ge=0, le=247)] = 9
+    io_period_s: Annotated[float, Field(gt=0.0, le=0.5)] = 0.02  # its state changes slowly
     activation_timeout_s: Annotated[float, Field(gt=0.0, le=60.0)] = 10.0
 
 

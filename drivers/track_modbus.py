@@ -182,12 +182,17 @@ class ModbusTrack:
     # --- commands -----------------------------------------------------------------------
     def move_velocity(self, velocity: float) -> None:
         """Run at ``velocity`` (m/s, signed along the axis) until told otherwise."""
+        self.check_velocity(velocity)
+        self._command(TrackRegisters.MODE_VELOCITY, velocity=velocity)
+
+    def check_velocity(self, velocity: float) -> None:
+        """What ``move_velocity(velocity)`` would refuse, without sending it: ``DeviceError``
+        when the track is not active, ``ValueError`` outside the device's speed limit."""
         self._require_active("move_velocity")
         if not math.isfinite(velocity) or abs(velocity) > self.max_speed:
             raise ValueError(
                 f"track velocity {velocity} m/s is outside ±{self.max_speed} m/s (max_speed)"
             )
-        self._command(TrackRegisters.MODE_VELOCITY, velocity=velocity)
 
     def move_to(self, position: float, speed: float) -> None:
         """Move to ``position`` (m) at up to ``speed`` (m/s) with a trapezoidal profile."""

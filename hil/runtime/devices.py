@@ -7,7 +7,8 @@ protocols.
 * ``emulated_endpoints``: where the emulators of an emulated rig listen
   (``sim_backends.emulated_world``).
 * ``RealDevices``: the arm, track and gripper drivers — ``URArm`` on ur-rtde, ``ModbusTrack`` and
-  ``RobotiqGripper`` on pymodbus — built from configuration, brought up (connect, then activate,
+  ``RobotiqGripper`` on pymodbus, each on an I/O thread of its own (``drivers.threaded_io``) —
+  built from configuration, brought up (connect, then activate,
   then the gripper's own activation) within bounded times, and closed on every way out.
 * ``device_camera_main``: the camera process of a real OAK (or a replayed recording): it reads
   the camera and hands the newest frame to the vision process, like the rendering camera
@@ -35,6 +36,7 @@ from configuration.devices import (
 from configuration.rig import RigConfig
 from drivers.base import DeviceError, DeviceTimeout, ServoCommand
 from drivers.gripper_robotiq import RobotiqGripper
+from drivers.threaded_io import ThreadedGripper, ThreadedTrack
 from drivers.track_modbus import ModbusTrack
 from drivers.ur_rtde import URArm
 from sim_backends.emulated_world import EmulatedEndpoints
@@ -71,8 +73,8 @@ class RealDevices:
     """The real drivers of arm, track and gripper (``drivers.base`` protocols)."""
 
     arm: URArm
-    track: ModbusTrack
-    gripper: RobotiqGripper
+    track: ThreadedTrack
+    gripper: ThreadedGripper
     gripper_activation_s: float = 10.0
 
     @staticmethod
@@ -82,21 +84,27 @@ class RealDevices:
         arm, track, gripper = _drivers_of(devices)
         return RealDevices(
             arm=arm.driver(),
-            track=ModbusTrack.over_tcp(
-                track.host, track.port, track.device_id, timeout_s=track.timeout_s
+            track=ThreadedTrack(
+                ModbusTrack.over_tcp(
+                    track.host, track.port, track.device_id, timeout_s=track.timeout_s
+                ),
+                period_s=track.io_period_s,
             ),
-            gripper=RobotiqGripper.over_tcp(
-                gripper.host,
-                gripper.port,
-                gripper.device_id,
-                timeout_s=gripper.timeout_s,
-                speed=rig.gripper.grip_speed,
-                force=rig.gripper.grip_force,
+            gripper=ThreadedGripper(
+                RobotiqGripper.over_tcp(
+                    gripper.host,
+                    gripper.port,
+                    gripper.device_id,
+                    timeout_s=gripper.timeout_s,
+                    speed=rig.gripper.grip_speed,
+                    force=rig.gripper.grip_force,
+                ),
+                period_s=gripper.io_period_s,
             ),
             gripper_activation_s=gripper.activation_timeout_s,
         )
 
-    def named(self) -> dict[str, URArm | ModbusTrack | RobotiqGripper]:
+    def named(self) -> dict[str, URArm | ThreadedTrack | ThreadedGripper]:
         return {"arm": self.arm, "track": self.track, "gripper": self.gripper}
 
     def start(self, *, clock: Callable[[], float] = time.monotonic) -> None:
