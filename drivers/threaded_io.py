@@ -188,8 +188,8 @@ class ThreadedTrack:
         self,
         track: ModbusTrack,
         *,
-        period_s: float = 0.01,
-        stale_after_s: float | None = None,
+        period_s: float,
+        stale_after_s: float,
         command_timeout_s: float = 0.1,
         resend_s: float = 0.05,
         clock: Callable[[], float] = time.monotonic,
@@ -205,7 +205,7 @@ class ThreadedTrack:
             track.link.description,
             track.state,
             period_s=period_s,
-            stale_after_s=stale_after_s or _stale_after(track.link, period_s),
+            stale_after_s=stale_after_s,
             check=self._watchdog,
             clock=clock,
         )
@@ -287,8 +287,8 @@ class ThreadedGripper:
         self,
         gripper: RobotiqGripper,
         *,
-        period_s: float = 0.02,
-        stale_after_s: float | None = None,
+        period_s: float,
+        stale_after_s: float,
         clock: Callable[[], float] = time.monotonic,
     ):
         self._gripper = gripper
@@ -296,7 +296,7 @@ class ThreadedGripper:
             gripper.link.description,
             gripper.state,
             period_s=period_s,
-            stale_after_s=stale_after_s or _stale_after(gripper.link, period_s),
+            stale_after_s=stale_after_s,
             clock=clock,
         )
 
@@ -328,8 +328,8 @@ class ThreadedGripper:
         self._io.post(self._gripper.grip)
 
 
-def _stale_after(link: RegisterLink, period_s: float) -> float:
-    """A silent device is reported by the cycle's failed request, at most a period and two
-    time-outs (the command's and the read's) after the last good read; no read for longer
-    than that and another period means the thread itself is stuck or starved."""
-    return 2 * getattr(link, "timeout_s", 0.1) + 2 * period_s
+def stale_after(timeout_s: float, period_s: float) -> float:
+    """How long without a good read means the I/O thread is stuck or starved: a silent device
+    is reported by the cycle's failed request, at most a period and two time-outs (the
+    command's and the read's) after the last good read; one more period of slack."""
+    return 2 * timeout_s + 2 * period_s

@@ -36,7 +36,7 @@ from configuration.devices import (
 from configuration.rig import RigConfig
 from drivers.base import DeviceError, DeviceTimeout, ServoCommand
 from drivers.gripper_robotiq import RobotiqGripper
-from drivers.threaded_io import ThreadedGripper, ThreadedTrack
+from drivers.threaded_io import ThreadedGripper, ThreadedTrack, stale_after
 from drivers.track_modbus import ModbusTrack
 from drivers.ur_rtde import URArm
 from sim_backends.emulated_world import EmulatedEndpoints
@@ -89,6 +89,7 @@ class RealDevices:
                     track.host, track.port, track.device_id, timeout_s=track.timeout_s
                 ),
                 period_s=track.io_period_s,
+                stale_after_s=stale_after(track.timeout_s, track.io_period_s),
             ),
             gripper=ThreadedGripper(
                 RobotiqGripper.over_tcp(
@@ -100,6 +101,7 @@ class RealDevices:
                     force=rig.gripper.grip_force,
                 ),
                 period_s=gripper.io_period_s,
+                stale_after_s=stale_after(gripper.timeout_s, gripper.io_period_s),
             ),
             gripper_activation_s=gripper.activation_timeout_s,
         )

@@ -7,17 +7,20 @@ from __future__ import annotations
 import threading
 import time
 
+import numpy as np
 import pytest
 
+from drivers import threaded_io
 from drivers.base import DeviceError, DeviceFault, DeviceTimeout, Gripper, Track
 from drivers.gripper_robotiq import RobotiqGripper, RobotiqRegisters
 from drivers.modbus_link import registers_to_int32
-from drivers.threaded_io import DeviceIo, ThreadedGripper, ThreadedTrack
+from drivers.threaded_io import DeviceIo, ThreadedGripper, ThreadedTrack, stale_after
 from drivers.track_modbus import ModbusTrack
 from tests.drivers.register_fakes import RecordingLink
 from tests.drivers.test_track_modbus import R, limits_image, status_image
 
 PERIOD = 0.005
+STALE = stale_after(0.1, PERIOD)
 
 
 def eventually(condition, timeout_s=2.0):
@@ -32,7 +35,8 @@ def eventually(condition, timeout_s=2.0):
 
 def threaded_track(**options):
     link = RecordingLink(limits_image() | status_image())
-    track = ThreadedTrack(ModbusTrack(link), period_s=PERIOD, **options)
+    options = {"period_s": PERIOD, "stale_after_s": STALE} | options
+    track = ThreadedTrack(ModbusTrack(link), **options)
     track.connect()
     track.activate()
     link.writes.clear()
@@ -57,7 +61,10 @@ def sent_velocity(words) -> float:
 def test_threaded_devices_implement_their_protocols(track):
     _, threaded = track
     assert isinstance(threaded, Track)
-    assert isinstance(ThreadedGripper(RobotiqGripper(RecordingLink())), Gripper)
+    assert isinstance(
+        ThreadedGripper(RobotiqGripper(RecordingLink()), period_s=PERIOD, stale_after_s=STALE),
+        Gripper,
+    )
     assert (threaded.travel_min, threaded.travel_max) == (-0.5, 2.05)
     assert (threaded.max_speed, threaded.max_acceleration) == (0.25, 0.5)
 
@@ -86,7 +93,7 @@ def test_threaded_track_refuses_a_velocity_at_once_on_both_signs(track, sign):
 
 def test_threaded_track_refuses_motion_before_activation():
     link = RecordingLink(limits_image() | status_image())
-    threaded = ThreadedTrack(ModbusTrack(link), period_s=PERIOD)
+    threaded = ThreadedTrack(ModbusTrack(link), period_s=PERIOD, stale_after_s=STALE)
     threaded.connect()
     try:
         with pytest.raises(DeviceError, match="not active"):
@@ -105,11 +112,12 @@ def test_threaded_track_sends_the_newest_velocity_and_repeats_an_unchanged_one_r
     time.sleep(3 * PERIOD)
     sent = [sent_velocity(w) for w in velocity_writes(link)]
     assert sent[-1] == 0.03 and 0.01 not in sent[1:]  # older posts were replaced
-    count = len(sent)
-    for _ in range(10):  # the same velocity every control tick, for 20 ms
+    count, start = len(sent), time.monotonic()
+    for _ in range(10):  # the same velocity every control tick
         threaded.move_velocity(0.03)
         time.sleep(0.002)
-    assert len(velocity_writes(link)) <= count + 1
+    resends = (time.monotonic() - start) / threaded.resend_s + 1
+    assert len(velocity_writes(link)) - count <= resends
 
 
 def test_threaded_track_stop_is_sent_at_once_and_wins_over_a_posted_move(track):
@@ -169,15 +177,15 @@ def test_threaded_track_stops_itself_when_the_loop_stops_commanding_a_motion():
 
 
 def test_threaded_track_is_not_stopped_while_the_loop_keeps_commanding():
-    link, threaded = threaded_track(command_timeout_s=0.03)
+    link, threaded = threaded_track(command_timeout_s=0.3)
     try:
-        for _ in range(40):  # 0.16 s of 4 ms ticks: well past the 30 ms limit in all
+        for _ in range(80):  # 0.8 s of 10 ms ticks: well past the limit in all
             threaded.move_velocity(0.1)
             threaded.state()
-            time.sleep(0.004)
+            time.sleep(0.01)
         assert all(w[1] == R.MODE_VELOCITY for _, w in link.writes)
         threaded.move_velocity(0.0)  # at rest, silence is no fault
-        time.sleep(0.1)
+        time.sleep(0.4)
         threaded.state()
     finally:
         threaded.close()
@@ -204,7 +212,7 @@ def test_threaded_track_close_ends_the_thread_and_closes_the_link():
 
 def test_threaded_track_connect_fails_on_a_device_that_does_not_answer():
     link = RecordingLink(limits_image())
-    threaded = ThreadedTrack(ModbusTrack(link), period_s=PERIOD)
+    threaded = ThreadedTrack(ModbusTrack(link), period_s=PERIOD, stale_after_s=STALE)
     read = link.read_input
 
     def status_unreadable(address, count):
@@ -219,7 +227,7 @@ def test_threaded_track_connect_fails_on_a_device_that_does_not_answer():
 
 def test_threaded_gripper_posts_finger_commands_and_reads_its_status():
     link = RecordingLink()
-    gripper = ThreadedGripper(RobotiqGripper(link), period_s=PERIOD)
+    gripper = ThreadedGripper(RobotiqGripper(link), period_s=PERIOD, stale_after_s=STALE)
     gripper.connect()
     try:
         gripper.grip()
@@ -249,3 +257,164 @@ def _raises(call, kind, caught: list | None = None) -> bool:
             caught.append(exc)
         return True
     return False
+
+
+# --- from the mutation run's survivors (docs/faults.md) ------------------------------------------
+
+
+def test_stale_limit_is_two_time_outs_and_two_periods():
+    assert stale_after(0.1, 0.01) == pytest.approx(0.22)
+    assert stale_after(0.5, 0.02) == pytest.approx(1.04)
+
+
+def test_threaded_track_documented_defaults():
+    _, threaded = threaded_track()
+    try:
+        assert (threaded.command_timeout_s, threaded.resend_s) == (0.1, 0.05)
+    finally:
+        threaded.close()
+
+
+def test_threaded_track_sends_the_first_command_even_if_it_is_zero(track):
+    link, threaded = track
+    threaded.move_velocity(0.0)
+    assert eventually(lambda: velocity_writes(link))
+
+
+def test_threaded_track_synchronous_calls_reach_the_device_before_returning(track):
+    link, threaded = track
+    threaded.move_to(0.5, 0.1)
+    assert link.writes[-1][1][1] == R.MODE_POSITION
+    assert sent_velocity(link.writes[-1][1]) == 0.0
+    threaded.deactivate()
+    assert link.writes[-1][1][:2] == [0, R.MODE_STOP]  # drive power off
+    with pytest.raises(DeviceError, match="not active"):
+        threaded.move_velocity(0.1)
+
+
+def test_threaded_track_after_a_stop_silence_is_no_fault():
+    link, threaded = threaded_track(command_timeout_s=0.03)
+    try:
+        threaded.move_velocity(0.1)
+        threaded.stop()
+        time.sleep(0.15)
+        threaded.state()  # no "no command from the control loop"
+        assert [w[1] for _, w in link.writes].count(R.MODE_STOP) == 1
+    finally:
+        threaded.close()
+
+
+def test_threaded_track_watchdog_stops_once_and_reports_once():
+    link, threaded = threaded_track(command_timeout_s=0.03)
+    try:
+        threaded.move_velocity(0.1)
+        assert eventually(lambda: _raises(threaded.state, DeviceFault), timeout_s=1.0)
+        time.sleep(0.1)
+        threaded.state()
+        assert [w[1] for _, w in link.writes].count(R.MODE_STOP) == 1
+    finally:
+        threaded.close()
+
+
+def test_device_io_thread_is_a_named_daemon_and_close_before_connect_is_harmless():
+    ThreadedTrack(ModbusTrack(RecordingLink()), period_s=PERIOD, stale_after_s=STALE).close()
+    _, threaded = threaded_track()
+    try:
+        (io,) = [t for t in threading.enumerate() if t.name == "recording link-io"]
+        assert io.daemon  # a stuck device must not keep the program from exiting
+    finally:
+        threaded.close()
+
+
+def test_device_io_close_does_not_wait_forever_on_a_stuck_device(monkeypatch):
+    monkeypatch.setattr(threaded_io, "_JOIN_S", 0.1)
+    release = threading.Event()
+    calls = []
+    io = DeviceIo(
+        "dev",
+        lambda: calls.append(1) or (len(calls) > 1 and release.wait(5)),
+        period_s=PERIOD,
+        stale_after_s=STALE,
+    )
+    io.start()
+    assert eventually(lambda: len(calls) > 1)
+    start = time.monotonic()
+    io.stop()
+    assert time.monotonic() - start < 1.0
+    release.set()
+
+
+def test_device_io_staleness_on_its_own_clock_and_limit_inclusive():
+    now = [0.0]
+    release = threading.Event()
+    calls = []
+
+    def read():
+        calls.append(now[0])
+        if len(calls) > 1:
+            release.wait(5)  # stuck from the second read on
+        return "state"
+
+    io = DeviceIo("dev", read, period_s=PERIOD, stale_after_s=0.5, clock=lambda: now[0])
+    io.start()
+    try:
+        assert eventually(lambda: len(calls) > 1)
+        now[0] = 0.5
+        assert io.latest() == "state"  # exactly at the limit: still fresh
+        now[0] = 0.5001
+        with pytest.raises(DeviceTimeout, match=r"dev: no status for 0\.500 s"):
+            io.latest()
+    finally:
+        release.set()
+        io.stop()
+
+
+def test_device_io_keeps_its_period_and_recovers_from_a_slow_round_trip():
+    calls = []
+
+    def read():
+        calls.append(time.monotonic())
+        if len(calls) == 3:
+            time.sleep(0.15)  # one round trip three periods long
+        return len(calls)
+
+    io = DeviceIo("dev", read, period_s=0.05, stale_after_s=1.0)
+    io.start()
+    try:
+        time.sleep(0.5)
+    finally:
+        io.stop()
+    assert 6 <= len(calls) <= 10, len(calls)  # ~0.35 s of 0.05 s periods; no busy loop
+    gaps = np.diff(calls)
+    assert gaps[3] < 0.2 + 0.05  # the next read right after the slow one, not a second later
+    assert np.all(gaps[4:] > 0.03)  # and no burst catching up
+
+
+def test_device_io_names_the_device_in_a_command_failure():
+    io = DeviceIo("dev", lambda: "state", period_s=PERIOD, stale_after_s=STALE)
+    io.start()
+    try:
+        io.post(lambda: 1 / 0)
+        caught = []
+        assert eventually(lambda: _raises(io.latest, DeviceError, caught))
+        assert str(caught[0]) == "dev: ZeroDivisionError: division by zero"
+    finally:
+        io.stop()
+
+
+def test_threaded_gripper_synchronous_and_posted_commands():
+    link = RecordingLink()
+    gripper = ThreadedGripper(RobotiqGripper(link), period_s=PERIOD, stale_after_s=STALE)
+    gripper.connect()
+    try:
+        gripper.activate()
+        assert len(link.writes) == 2  # reset, then activation request: both sent before return
+        gripper.deactivate()
+        gripper.open()
+        assert eventually(lambda: len(link.writes) == 3)
+        link.unreadable = DeviceTimeout("gateway silent")
+        caught = []
+        assert eventually(lambda: _raises(gripper.state, DeviceTimeout, caught))
+        assert "gateway silent" in str(caught[0])
+    finally:
+        gripper.close()
