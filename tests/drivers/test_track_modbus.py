@@ -2,6 +2,7 @@
 127.0.0.1 (each test starts and stops its own server); and the real track when SATGRASP_TRACK is
 set (hardware)."""
 
+import math
 import socket
 import threading
 import time
@@ -368,6 +369,8 @@ def test_modbus_track_before_connect_checks_only_the_register_range():
     but what its registers cannot hold (µm and µm/s in 32 bits: ±2147 m)."""
     link = RecordingLink()
     track = ModbusTrack(link)
+    limits = (track.travel_min, track.travel_max, track.max_speed, track.max_acceleration)
+    assert limits == (-math.inf, math.inf, math.inf, math.inf)
     track.activate()
     track.move_velocity(-3.0)
     track.move_to(-5.0, 4.0)

@@ -818,3 +818,183 @@ def test_grasp_cannot_be_configured_faster_than_the_slow_speed():
         ApproachConfig.model_validate({"grasp": {"speed": 0.05}})
     far = {"standoff": {"distance_m": 1.0}, "grasp": {"speed": 0.05}}
     assert ApproachConfig.model_validate(far).grasp.speed == 0.05
+
+
+# --- limits are inclusive, and every violation names its value and its limit -------------------
+# (from the mutation run's survivors, docs/faults.md: a rule that flagged a value exactly at
+# its limit, or lost its message, passed every test above)
+
+#: A control period whose multiples and quotients are exact in binary floating point, so that a
+#: quantity can be put exactly on its limit.
+EXACT_DT = 0.25
+
+
+def exactly_at_limit_passes(snap_at, kind):
+    assert kind not in kind_names(snap_at), kind
+
+
+def test_supervisor_deadline_limit_is_inclusive_and_its_message_rounds_both_numbers():
+    exactly_at_limit_passes(snapshot(tick_s=SUP.max_tick_s), "deadline")
+    config = SUP.model_copy(update={"max_tick_s": 0.02448})
+    said = "; ".join(v.message for v in violations(snapshot(tick_s=0.04948), config=config))
+    assert "tick took 49 ms > 24 ms" in said
+
+
+def test_supervisor_commanded_accelerations_at_their_limits_pass_and_are_named_above():
+    max_a = SERVO.max_acceleration * SUP.acceleration_margin
+    max_alpha = math.radians(SERVO.max_angular_acceleration_deg) * SUP.acceleration_margin
+    still = np.zeros(6)
+    timing = dict(period_s=EXACT_DT, previous_V_BE=still, previous_track_velocity=0.0)
+    for part, limit in ((0, max_a), (3, max_alpha)):
+        V = still.copy()
+        V[part] = limit * EXACT_DT
+        exactly_at_limit_passes(snapshot(commanded_V_BE=V, **timing), "acceleration")
+    exactly_at_limit_passes(
+        snapshot(commanded_track_velocity=max_a * EXACT_DT, **timing), "acceleration"
+    )
+    over = dict(commanded_V_BE=np.array([0.5, 0, 0, 0, 0, 0.5]), commanded_track_velocity=0.5)
+    said = message(snapshot(period_s=EXACT_DT, previous_V_BE=still, **over), "acceleration")
+    assert f"commanded flange acceleration 2.00 m/s², limit {max_a:.2f} m/s²" in said
+    assert (
+        f"commanded angular acceleration 115°/s², limit {math.degrees(max_alpha):.0f}°/s²" in said
+    )
+    assert "commanded track acceleration 1.80 m/s²" in said and f"limit {max_a:.2f} m/s²" in said
+
+
+def test_supervisor_measured_motion_at_its_limits_passes_and_is_named_above():
+    max_v = SERVO.max_speed * SUP.speed_margin * 1.5
+    at_speed = np.array([max_v, 0, 0, 0, 0, 0])
+    exactly_at_limit_passes(snapshot(arm=arm(at_speed), previous_arm=arm(at_speed)), "speed")
+    # the flange's speed is its linear part only, whatever it turns at
+    turning = np.array([0.99 * max_v, 0, 0, 2.0, 0, 0])
+    assert "speed" not in kind_names(snapshot(arm=arm(turning), previous_arm=arm(turning)))
+    fast = np.array([1.1 * max_v, 0, 0, 0, 0, 0])
+    assert f"measured flange speed {1.1 * max_v:.3f} m/s, limit {max_v:.3f} m/s" in message(
+        snapshot(arm=arm(fast), previous_arm=arm(fast)), "speed"
+    )
+    # accelerations over exactly half the period (states that far apart are differentiated)
+    half = dict(period_s=EXACT_DT, previous_arm=arm(np.zeros(6), stamp=1.0 - EXACT_DT / 2))
+    max_a = SUP.max_measured_acceleration
+    max_alpha = math.radians(SUP.max_measured_angular_acceleration_deg)
+    for part, limit in ((0, max_a), (3, max_alpha)):
+        V = np.zeros(6)
+        V[part] = limit * EXACT_DT / 2
+        exactly_at_limit_passes(snapshot(arm=arm(V), **half), "acceleration")
+        V[part] *= 2
+        assert "acceleration" in kind_names(snapshot(arm=arm(V), **half)), part
+    jump = np.array([2 * max_a * EXACT_DT / 2, 0, 0, 2 * max_alpha * EXACT_DT / 2, 0, 0])
+    said = message(snapshot(arm=arm(jump), **half), "acceleration")
+    assert f"measured flange acceleration {2 * max_a:.2f} m/s², limit {max_a:.2f} m/s²" in said
+    assert (
+        f"measured angular acceleration {math.degrees(2 * max_alpha):.0f}°/s², "
+        f"limit {SUP.max_measured_angular_acceleration_deg:.0f}°/s²" in said
+    )
+
+
+def at_position(p) -> ArmState:
+    return arm(X=Pose(R_BE, np.asarray(p, dtype=float)))
+
+
+def test_supervisor_workspace_and_keep_out_edges_are_inside():
+    lo, hi = SUP.workspace_min_B, SUP.workspace_max_B
+    for corner in ((lo[0], 0.0, 0.3), (hi[0], 0.0, 0.3), (0.75, lo[1], 0.3), (0.75, 0.0, hi[2])):
+        exactly_at_limit_passes(snapshot(arm=at_position(corner)), "workspace")
+    r, h = SUP.base_keepout_radius_m, SUP.base_keepout_height_m
+    exactly_at_limit_passes(snapshot(arm=at_position((r, 0.0, 0.1))), "workspace")
+    exactly_at_limit_passes(snapshot(arm=at_position((0.1, 0.0, h))), "workspace")
+    said = message(snapshot(arm=at_position((1.41234, 0.0, 0.3))), "workspace")
+    assert said.startswith("flange at [1.412, 0.0, 0.3] m is outside the workspace box")
+
+
+def test_supervisor_joint_exactly_at_its_margin_passes():
+    joint = 1
+    allowed = UR_JOINT_RANGE_DEG[joint] - SUP.joint_margin_deg
+    q = Q0.copy()
+    q[joint] = math.radians(allowed)
+    while np.degrees(q)[joint] < allowed:  # the radian nearest below may read back just under
+        q[joint] = np.nextafter(q[joint], np.inf)
+    assert np.degrees(q)[joint] == allowed
+    exactly_at_limit_passes(snapshot(arm=arm(q=q)), "joint_limit")
+
+
+def test_supervisor_contact_limits_are_inclusive_and_force_is_the_linear_part_only():
+    exactly_at_limit_passes(
+        snapshot(arm=arm(wrench_B=[SUP.max_contact_force, 0, 0, 0, 0, 0])), "contact"
+    )
+    exactly_at_limit_passes(
+        snapshot(arm=arm(wrench_B=[0, 0, 0, SUP.max_contact_torque, 0, 0])), "contact"
+    )
+    # a force just under its limit and a torque under its own: their 6-vector norm is no force
+    wrench = [0.99 * SUP.max_contact_force, 0, 0, 0.9 * SUP.max_contact_torque, 0, 0]
+    assert "contact" not in kind_names(snapshot(arm=arm(wrench_B=wrench)))
+    assert "torque 5.20 N·m at the tool, limit 5.0 N·m" in message(
+        snapshot(arm=arm(wrench_B=[0, 0, 0, 0, 5.2, 0])), "contact"
+    )
+
+
+def test_supervisor_singularity_message_names_value_and_limit():
+    q = Q0.copy()
+    q[4] = 0.0
+    assert message(snapshot(arm=arm(q=q)), "singularity").startswith(
+        "smallest singular value of the arm's Jacobian 0.000, limit"
+    )
+
+
+def test_supervisor_track_exactly_at_its_braking_limit_passes():
+    assert RIG.max_track_acceleration == 0.5
+    high = RIG.travel_max - SUP.track_limit_margin_m
+    position = high - 0.125  # at 0.25 m/s: 0.0625 m in the period, 0.0625 m braking at 0.5 m/s²
+    while stopping_position(position, 0.25, 0.5, EXACT_DT) < high:
+        position = np.nextafter(position, np.inf)
+    while stopping_position(position, 0.25, 0.5, EXACT_DT) > high:
+        position = np.nextafter(position, -np.inf)
+    assert stopping_position(position, 0.25, 0.5, EXACT_DT) == high
+    at_edge = dict(
+        period_s=EXACT_DT,
+        track=track(position, 0.25),
+        previous_track=track(position, 0.25, stamp=1.0 - EXACT_DT),
+        commanded_track_velocity=0.0,
+        previous_track_velocity=0.0,
+    )
+    exactly_at_limit_passes(snapshot(**at_edge), "track_travel")
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_supervisor_non_finite_track_command_is_a_command_fault_not_a_travel_one(bad):
+    # the travel rule judges the measured motion only: a non-finite command is named as such
+    snap = snapshot(commanded_track_velocity=bad, track=track(1.0, 0.0))
+    assert "command" in kind_names(snap)
+    assert "track_travel" not in kind_names(snap)
+
+
+def test_supervisor_a_non_finite_twist_counts_as_motion():
+    nan_twist = np.array([np.nan, 0, 0, 0, 0, 0])
+    stale = dict(guided=False, estimate_age_s=10.0, commanded_track_velocity=0.0)
+    assert "estimate" in kind_names(snapshot(commanded_V_BE=nan_twist, **stale))
+    # and a twist or a track velocity of exactly the stillness threshold does not
+    tiny = np.array([1e-9, 0, 0, 0, 0, 0])
+    assert "estimate" not in kind_names(snapshot(commanded_V_BE=tiny, **stale))
+    still = dict(stale, commanded_track_velocity=1e-9, previous_track_velocity=1e-9)
+    assert "estimate" not in kind_names(snapshot(commanded_V_BE=np.zeros(6), **still))
+    at_rest = dict(phase="done", commanded_track_velocity=1e-9, previous_track_velocity=1e-9)
+    assert "command" not in kind_names(snapshot(commanded_V_BE=tiny, **at_rest))
+
+
+def test_supervisor_range_rules_wait_for_a_finite_rotation_too():
+    broken = Pose.unchecked(np.full((3, 3), np.nan), FACING.p)
+    fast = np.array([0.2, 0, 0, 0, 0, 0])  # too fast for 1.2 m, were the range known
+    assert "range_speed" in kind_names(snapshot(commanded_V_BE=fast, previous_V_BE=fast))
+    snap = snapshot(X_TC_est=broken, commanded_V_BE=fast, previous_V_BE=fast)
+    assert "range_speed" not in kind_names(snap)
+    assert message(snap, "estimate") == "no finite pose estimate"
+
+
+def test_supervisor_names_each_device_fault_as_the_device_said_it():
+    assert message(snapshot(arm_error="link down"), "arm_link") == "link down"
+    assert (
+        message(snapshot(arm=arm(fault="watchdog")), "arm_fault")
+        == arm(fault="watchdog").fault_reason
+    )
+    assert message(snapshot(track_fault="soft limit max crossed"), "track_fault") == (
+        "soft limit max crossed"
+    )
