@@ -128,13 +128,13 @@ class DeviceIo(Generic[StateT]):
         with self._shared:
             self._pending = command
 
-    def call(self, action: Callable[[], StateT | None]) -> StateT | None:
+    def call(self, action: Callable[[], None]) -> None:
         """Run ``action`` on the caller's thread now (after the round trip in flight),
         discarding any posted command: what the caller does now supersedes it."""
         with self.lock:
             with self._shared:
                 self._pending = None
-            return action()
+            action()
 
     # --- the thread ---------------------------------------------------------------------
     def _run(self) -> None:

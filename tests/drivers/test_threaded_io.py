@@ -43,6 +43,13 @@ def threaded_track(**options):
     return link, track
 
 
+def threaded_gripper():
+    link = RecordingLink()
+    gripper = ThreadedGripper(RobotiqGripper(link), period_s=PERIOD, stale_after_s=STALE)
+    gripper.connect()
+    return link, gripper
+
+
 @pytest.fixture
 def track():
     link, track = threaded_track()
@@ -226,9 +233,7 @@ def test_threaded_track_connect_fails_on_a_device_that_does_not_answer():
 
 
 def test_threaded_gripper_posts_finger_commands_and_reads_its_status():
-    link = RecordingLink()
-    gripper = ThreadedGripper(RobotiqGripper(link), period_s=PERIOD, stale_after_s=STALE)
-    gripper.connect()
+    link, gripper = threaded_gripper()
     try:
         gripper.grip()
         assert eventually(lambda: link.writes)
@@ -403,9 +408,7 @@ def test_device_io_names_the_device_in_a_command_failure():
 
 
 def test_threaded_gripper_synchronous_and_posted_commands():
-    link = RecordingLink()
-    gripper = ThreadedGripper(RobotiqGripper(link), period_s=PERIOD, stale_after_s=STALE)
-    gripper.connect()
+    link, gripper = threaded_gripper()
     try:
         gripper.activate()
         assert len(link.writes) == 2  # reset, then activation request: both sent before return
