@@ -12,7 +12,10 @@ from typing import Protocol
 
 class Clock(Protocol):
     """``now`` and ``sleep_until`` keep the control schedule; ``work_time`` is the stopwatch a
-    tick's own work is measured with against the real control period."""
+    tick's own work is measured with against the real control period. ``real_time``: whether
+    that work delays the devices (a rig) or only the computer running a simulation."""
+
+    real_time: bool
 
     def now(self) -> float: ...
 
@@ -23,6 +26,8 @@ class Clock(Protocol):
 
 class RealClock:
     """``time.monotonic`` (the same clock depthai stamps host frames with)."""
+
+    real_time = True
 
     def now(self) -> float:
         return time.monotonic()
@@ -39,6 +44,8 @@ class RealClock:
 
 class SimClock:
     """Simulated time: stands still while the loop computes, jumps when advanced."""
+
+    real_time = False
 
     def __init__(self, start: float = 0.0):
         self._t = float(start)

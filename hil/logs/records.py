@@ -122,7 +122,8 @@ class TimingRecord:
     the log; ``deadline_miss``: it started half a period late or its work overran the period.
     Under ``--clock wall`` all of it is wall-clock time. Under ``--clock sim`` the period is
     simulated (never late) and ``work_ms`` is the tick's CPU time: the simulation shares the
-    machine with other runs, and the work is what must fit the real period."""
+    machine with other runs, and the work is what must fit the real period; there the misses are
+    counted but only lateness in simulated time trips the supervisor's deadline rule."""
 
     period_ms: float | None
     late_ms: float

@@ -17,6 +17,14 @@ One tick (docs/architecture.md):
 sleeping steps the simulated world and the vision pipeline to the deadline
 (``hil.runtime.stepped.SteppedClock``). The loop asks neither which it is: devices, vision link,
 clock and the optional ground truth come from the composition root (``hil.runtime.compose``).
+
+One difference it does see (``Clock.real_time``): only on real time does a tick's measured work
+count against the supervisor's deadline. Under a simulated clock the work is logged and its
+misses counted, but it cannot decide the trial: it is the host's timing, not the simulated
+rig's, and a virtual machine's pause is counted as the thread's CPU time (a 2 ms piece of work
+measured at 47–52 ms once a minute on this project's 2-core VM), which would make a run that is
+deterministic for its seed abort at random. A simulated stall (the world advanced while the loop
+waited) is lateness in simulated time and still trips it.
 """
 
 from __future__ import annotations
@@ -287,7 +295,7 @@ class ControlLoop:
             estimate_age_s=estimate.age_s if estimate.age_s is not None else math.inf,
             X_TC_est=X_TC_est,
             frame_age_s=math.inf if newest_frame is None else t - newest_frame,
-            tick_s=max(late_s, self._last_work_s),
+            tick_s=max(late_s, self._last_work_s if self.clock.real_time else 0.0),
             commanded_V_BE=V_BE,
             commanded_track_velocity=output.track_velocity,
             period_s=self.period_s,

@@ -28,6 +28,8 @@ class SteppedWorld(Protocol):
 class SteppedClock:
     """The simulated clock of a world, stepping ``world`` and ``vision`` in ``step_s`` steps."""
 
+    real_time = False
+
     def __init__(
         self, world: SteppedWorld, camera: Camera, vision: VisionPipeline, *, step_s: float
     ) -> None:

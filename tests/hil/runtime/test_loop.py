@@ -372,3 +372,24 @@ def test_loop_logs_camera_images_in_ticks_with_room_and_never_loses_one(busy):
         assert 1 <= waiting_at_end <= MAX_WAITING_IMAGES
     else:
         assert max(log.frames_at_tick) < outcome.ticks  # written as they came
+
+
+@pytest.mark.parametrize("real_time", [False, True])
+def test_a_ticks_overrun_aborts_on_real_time_and_is_only_logged_on_a_simulated_clock(real_time):
+    """A virtual machine's pause is counted as the thread's CPU time: one tick measured at 60 ms.
+    On a rig that is a stall the arm saw; in a simulation the simulated rig saw nothing."""
+    bench = make_loop()
+    clock, calls = bench.loop.clock, iter(range(10**9))
+    clock.real_time = real_time
+    clock.work_time = lambda: 1e-6 * (n := next(calls)) + (0.060 if n > 600 else 0.0)
+    outcome = bench.loop.run(max_duration_s=3.0)
+    overrun = [t for t in bench.log.ticks if t.timing.work_ms > 50]
+    assert len(overrun) == 1 and overrun[0].timing.deadline_miss
+    if real_time:
+        assert outcome.phase == "abort" and outcome.abort_reason.startswith(
+            "deadline: tick took 60"
+        )
+        assert bench.log.ticks[overrun[0].tick + 1].command.stop  # the very next tick
+    else:
+        assert "deadline" not in outcome.abort_reason
+        assert outcome.ticks > overrun[0].tick + 100
