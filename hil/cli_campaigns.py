@@ -4,6 +4,7 @@ library and print; bad input exits with status 2 and one line."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -51,6 +52,7 @@ def run_with_progress(
 
     from hil.analysis.campaigns.runner import run_campaign
     from hil.analysis.campaigns.spec import expand
+    from hil.progress import campaign_line
 
     if executor not in ("local", "dask"):
         raise fail(f"--executor must be local or dask; got {executor!r}")
@@ -78,8 +80,17 @@ def run_with_progress(
     with bar:
         task = bar.add_task(config.name, total=None, last="")
 
+        started = time.monotonic()
+
         def progress(key: str, seconds: float, done: int, total: int) -> None:
             bar.update(task, total=total, completed=done, last=f"{key} {seconds:.0f} s")
+            if not console.is_terminal:  # a log file sees no bar: a line per trial instead
+                elapsed = time.monotonic() - started
+                console.print(
+                    campaign_line(key, seconds, done, total, elapsed),
+                    markup=False,
+                    highlight=False,
+                )
 
         try:
             run = run_campaign(

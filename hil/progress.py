@@ -1,4 +1,5 @@
-"""Live, one-line progress of a running trial (formatting only; printing is the CLI's)."""
+"""Live, one-line progress of a running trial or campaign (formatting only; printing is the
+CLI's)."""
 
 from __future__ import annotations
 
@@ -32,3 +33,16 @@ def tick_line(record: TickRecord) -> str:
     if record.timing.deadline_miss:
         parts.append("DEADLINE MISS")
     return "  ".join(parts)
+
+
+def campaign_line(key: str, seconds: float, done: int, total: int, elapsed_s: float) -> str:
+    """'[12/67] matrix/2.0-none-s0-… 41 s; 8 min elapsed, ETA 37 min' — one line per finished
+    trial, for a campaign whose output is a file rather than a terminal's progress bar. The ETA
+    assumes the remaining trials take what the finished ones took on average (trials that
+    were already done when the run began are not counted)."""
+    eta = "" if done == 0 else f", ETA {_minutes(elapsed_s / done * (total - done))}"
+    return f"[{done}/{total}] {key} {seconds:.0f} s; {_minutes(elapsed_s)} elapsed{eta}"
+
+
+def _minutes(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.0f} min"

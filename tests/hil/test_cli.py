@@ -147,6 +147,7 @@ def test_campaign_runs_the_seeds_asked_for_and_writes_a_summary(tmp_path):
     result = runner.invoke(app, [*args, "--noise", "none", "--out-dir", str(out_dir)])
     assert result.exit_code == 0, result.output
     assert "1 trials run, 0 already done" in result.output
+    assert "[1/1] approach/none-s7-" in result.output  # no terminal: a line per trial, not a bar
     logs = sorted(p.relative_to(out_dir).as_posix() for p in out_dir.rglob("*.mcap"))
     assert len(logs) == 1 and logs[0].startswith("logs/approach/none-s7-"), logs
     summary = (out_dir / "summary.md").read_text()

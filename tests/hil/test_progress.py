@@ -1,7 +1,7 @@
 import dataclasses
 
 from hil.logs.records import TimingRecord
-from hil.progress import tick_line
+from hil.progress import campaign_line, tick_line
 from tests.hil.logs.synthetic_log import make_trial
 
 
@@ -19,3 +19,11 @@ def test_tick_line_shows_phase_range_error_age_frames_and_period():
     assert "range   –" in idle and "estimate uninitialized" in idle and "period" not in idle
     late = dataclasses.replace(tick, truth=None, timing=TimingRecord(31.0, 21.0, 1.0, True))
     assert "estimate ok" in tick_line(late) and tick_line(late).endswith("DEADLINE MISS")
+
+
+def test_campaign_line_counts_trials_and_projects_the_rest_at_the_mean_so_far():
+    line = campaign_line("matrix/2.0-none-s0-ab12", 41.4, 12, 67, 480.0)
+    # 480 s for 12 trials: 40 s each, 55 to go → 2200 s ≈ 37 min
+    assert line == "[12/67] matrix/2.0-none-s0-ab12 41 s; 8 min elapsed, ETA 37 min"
+    assert campaign_line("k", 5.0, 1, 3, 5.0) == "[1/3] k 5 s; 5 s elapsed, ETA 10 s"
+    assert campaign_line("k", 5.0, 3, 3, 15.0).endswith("ETA 0 s")
