@@ -204,6 +204,10 @@ def test_campaign_report_puts_the_reference_beside_ours_with_the_ratio(tmp_path)
     assert "fused, noise low: translation error (reference: its best system)" in text
     assert "| none | 1.900 ± 0.000 cm | 0.9–1.1 cm | 2.11 |" in text
     assert "| corners | low | 1.2 m | 19.00 mm | 1.90 mm | 10.0 |" in text  # efficiency
+    # gathered: 1.9 cm ÷ 1.8 cm and 0.5° ÷ 0.46°; fused: ÷ the lines' 0.9 cm, the corners' 0.46°
+    assert "| corners | low | 2 | 1.056 (1.056–1.056) | 1.087 (1.087–1.087) |" in text
+    assert "| fused | low | 2 | 2.111 (2.111–2.111) | 1.087 (1.087–1.087) |" in text
+    assert text.index("## Against the reference") < text.index("## Test matrix")
     assert (tmp_path / "report" / "systems_low_noise.png").stat().st_size > 1000
     assert "<table>" in index.read_text(encoding="utf-8")
 
