@@ -160,7 +160,9 @@ def _frames(trial: TrialSpec, out_dir: Path):
     from hil.evaluation.matrix import run_case_group
 
     spec = matrix_spec(trial.params, trial.seed)
-    results = run_case_group(spec, trial.params["distance_m"], trial.params["maneuver"])
+    results = run_case_group(
+        spec, trial.params["distance_m"], trial.params["maneuver"], spec.mockup
+    )
     rows, timing = [], {}
     for system in spec.systems:
         for noise in spec.noises:

@@ -232,6 +232,28 @@ def test_matrix_through_the_campaign_runner_equals_run_matrix():
         assert a.error.position_m == pytest.approx(b.error.position_m, nan_ok=True, abs=1e-12)
 
 
+def test_matrix_through_the_campaign_runner_runs_every_mockup_as_run_matrix_does():
+    """`satgrasp matrix --mockup random:A-B`: a trial per mock-up, each with run_matrix's noise."""
+    from hil.analysis.campaigns.matrix_runs import run_matrix_campaign
+    from hil.evaluation.matrix import MatrixSpec, run_matrix
+
+    spec = MatrixSpec(
+        systems=("ellipses",),
+        distances_m=(2.0,),
+        maneuvers=("none",),
+        noises=("low",),
+        frames=2,
+        mockup="random:1",
+        mockups=("random:1", "random:2"),
+    )
+    direct, through = run_matrix(spec), run_matrix_campaign(spec, workers=2)
+    key = lambda r: (r.mockup, r.index)  # noqa: E731
+    assert sorted(r.mockup for r in through) == ["random:1"] * 2 + ["random:2"] * 2
+    for a, b in zip(sorted(direct, key=key), sorted(through, key=key), strict=True):
+        assert (a.mockup, a.index, a.status) == (b.mockup, b.index, b.status)
+        assert a.error.position_m == pytest.approx(b.error.position_m, nan_ok=True, abs=1e-12)
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
