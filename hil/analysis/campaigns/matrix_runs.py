@@ -35,8 +35,6 @@ def matrix_campaign(spec: MatrixSpec) -> CampaignConfig:
             continue
         settings[field.name] = list(value) if isinstance(value, tuple) else value
     axes = {axis: list(getattr(spec, name)) for name, axis in _AXES.items()}
-    if spec.mockups:  # a trial per mock-up (``mockups`` stays a setting: it fixes each one's noise)
-        axes["mockup"] = list(spec.mockups)
     part = CampaignPart(
         name="matrix", kind="frames", settings=settings, axes=axes, seeds=[spec.seed]
     )

@@ -7,7 +7,7 @@ Kinds and what their axes and settings name:
 * ``frames`` — the open-loop test matrix (``hil.evaluation.matrix``): any ``MatrixSpec``
   field; ``system``, ``noise``, ``distance_m`` and ``maneuver`` are the singular axes of
   ``systems``, ``noises``, ``distances_m`` and ``maneuvers``. One trial is one (distance,
-  maneuver, other axes, seed) case group, rendered once for all its systems and noise levels
+  maneuver, mock-up of ``mockups``, other axes, seed) case group, rendered once for all its systems and noise levels
   (``fused`` is a fourth system); its cells are (system, noise, …).
 * ``path`` — the open-loop approach path (``hil.evaluation.approach_path.run_approach``): its
   keyword arguments; one trial per (system, noise, …, seed).
@@ -141,6 +141,8 @@ def _frames(part: CampaignPart) -> list[TrialSpec]:
     outer = {k: v for k, v in part.axes.items() if k not in FRAMES_INNER}
     outer.setdefault("distance_m", lists["distances_m"])
     outer.setdefault("maneuver", lists["maneuvers"])
+    if settings.get("mockups"):  # a trial per mock-up; the list stays: it fixes each one's noise
+        outer.setdefault("mockup", list(settings["mockups"]))
     trials = []
     for combination in _combinations(outer):
         params = {**settings, **lists}

@@ -232,6 +232,20 @@ def test_matrix_through_the_campaign_runner_equals_run_matrix():
         assert a.error.position_m == pytest.approx(b.error.position_m, nan_ok=True, abs=1e-12)
 
 
+def test_frames_part_with_several_mockups_runs_a_trial_per_mockup():
+    from configuration.campaign import CampaignConfig, CampaignPart
+
+    part = CampaignPart(
+        name="m",
+        kind="frames",
+        settings={"frames": 2, "mockups": ["random:1", "random:2"]},
+        axes={"system": ["corners"], "distance_m": [2.0], "maneuver": ["none"]},
+    )
+    trials = expand(CampaignConfig(name="c", parts=[part]))
+    assert [t.cell["mockup"] for t in trials] == ["random:1", "random:2"]
+    assert all(t.params["mockups"] == ["random:1", "random:2"] for t in trials)
+
+
 def test_matrix_through_the_campaign_runner_runs_every_mockup_as_run_matrix_does():
     """`satgrasp matrix --mockup random:A-B`: a trial per mock-up, each with run_matrix's noise."""
     from hil.analysis.campaigns.matrix_runs import run_matrix_campaign
