@@ -379,8 +379,15 @@ def matrix(
         Path | None, typer.Option(help="Write every frame's result as JSON lines.")
     ] = None,
     supersample: Annotated[
-        int, typer.Option(min=1, max=4, help="Render anti-aliasing factor (pixel-area sampling).")
-    ] = 1,
+        int,
+        typer.Option(
+            min=1,
+            max=4,
+            help="Samples per pixel side, averaged (pixel-area sampling, as a sensor integrates "
+            "light). 1 samples pixel centres: edges along the pixel grid, as at the head-on "
+            "pose, snap to whole pixels (docs/reference_study.md).",
+        ),
+    ] = 4,
     acquisition: Annotated[
         bool, typer.Option(help="Also estimate every frame without a prior (acquisition rate).")
     ] = False,
