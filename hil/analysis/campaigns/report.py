@@ -79,10 +79,16 @@ def _range(values: tuple[float, float] | None, scale: float, unit: str) -> str:
     return f"{low / scale:.2g}–{high / scale:.2g}{unit}"
 
 
-def _ratio(ours: float, reference: tuple[float, float] | None, scale: float) -> str:
+def ratio(ours: float, reference: tuple[float, float] | None, scale: float) -> float | None:
+    """``scale · ours`` ÷ the lower end of the reference's range (None: nothing to compare)."""
     if reference is None or not math.isfinite(ours) or reference[0] <= 0:
-        return "–"
-    return f"{scale * ours / reference[0]:.2f}"
+        return None
+    return scale * ours / reference[0]
+
+
+def _ratio(ours: float, reference: tuple[float, float] | None, scale: float) -> str:
+    value = ratio(ours, reference, scale)
+    return "–" if value is None else f"{value:.2f}"
 
 
 def best_reference(distance_m: float, noise: str, which: int) -> tuple[float, float] | None:
@@ -120,8 +126,9 @@ def ratio_summary(rows: Sequence[dict[str, Any]]) -> str:
                 ratios = []
                 for r in cells:
                     ref = reference_for(system, r["distance_m"], noise, which)
-                    if ref is not None and ref[0] > 0 and math.isfinite(r[column]):
-                        ratios.append(scale * r[column] / ref[0])
+                    value = ratio(r[column], ref, scale)
+                    if value is not None:
+                        ratios.append(value)
                 count = max(count, len(ratios))
                 columns.append(
                     f"{np.median(ratios):.3f} ({min(ratios):.3f}–{max(ratios):.3f})"

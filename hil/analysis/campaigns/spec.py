@@ -7,8 +7,8 @@ Kinds and what their axes and settings name:
 * ``frames`` — the open-loop test matrix (``hil.evaluation.matrix``): any ``MatrixSpec``
   field; ``system``, ``noise``, ``distance_m`` and ``maneuver`` are the singular axes of
   ``systems``, ``noises``, ``distances_m`` and ``maneuvers``. One trial is one (distance,
-  maneuver, mock-up of ``mockups``, other axes, seed) case group, rendered once for all its systems and noise levels
-  (``fused`` is a fourth system); its cells are (system, noise, …).
+  maneuver, mock-up of ``mockups``, other axes, seed) case group, rendered once for all its
+  systems and noise levels (``fused`` is a fourth system); its cells are (system, noise, …).
 * ``path`` — the open-loop approach path (``hil.evaluation.approach_path.run_approach``): its
   keyword arguments; one trial per (system, noise, …, seed).
 * ``approach`` — closed-loop simulated approaches (``hil.runtime.compose.run_trial``):
