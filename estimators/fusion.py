@@ -20,6 +20,12 @@ the track carriage frame M, with a constant-velocity process model (see docs/fus
   quantile of its degrees of freedom and applied sequentially: poses with filterpy's
   Joseph-form update, circles with a Schmidt ("consider") update that cannot touch the turn
   about the circle's axis, which a circle does not observe (``schmidt_update``).
+* Ambiguity (issue 13; ``estimators.measurement``): only what a frame decided starts or
+  confirms a track — not an ``ambiguous`` answer, nor one that chose between look-alike poses
+  by its prior (``from_prior``). A circle that comes with its other pose is used only when the
+  track rules that pose out and keeps the measured one (both gated), so other systems and the
+  camera's known motion separate the two over frames; a quarter turn kept from a prior is used
+  only while the track's own roll is measured (``max_roll_sigma_rad``), else as its circle.
 * Latency: each batch is applied at its frame's capture stamp with the X_CM of that instant,
   whenever it arrives. A batch that arrives after later ones (the estimators run in parallel
   and take different times) is re-filtered in: the filter keeps the state before every update
@@ -40,7 +46,7 @@ import math
 import numbers
 from bisect import bisect_left, bisect_right
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from functools import partial
 from types import MappingProxyType
 from typing import Literal
@@ -53,7 +59,7 @@ from scipy.stats import chi2
 from estimators.conics import circle_plane_basis
 from estimators.frame import readonly_array
 from estimators.geometry import Pose, skew
-from estimators.measurement import Measurement
+from estimators.measurement import Measurement, without_roll
 from estimators.so3 import (
     exp_so3,
     pose_error_C,
@@ -277,6 +283,15 @@ def roll_directions(X_MT: Pose, circle: Circle3D) -> np.ndarray:
     return U
 
 
+def roll_sigma_rad(X_MT: Pose, covariance: np.ndarray, axis_T: np.ndarray | None = None) -> float:
+    """1σ (rad) of the target's turn about its own axis ``axis_T`` (unit, in T; default z, the
+    ring's axis): the part of the pose a circle does not observe and a square panel observes
+    only up to a quarter turn. ``covariance``: the error-state covariance (rotation first)."""
+    axis_M = X_MT.R @ (np.array([0.0, 0.0, 1.0]) if axis_T is None else np.asarray(axis_T))
+    variance = float(axis_M @ np.asarray(covariance)[0:3, 0:3] @ axis_M)
+    return math.sqrt(max(variance, 0.0))
+
+
 def schmidt_update(
     P: np.ndarray, y: np.ndarray, R: np.ndarray, H: np.ndarray, consider: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -345,7 +360,9 @@ class FusionParams:
     ``coast_timeout_s`` / ``lost_timeout_s``: health time-outs since the last accepted
     measurement. ``confirm_measurements``: accepted, unambiguous measurements (the first
     included, from any systems and frames) before a new track is declared. ``max_stamp_skew_s``:
-    largest |measurement.stamp − update stamp|. ``camera_pointing_sigma_rad`` /
+    largest |measurement.stamp − update stamp|. ``max_roll_sigma_rad``: the track's roll about the
+    ring's axis counts as measured while its 1σ is below this (a quarter turn taken from such a
+    prior is then right with near certainty). ``camera_pointing_sigma_rad`` /
     ``camera_position_sigma_m``: 1σ jitter of X_CM (arm, track, hand-eye). ``covariance_scale``:
     per-system factor on the stated covariances (from ``hil.analysis.calibration``; default 1).
     """
@@ -364,6 +381,10 @@ class FusionParams:
     velocity_time_constant_s: float = 3.0
     confirm_measurements: int = 2
     max_stamp_skew_s: float = 0.1
+    #: 10°: a quarter turn (90°) is then 9σ away, so a measurement that kept its turn from the
+    #: track's prediction kept the right one; a track whose roll no measurement decided (its
+    #: start's 1 rad, or grown while only circles were seen) is above it.
+    max_roll_sigma_rad: float = math.radians(10.0)
     camera_pointing_sigma_rad: float = 0.0
     camera_position_sigma_m: float = 0.0
     covariance_scale: Mapping[str, float] = field(default_factory=dict)
@@ -390,6 +411,7 @@ class FusionParams:
             "coast_timeout_s",
             "lost_timeout_s",
             "max_stamp_skew_s",
+            "max_roll_sigma_rad",
         ):
             _check_positive(name, getattr(self, name))
         if not self.velocity_time_constant_s > 0:  # math.inf: constant velocity
@@ -494,6 +516,13 @@ class TargetEstimate:
         J[0:3, 0:3] = X_CM.R
         J[3:6, 3:6] = X_CM.R
         return J @ self.covariance[:6, :6] @ J.T
+
+    def roll_sigma_rad(self) -> float:
+        """1σ (rad) of the target's roll about the ring's axis (``roll_sigma_rad``); inf without
+        a track. A track that only circles measured keeps the roll it started with, unknown."""
+        if self.X_MT is None or self.covariance is None:
+            return math.inf
+        return roll_sigma_rad(self.X_MT, self.covariance)
 
     def to_dict(self) -> dict:
         """JSON-ready view for trial logs (poses as 4×4 nested lists, inf as None)."""
@@ -906,10 +935,21 @@ class PoseFusion:
         if self._track is None:
             self._start_track(m, X_CM, stamp, outcome)
             return
+        if m.from_prior and uses_pose(m) and not self._roll_measured(m):
+            # The quarter turn came from a prior that had not measured it: only the circle
+            # about the turn axis is this frame's evidence.
+            if m.center_C is None:
+                outcome.reject(m.system, "roll kept from a prior whose roll is not measured")
+                return
+            m = without_roll(m)
+        if m.alternative_center_C is not None:
+            problem = self._unresolved_circle(m, X_CM)
+            if problem:
+                outcome.reject(m.system, problem)
+                return
         try:
             y, H, R = self._linearised(m, X_CM)
-            S = H @ self._track.P @ H.T + R
-            d2 = float(y @ np.linalg.solve(S, y))
+            d2 = self._distance(y, H, R)
         except (np.linalg.LinAlgError, ValueError) as exc:
             outcome.reject(m.system, f"innovation not computable ({exc})")
             return
@@ -940,12 +980,56 @@ class PoseFusion:
             )
         self._track = _inject(self._track, dx, P)
         outcome.accepted.append(m.system)
-        if not m.ambiguous and not self._confirmed:
+        if _is_evidence(m) and not self._confirmed:
             # Only a tentative track needs its witnesses; a confirmed one stops counting, so
-            # that the state stays small over a long track.
+            # that the state stays small over a long track. An answer that the prior or the
+            # track chose between poses is no witness of that choice.
             self._support_systems.append(m.system)
             if len(self._support_systems) >= self.params.confirm_measurements:
                 self._confirmed = True
+
+    def _distance(self, y: np.ndarray, H: np.ndarray, R: np.ndarray) -> float:
+        """Squared Mahalanobis distance d² of innovation ``y`` against the track."""
+        S = H @ self._track.P @ H.T + R
+        return float(y @ np.linalg.solve(S, y))
+
+    def _roll_measured(self, m: Measurement) -> bool:
+        axis_T = self.target.circle(m.circle).normal_T if m.circle is not None else None
+        sigma = roll_sigma_rad(self._track.X_MT, self._track.P, axis_T)
+        return sigma <= self.params.max_roll_sigma_rad
+
+    def _unresolved_circle(self, m: Measurement, X_CM: Pose) -> str:
+        """Why a circle that came with its other pose (its mirror, issue 13) is not used: ''
+        when the track keeps the measured pose and rules the other out, so the track — built
+        from other frames, other systems and the camera's known motion between them — decides
+        what the frame could not. Both poses are judged as circles, whatever else ``m`` holds.
+        """
+        circle_m = without_roll(m) if m.X_CT is not None else m
+        other = replace(
+            circle_m,
+            center_C=m.alternative_center_C,
+            normal_C=m.alternative_normal_C,
+            alternative_center_C=m.center_C,
+            alternative_normal_C=m.normal_C,
+        )
+        try:
+            measured, mirrored = (
+                self._distance(*self._linearised(c, X_CM)) for c in (circle_m, other)
+            )
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            return f"innovation not computable ({exc})"
+        gate = self._gate[5]
+        if mirrored > gate:
+            return ""
+        if measured <= gate:
+            return (
+                f"ambiguous: both of the circle's poses fit the track "
+                f"(d² {measured:.1f} and {mirrored:.1f} ≤ {gate:.1f})"
+            )
+        return (
+            f"the circle's other pose fits the track, not the one measured "
+            f"(d² {mirrored:.1f} ≤ {gate:.1f} < {measured:.1f})"
+        )
 
     def _linearised(self, m: Measurement, X_CM: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if uses_pose(m):
@@ -957,11 +1041,12 @@ class PoseFusion:
 
     def _start_track(self, m: Measurement, X_CM: Pose, stamp: float, outcome: _Outcome) -> None:
         if not _can_start(m):
-            reason = (
-                "ambiguous: cannot start a track"
-                if m.ambiguous
-                else "a 5-DOF measurement without X_CT_hint cannot start a track"
-            )
+            if m.ambiguous:
+                reason = "ambiguous: cannot start a track"
+            elif m.from_prior:
+                reason = "chose between poses by its prior: cannot start a track"
+            else:
+                reason = "a 5-DOF measurement without X_CT_hint cannot start a track"
             outcome.reject(m.system, reason)
             return
         if uses_pose(m):
@@ -988,15 +1073,22 @@ class PoseFusion:
         outcome.accepted.append(m.system)
 
 
+def _is_evidence(m: Measurement) -> bool:
+    """Whether the frame itself decided ``m``'s pose among those that look alike (a circle's
+    mirror, a panel's flip or quarter turn): not ambiguous, and not chosen by its prior."""
+    return not m.ambiguous and not m.from_prior
+
+
 def _can_start(m: Measurement) -> bool:
-    """A track starts only from an unambiguous pose, or a circle with a hint for its roll."""
-    return not m.ambiguous and (uses_pose(m) or m.X_CT_hint is not None)
+    """A track starts only from a pose the frame decided, or such a circle with a hint for its
+    roll (the roll then starts unknown: ``initial_roll_sigma_rad``)."""
+    return _is_evidence(m) and (uses_pose(m) or m.X_CT_hint is not None)
 
 
 def _application_order(m: object) -> tuple[int, bool]:
     if not isinstance(m, Measurement) or not m.valid:
         return (2, False)
-    return (0 if uses_pose(m) else 1, bool(m.ambiguous))
+    return (0 if uses_pose(m) else 1, not _is_evidence(m))
 
 
 def _stamp_of(batch: _Batch) -> float:

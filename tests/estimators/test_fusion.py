@@ -586,6 +586,130 @@ def test_fusion_circle_without_hint_or_ambiguous_cannot_start_a_track():
     assert e.accepted == ("corners",) and e.health == "uninitialized"
 
 
+def ring_at(truth, stamp, seq, *, tilt_deg=0.0, other_tilt_deg=None, **kw):
+    """An ellipse-system circle of the ring at ``truth``, its normal turned by ``tilt_deg``
+    about the camera's x axis; with ``other_tilt_deg``, its other (mirror) pose beside it."""
+    normal = truth.R @ RING.normal_T
+
+    def tilted(deg):
+        return exp_so3(np.radians(deg) * np.array([1.0, 0.0, 0.0])) @ normal
+
+    extra = {}
+    if other_tilt_deg is not None:
+        extra = dict(alternative_center_C=truth.p, alternative_normal_C=tilted(other_tilt_deg))
+    return Measurement(
+        "ellipses",
+        "tracking",
+        stamp,
+        seq,
+        circle="ring_outer",
+        center_C=truth.p,
+        normal_C=tilted(tilt_deg),
+        covariance_5dof=np.diag(ring_sigmas(2.0) ** 2),
+        X_CT_hint=truth,
+        **extra,
+        **kw,
+    )
+
+
+def confirmed_fusion(truth, X_CM, params=None) -> PoseFusion:
+    fusion = PoseFusion(TARGET, params)
+    e = fusion.update(
+        [measurement_at(truth, 0.0, 0), measurement_at(truth, 0.0, 0, "lines")], X_CM, 0.0
+    )
+    assert e.health == "ok"
+    return fusion
+
+
+def test_fusion_answers_chosen_by_their_prior_neither_start_nor_confirm_a_track():
+    """Issue 13: a pose that took its choice between look-alikes from the prior is no evidence
+    of that choice — a system tracking its own first guess must not confirm it."""
+    rng = np.random.default_rng(97)
+    scenario = approach(rng, 3)
+    truth = scenario.X_CT(0)
+    fusion = PoseFusion(TARGET)
+    e = fusion.update([measurement_at(truth, 0.0, 0, from_prior=True)], scenario.X_CM[0], 0.0)
+    assert e.X_MT is None and not e.accepted
+    assert dict(e.rejected) == {"corners": "chose between poses by its prior: cannot start a track"}
+    e = fusion.update([ring_at(truth, 0.0, 0, from_prior=True)], scenario.X_CM[0], 0.0)
+    assert e.X_MT is None and e.rejected[0][1].startswith("chose between poses by its prior")
+    e = fusion.update([measurement_at(truth, 0.0, 0, "lines")], scenario.X_CM[0], 0.0)
+    assert e.health == "uninitialized" and e.accepted == ("lines",)
+    for seq in range(1, 4):  # accepted into the tentative track, never confirming it
+        e = fusion.update([measurement_at(truth, 0.0, seq, from_prior=True)], scenario.X_CM[0], 0.0)
+        assert e.accepted == ("corners",) and e.health == "uninitialized"
+    e = fusion.update([ring_at(truth, 0.0, 4)], scenario.X_CM[0], 0.0)
+    assert e.health == "ok"  # a circle the frame decided is a witness
+
+
+def test_fusion_uses_a_circle_with_its_mirror_only_when_the_track_rules_the_mirror_out():
+    """Issue 13: a circle's two poses stay two until evidence — here the confirmed track —
+    separates them; fusion never steers by the one it cannot tell from the other."""
+    rng = np.random.default_rng(98)
+    scenario = approach(rng, 3)
+    truth, X_CM = scenario.X_CT(0), scenario.X_CM[0]
+    fusion = confirmed_fusion(truth, X_CM)
+
+    e = fusion.update([ring_at(truth, 0.0, 1, other_tilt_deg=14.0, ambiguous=True)], X_CM, 0.0)
+    assert e.accepted == ("ellipses",) and not e.rejected  # the mirror is 14° off the track
+
+    e = fusion.update([ring_at(truth, 0.0, 2, tilt_deg=14.0, other_tilt_deg=0.0)], X_CM, 0.0)
+    ((system, reason),) = e.rejected
+    assert system == "ellipses" and not e.accepted
+    assert reason.startswith("the circle's other pose fits the track, not the one measured")
+
+    e = fusion.update([ring_at(truth, 0.0, 3, other_tilt_deg=0.05, ambiguous=True)], X_CM, 0.0)
+    assert not e.accepted
+    assert e.rejected[0][1].startswith("ambiguous: both of the circle's poses fit the track")
+
+    # the same ambiguous circles on a tentative track: kept out the same way, confirming nothing
+    fusion = PoseFusion(TARGET)
+    fusion.update([measurement_at(truth, 0.0, 0)], X_CM, 0.0)
+    e = fusion.update([ring_at(truth, 0.0, 1, other_tilt_deg=14.0, ambiguous=True)], X_CM, 0.0)
+    assert e.accepted == ("ellipses",) and e.health == "uninitialized"
+
+
+def test_fusion_takes_a_quarter_turn_from_the_prior_only_while_its_roll_is_measured():
+    """A corner or line pose whose quarter turn nothing in view decided kept the prior's: with a
+    track that measured its roll that is the right turn; with a track that only ever saw circles
+    (roll σ 1 rad) it is a guess, and only the circle about the turn axis is used."""
+    rng = np.random.default_rng(99)
+    scenario = approach(rng, 3)
+    truth, X_CM = scenario.X_CT(0), scenario.X_CM[0]
+    kept_turn = measurement_at(
+        truth,
+        0.0,
+        1,
+        from_prior=True,
+        circle="ring_outer",
+        center_C=truth.p,
+        normal_C=truth.R @ RING.normal_T,
+        covariance_5dof=np.diag(ring_sigmas(2.0) ** 2),
+    )
+
+    fusion = confirmed_fusion(truth, X_CM)
+    assert fusion.estimate(0.0).roll_sigma_rad() < np.radians(1.0)
+    e = fusion.update([kept_turn], X_CM, 0.0)
+    assert e.accepted == ("corners",) and e.innovations[0][2] == 6
+
+    fusion = PoseFusion(TARGET)
+    for seq in range(2):
+        e = fusion.update([ring_at(truth, 0.0, seq)], X_CM, 0.0)
+    assert e.health == "ok"
+    unknown = e.roll_sigma_rad()
+    assert unknown > 0.9 * FusionParams().initial_roll_sigma_rad
+    e = fusion.update([kept_turn], X_CM, 0.0)
+    assert e.accepted == ("corners",) and e.innovations[0][2] == 5
+    assert e.roll_sigma_rad() == pytest.approx(unknown, rel=1e-6)  # the guess taught it nothing
+    without_circle = measurement_at(truth, 0.0, 2, from_prior=True)
+    e = fusion.update([without_circle], X_CM, 0.0)
+    assert e.rejected == (("corners", "roll kept from a prior whose roll is not measured"),)
+
+
+def test_target_estimate_roll_sigma_is_infinite_without_a_track():
+    assert PoseFusion(TARGET).estimate(0.0).roll_sigma_rad() == math.inf
+
+
 def test_fusion_uses_the_pose_when_a_measurement_has_pose_and_circle():
     rng = np.random.default_rng(96)
     scenario = approach(rng, 3)
