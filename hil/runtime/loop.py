@@ -272,6 +272,7 @@ class ControlLoop:
                 track_axis_W=self.geometry.track_axis_W,
                 max_track_speed=self.geometry.max_track_speed,
                 gripper=gripper,
+                roll_sigma_rad=estimate.roll_sigma_rad(),
             ),
             self.period_s,
         )

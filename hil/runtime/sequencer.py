@@ -64,7 +64,8 @@ _HANDOVER_RAD = math.radians(2.0)
 class SequencerInputs:
     """What the sequencer needs at one tick. ``X_TC_est`` is the camera pose in T from the
     fused estimate (None when there is no healthy one); ``R_WC`` the camera's orientation in
-    the world and ``track_axis_W`` the track's direction (for splitting the motion)."""
+    the world and ``track_axis_W`` the track's direction (for splitting the motion);
+    ``roll_sigma_rad`` how well the estimate knows the target's roll (the grasp needs it)."""
 
     stamp: float
     X_TC_est: Pose | None
@@ -73,6 +74,9 @@ class SequencerInputs:
     track_axis_W: np.ndarray
     max_track_speed: float
     gripper: GripperState | None = None
+    #: 1σ (rad) of the fused roll about the ring's axis (``TargetEstimate.roll_sigma_rad``);
+    #: unknown until told.
+    roll_sigma_rad: float = math.inf
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,6 +113,8 @@ class ApproachSequencer:
     _holding: frozenset[str] = frozenset()
     #: Since when the guarded move or the retreat has been held for the estimate (None: not).
     _held_since: float | None = None
+    #: Since when the stand-off, reached, has waited for the roll to be measured (None: not).
+    _roll_wait_since: float | None = None
 
     @property
     def X_TC_goal(self) -> Pose:
@@ -126,7 +132,7 @@ class ApproachSequencer:
         self._events.append(("phase", f"{self.phase} → {phase}: {why}"))
         self.phase = phase
         self._phase_since = stamp
-        self._within_since = None
+        self._within_since = self._roll_wait_since = None
         if phase != Phase.ACQUIRE:
             self._holding = frozenset()
         if phase == Phase.GRASP:
@@ -228,7 +234,8 @@ class ApproachSequencer:
                     Phase.STANDOFF, t, f"within {100 * error.distance_m:.1f} cm of the stand-off"
                 )
             elif self.phase == Phase.STANDOFF and self._dwelled(error, t):
-                self._enter(Phase.GRASP, t, "stand-off reached")
+                if self._roll_known(inputs.roll_sigma_rad, t):
+                    self._enter(Phase.GRASP, t, "stand-off reached")
             elif (
                 self.phase == Phase.RETREAT
                 and error.distance_m < 2 * self.config.standoff.position_tolerance_m
@@ -264,6 +271,31 @@ class ApproachSequencer:
             return False
         self._within_since = self._within_since if self._within_since is not None else t
         return t - self._within_since >= standoff.dwell_s
+
+    def _roll_known(self, roll_sigma_rad: float, t: float) -> bool:
+        """Whether the grasp may start: the target's roll is measured. A roll that only a guess
+        holds (a ring seen alone, a symmetric panel) refuses the grasp, after waiting up to
+        ``acquire_timeout_s`` for a frame that decides it (issue 13)."""
+        limit_deg = self.config.grasp.max_roll_sigma_deg
+        sigma_deg = math.degrees(roll_sigma_rad)
+        if sigma_deg <= limit_deg:
+            if self._roll_wait_since is not None:
+                self._events.append(("info", f"roll measured (σ {sigma_deg:.2f}°)"))
+            self._roll_wait_since = None
+            return True
+        timeout = self.config.supervisor.acquire_timeout_s
+        if self._roll_wait_since is None:
+            self._roll_wait_since = t
+            self._events.append(
+                (
+                    "warning",
+                    f"roll not measured (σ {sigma_deg:.1f}° > {limit_deg:g}°): the grasp waits "
+                    f"up to {timeout:.0f} s for a view that decides it",
+                )
+            )
+        elif t - self._roll_wait_since > timeout:
+            self.abort(t, f"roll not measured (σ {sigma_deg:.1f}° > {limit_deg:g}°): grasp refused")
+        return False
 
     def _servo(
         self, inputs: SequencerInputs, goal: Pose, *, use_track: bool, speed: float | None = None

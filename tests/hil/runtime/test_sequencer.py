@@ -52,6 +52,7 @@ def run(
     seconds: float = 60.0,
     estimate=lambda rig, t: rig.X_TC,
     on_tick=lambda seq: None,
+    roll_sigma=lambda t: math.radians(0.1),
 ):
     seq = ApproachSequencer(config)
     dt = 1.0 / config.servo.control_rate_hz
@@ -63,7 +64,14 @@ def run(
             events.extend(seq.on_violations([Violation("estimate", "estimate is lost", True)], t))
         out = seq.step(
             SequencerInputs(
-                t, X_TC, X_TC is not None, rig.X_WC.R, AXIS_W, 0.3, rig.gripper(t, seq.X_TC_grasp)
+                t,
+                X_TC,
+                X_TC is not None,
+                rig.X_WC.R,
+                AXIS_W,
+                0.3,
+                rig.gripper(t, seq.X_TC_grasp),
+                roll_sigma(t),
             ),
             dt,
         )
@@ -103,6 +111,37 @@ def test_sequencer_runs_a_full_approach_grasp_and_retreat():
     )
     # Retreat ends back at the stand-off.
     assert pose_error(rig.X_TC, seq.X_TC_goal).distance_m < 2 * config.standoff.position_tolerance_m
+
+
+def test_sequencer_grasps_only_once_the_roll_is_measured_and_refuses_a_guessed_one():
+    """Issue 13: a track that only saw the ring holds a guessed roll (σ ≈ 1 rad). The stand-off
+    waits for a view that decides it, then the grasp goes on — or is refused after the
+    acquire timeout, the arm still at the stand-off."""
+    config = ApproachConfig()
+    dt = 1.0 / config.servo.control_rate_hz
+    _, phases, _, _ = run(ToyRig(), config)
+    grasp_at = phases.index(Phase.GRASP) * dt  # with the roll known from the start
+    guessed = math.radians(57.0)
+    seq, phases, events, _ = run(
+        ToyRig(),
+        config,
+        seconds=120.0,
+        roll_sigma=lambda t: guessed if t < grasp_at + 5.0 else math.radians(0.2),
+    )
+    assert seq.phase == Phase.DONE, events
+    waits = [text for kind, text in events if text.startswith("roll not measured")]
+    assert len(waits) == 1 and "σ 57.0° > 2°" in waits[0]
+    assert ("info", "roll measured (σ 0.20°)") in events
+    assert phases.index(Phase.GRASP) * dt == pytest.approx(grasp_at + 5.0, abs=2 * dt)
+
+    seq, phases, events, _ = run(ToyRig(), config, seconds=120.0, roll_sigma=lambda t: guessed)
+    assert seq.phase == Phase.ABORT
+    assert seq.abort_reason == "roll not measured (σ 57.0° > 2°): grasp refused"
+    assert Phase.GRASP not in phases
+    reached = next(i for i, p in enumerate(phases) if p == Phase.STANDOFF)
+    assert (
+        len(phases) - reached
+    ) * dt > config.supervisor.acquire_timeout_s  # it waited at the stand-off first
 
 
 def test_sequencer_is_guided_by_the_estimate_except_while_the_gripper_works():
