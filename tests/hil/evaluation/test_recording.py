@@ -53,7 +53,8 @@ def test_replayed_approach_matches_the_truth_and_the_direct_frames(tmp_path):
     # busy cores).
     assert timing.frames >= 7 and 0.025 < timing.period_median_s < 0.06
     assert timing.latency_median_s < 0.05 and timing.unpaced_frame_s < 0.1
-    assert "replay paced at 30 fps: 8 frames" in timing.text()
+    # A busy machine may pass up one frame (newest frame only), as the bound above allows.
+    assert f"replay paced at 30 fps: {timing.frames} frames" in timing.text()
 
 
 def test_a_14_coefficient_calibration_works_end_to_end(tmp_path):
