@@ -294,24 +294,29 @@ class Tracker:
             measurement = Measurement.lost(
                 self.estimator.system, frame, f"estimator raised {type(exc).__name__}: {exc}"
             )
-        if measurement.valid and measurement.from_prior:
-            measurement = self._honest(measurement)
+        measurement = honest(measurement, self.roll_decided, self.circle_decided)
         self.prior_X_CT = measurement.prior if measurement.valid else None
-        self.roll_decided = (
-            measurement.valid and measurement.X_CT is not None and not measurement.ambiguous
-        )
-        self.circle_decided = measurement.valid and not measurement.ambiguous
+        self.roll_decided, self.circle_decided = decided_parts(measurement)
         return measurement
 
-    def _honest(self, m: Measurement) -> Measurement:
-        """A measurement that took its undecided part from a prior that had not decided it:
-        an undecided normal (a circle's mirror, a plate's planar flip) stays ambiguous; a roll
-        kept from a prior that had none is dropped (5-DOF) — or flagged when there is no
-        circle to keep."""
-        if not self.circle_decided:
-            return replace(m, ambiguous=True)
-        if m.X_CT is not None and not self.roll_decided:
-            if m.center_C is not None:
-                return without_roll(m)
-            return replace(m, ambiguous=True)
+
+def decided_parts(m: Measurement) -> tuple[bool, bool]:
+    """(roll, circle): what ``m`` decided, for the frame that takes its pose as prior — its
+    roll (a 6-DOF pose, not ambiguous) and its circle (which of the two poses)."""
+    return (m.valid and m.X_CT is not None and not m.ambiguous, m.valid and not m.ambiguous)
+
+
+def honest(m: Measurement, roll_decided: bool, circle_decided: bool) -> Measurement:
+    """``m`` as what it is when it took its undecided part from a prior (``from_prior``) whose
+    roll and circle were decided as given: an undecided normal (a circle's mirror, a plate's
+    planar flip) stays ambiguous; a roll kept from a prior that had none is dropped (5-DOF) —
+    or flagged when there is no circle to keep. Any other measurement is returned as it is."""
+    if not (m.valid and m.from_prior):
         return m
+    if not circle_decided:
+        return replace(m, ambiguous=True)
+    if m.X_CT is not None and not roll_decided:
+        if m.center_C is not None:
+            return without_roll(m)
+        return replace(m, ambiguous=True)
+    return m

@@ -41,7 +41,7 @@ from configuration.vision import VisionConfig
 from estimators.frame import Frame, frame_problem
 from estimators.fusion import FusionState, PoseFusion
 from estimators.geometry import Pose
-from estimators.measurement import Measurement
+from estimators.measurement import Measurement, decided_parts, honest
 from hil.logs.records import VisionOutcome, VisionRecord
 from hil.logs.triallog import encode_image
 from hil.runtime.history import StateHistory, StateSample
@@ -127,8 +127,12 @@ class VisionPipeline:
         #: Per (system, acquiring): how much its time varies from one frame to the next (a
         #: running mean of the absolute change, s).
         self._jitter: dict[tuple[str, bool], float] = {}
-        #: Per system: (capture stamp, X_MT) of its latest valid pose, to seed its next search.
-        self._seeds: dict[str, tuple[float, Pose]] = {}
+        #: Per system: (capture stamp, X_MT, what it decided — ``decided_parts``) of its latest
+        #: valid pose, to seed its next search.
+        self._seeds: dict[str, tuple[float, Pose, tuple[bool, bool]]] = {}
+        #: Per busy system seeded by its own pose: what that pose had decided (an answer that
+        #: kept the seed's choice is reported as honestly as the ``Tracker`` would).
+        self._seeded: dict[str, tuple[bool, bool]] = {}
         self._received = self._processed = self._dropped = self._stale = 0
         self._frame_problem: str | None = None
         self._camera_fault: str | None = None
@@ -243,6 +247,9 @@ class VisionPipeline:
                 searching = self._expected_s(system, acquiring=True)
                 deadline = frame.stamp + self.config.max_frame_age_s - searching
             job = VisionJob(system, frame, prior, now, deadline)
+            self._seeded.pop(system, None)
+            if fused_prior is None and prior is not None:
+                self._seeded[system] = self._seeds[system][2]
             self.workers.start(job)
             self._running[system] = job
             free_slots -= 1
@@ -324,10 +331,13 @@ class VisionPipeline:
             self._jitter[mode] = 0.75 * self._jitter.get(mode, 0.0) + 0.25 * change
         self._took[mode] = result.processing_s
         capture = job.frame.stamp
+        seeded = self._seeded.pop(job.system, None)
+        if seeded is not None:
+            m = honest(m, *seeded)
         if m.valid and m.prior is not None:
             X_CM = self.history.X_CM_at(capture)
             if X_CM is not None:
-                self._seeds[job.system] = (capture, X_CM.inverse() @ m.prior)
+                self._seeds[job.system] = (capture, X_CM.inverse() @ m.prior, decided_parts(m))
         if result.error is not None:
             self._faults += 1
             self._fault = result.error

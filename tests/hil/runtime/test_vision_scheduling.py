@@ -11,6 +11,7 @@ from configuration.vision import VisionConfig
 from estimators.frame import Frame, GroundTruth
 from estimators.fusion import FusionParams, PoseFusion
 from estimators.geometry import Pose
+from estimators.measurement import Measurement
 from hil.runtime.history import StateHistory, StateSample
 from hil.runtime.vision import VisionPipeline
 from hil.runtime.workers import InlineWorkers, VisionJob
@@ -170,3 +171,58 @@ def test_jobs_carry_a_search_deadline_once_fusion_has_a_track():
         searching = config.processing_s(job.system, acquiring=True)
         expected = job.frame.stamp + config.max_frame_age_s - searching
         assert job.search_deadline == pytest.approx(expected)
+
+
+class MirrorUndecided:
+    """The ring alone, never decided: acquisition says ambiguous; tracking keeps the pose
+    nearer its prior and says so (``from_prior``), as the ellipse system does."""
+
+    system = "ellipses"
+
+    def estimate(self, frame: Frame, prior_X_CT=None) -> Measurement:
+        X = frame.truth.X_CT
+        normal = X.R[:, 2]
+        mirror = Pose.from_rotvec(np.radians([15.0, 0.0, 0.0]), np.zeros(3)).R @ normal
+        return Measurement(
+            system=self.system,
+            status="tracking" if prior_X_CT is not None else "acquired",
+            stamp=frame.stamp,
+            seq=frame.seq,
+            circle="ring_outer",
+            center_C=X.p,
+            normal_C=normal,
+            covariance_5dof=np.diag([1e-6] * 3 + [1e-4] * 2),
+            X_CT_hint=X,
+            ambiguous=prior_X_CT is None,
+            from_prior=prior_X_CT is not None,
+            alternative_center_C=X.p,
+            alternative_normal_C=mirror,
+        )
+
+
+def test_a_system_seeded_by_its_own_undecided_pose_stays_undecided():
+    """Issue 13: until fusion confirms a track, a system seeds its next frame with its own last
+    pose. An answer that kept that pose's choice is no more decided than the pose was: it is
+    logged ambiguous, as the ``Tracker`` reports it, and fusion starts no track from it."""
+    workers = InlineWorkers({"ellipses": MirrorUndecided()}, lambda system, **_: 0.04)
+    vision = VisionPipeline(
+        systems=("ellipses",),
+        fusion=PoseFusion(load_mockup("default").target_model(), FusionParams()),
+        history=StateHistory(rig_geometry()),
+        workers=workers,
+        config=VisionConfig(log_frames_every_s=0.0),
+    )
+    rng = np.random.default_rng(0)
+    records = []
+    for tick in range(int(1.5 / 0.008)):
+        now = tick * 0.008
+        vision.publish_state(StateSample(now, X_BE, now, 0.0))
+        if tick % 8 == 0:
+            image = rng.integers(0, 255, (48, 64), dtype=np.uint8)
+            vision.on_frame(Frame(image, now - 0.02, INFO, tick // 8, TRUTH), now)
+        vision.step(now)
+        records += [r for r in vision.drain() if hasattr(r, "measurement")]
+    tracked = [r.measurement for r in records if r.measurement.status == "tracking"]
+    assert len(tracked) >= 5
+    assert all(m.ambiguous for m in tracked)
+    assert vision.latest().fusion.X_MT is None
