@@ -358,8 +358,9 @@ class FusionParams:
     measurement); ``initial_roll_sigma_rad``: roll about the circle's normal when a track starts
     from a 5-DOF measurement. ``gate_probability``: χ² quantile of the Mahalanobis gate.
     ``coast_timeout_s`` / ``lost_timeout_s``: health time-outs since the last accepted
-    measurement. ``confirm_measurements``: accepted, unambiguous measurements (the first
-    included, from any systems and frames) before a new track is declared. ``max_stamp_skew_s``:
+    measurement. ``confirm_measurements``: accepted measurements that decided their pose (not
+    ambiguous, not from the prior; the first included, from any systems and frames) before a new
+    track is declared. ``max_stamp_skew_s``:
     largest |measurement.stamp − update stamp|. ``max_roll_sigma_rad``: the track's roll about the
     ring's axis counts as measured while its 1σ is below this (a quarter turn taken from such a
     prior is then right with near certainty). ``camera_pointing_sigma_rad`` /
