@@ -63,10 +63,11 @@ class GraspConfig(Strict):
     close_timeout_s: PositiveM = 3.0
     hold_s: Annotated[float, Field(ge=0.0)] = 0.5
     release_after_grasp: bool = True
-    #: The grasp starts only when the fused roll about the ring's axis is known this well (1σ):
-    #: a track that saw only the ring — or a square panel with nothing in view to tell its
-    #: quarter turns apart — holds a roll it guessed (σ ≈ 57°). The stand-off waits for it
-    #: up to the supervisor's ``acquire_timeout_s``, then the grasp is refused.
+    #: The fused roll about the ring's axis counts as measured while its 1σ is below this. A
+    #: track that saw only the ring — or a square panel with nothing in view to tell its
+    #: quarter turns apart — holds a roll it guessed (σ ≈ 57°): the arm then servoes without
+    #: turning about the ring's axis, the stand-off waits for the roll up to the supervisor's
+    #: ``acquire_timeout_s``, and the grasp is refused if it does not come.
     max_roll_sigma_deg: Annotated[float, Field(gt=0.0, le=45.0)] = 2.0
 
 

@@ -33,6 +33,7 @@ from drivers.base import GripperState
 from estimators.geometry import Pose
 from hil.runtime.servo import (
     PoseError,
+    goal_keeping_roll,
     limit_command,
     pbvs_twist,
     pose_error,
@@ -203,8 +204,9 @@ class ApproachSequencer:
         gripper_command = None
         twist, track = zero, 0.0
         error: PoseError | None = None
+        goal = self._goal(inputs, self.X_TC_goal)
         if inputs.X_TC_est is not None:
-            error = pose_error(inputs.X_TC_est, self.X_TC_goal)
+            error = pose_error(inputs.X_TC_est, goal)
 
         if self._held_since is not None:
             self._hold(inputs, t)
@@ -221,9 +223,7 @@ class ApproachSequencer:
             self.phase in (Phase.APPROACH, Phase.STANDOFF, Phase.RETREAT)
             and inputs.X_TC_est is not None
         ):
-            twist, track = self._servo(
-                inputs, self.X_TC_goal, use_track=self.phase == Phase.APPROACH
-            )
+            twist, track = self._servo(inputs, goal, use_track=self.phase == Phase.APPROACH)
             assert error is not None
             if (
                 self.phase == Phase.APPROACH
@@ -272,6 +272,14 @@ class ApproachSequencer:
         self._within_since = self._within_since if self._within_since is not None else t
         return t - self._within_since >= standoff.dwell_s
 
+    def _goal(self, inputs: SequencerInputs, goal: Pose) -> Pose:
+        """``goal``, or — while the target's roll is not measured — ``goal`` turned about the
+        ring's axis to the camera's present roll: the arm never chases a guessed roll."""
+        measured = math.degrees(inputs.roll_sigma_rad) <= self.config.grasp.max_roll_sigma_deg
+        if measured or inputs.X_TC_est is None:
+            return goal
+        return goal_keeping_roll(inputs.X_TC_est, goal)
+
     def _roll_known(self, roll_sigma_rad: float, t: float) -> bool:
         """Whether the grasp may start: the target's roll is measured. A roll that only a guess
         holds (a ring seen alone, a symmetric panel) refuses the grasp, after waiting up to
@@ -318,9 +326,10 @@ class ApproachSequencer:
         gripper = inputs.gripper
         zero = np.zeros(6)
         if g.step == "advance":
-            twist, _ = self._servo(inputs, self.X_TC_grasp, use_track=False, speed=grasp.speed)
+            goal = self._goal(inputs, self.X_TC_grasp)
+            twist, _ = self._servo(inputs, goal, use_track=False, speed=grasp.speed)
             assert inputs.X_TC_est is not None
-            reached = pose_error(inputs.X_TC_est, self.X_TC_grasp)
+            reached = pose_error(inputs.X_TC_est, goal)
             if reached.distance_m <= 2 * self.config.standoff.position_tolerance_m:
                 g.step, g.since = "close", t
                 self._events.append(("info", "guarded move done; closing the gripper"))

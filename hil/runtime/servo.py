@@ -64,6 +64,27 @@ def pbvs_twist(X_TC: Pose, X_TC_goal: Pose, gain: float) -> np.ndarray:
     return np.concatenate([v_C, w_C])
 
 
+def goal_keeping_roll(X_TC: Pose, X_TC_goal: Pose) -> Pose:
+    """The goal turned about T's z axis (the ring's) to the camera's present roll about it.
+
+    Servoing to it brings the camera onto its place and its optical axis onto the goal's
+    direction without turning about the ring's axis: for a target whose roll is not measured
+    (only the ring seen, or a square panel with nothing to tell its quarter turns apart), where
+    the estimate's roll is a guess the arm must not chase (issue 13). The roll is the turn about
+    z_T that carries the goal's image x axis, projected on T's xy plane, onto the camera's."""
+
+    def planar(x_T: np.ndarray) -> np.ndarray:
+        return np.array([x_T[0], x_T[1], 0.0])
+
+    goal_x, camera_x = planar(X_TC_goal.R[:, 0]), planar(X_TC.R[:, 0])
+    if min(np.linalg.norm(goal_x), np.linalg.norm(camera_x)) < 1e-6:
+        return X_TC_goal  # image x along the ring's axis: no roll to keep
+    angle = math.atan2(float(np.cross(goal_x, camera_x)[2]), float(goal_x @ camera_x))
+    c, s = math.cos(angle), math.sin(angle)
+    R_z = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return Pose(R_z @ X_TC_goal.R, R_z @ X_TC_goal.p)
+
+
 def saturate(twist: np.ndarray, max_speed: float, max_angular_speed: float) -> np.ndarray:
     """Scale the whole twist so that both parts are within their limits (direction kept)."""
     v, w = np.asarray(twist[:3], float), np.asarray(twist[3:], float)

@@ -7,9 +7,11 @@ from hypothesis import strategies as st
 
 from configuration.approach import ServoConfig
 from estimators.geometry import Pose, rotation_error_geodesic
+from estimators.so3 import log_so3
 from hil.runtime.servo import (
     camera_twist_to_flange,
     flange_twist_to_camera,
+    goal_keeping_roll,
     limit_acceleration,
     limit_command,
     pbvs_twist,
@@ -190,3 +192,25 @@ def test_split_along_track_with_a_scaled_axis_and_the_track_at_its_limit():
     slower = split_along_track(-twist, R_WC, np.array([1.0, 0.0, 0.0]), max_track_speed=0.15)
     assert slower.track_velocity == pytest.approx(0.15)
     assert np.allclose(slower.camera_twist_C, -0.5 * np.array([0.0, 0.1, 0.0, 0.01, 0.02, 0.03]))
+
+
+@given(
+    st.floats(-math.pi, math.pi),
+    st.floats(-0.3, 0.3),
+    st.floats(-0.3, 0.3),
+    st.floats(0.5, 2.5),
+)
+def test_goal_keeping_roll_leaves_the_turn_about_the_rings_axis_alone(roll, tx, ty, distance):
+    """Toward the roll-kept goal the camera still goes onto the axis and faces along it, but
+    the rotation left to do has no part about the ring's axis (z_T) beyond the second-order
+    coupling of a tilt: a guessed roll is never chased."""
+    tilt = Pose.from_rotvec(np.array([tx, ty, 0.0]), np.zeros(3))
+    turn = Pose.from_rotvec(np.array([0.0, 0.0, roll]), np.zeros(3))
+    X_TC = Pose((turn @ tilt).R @ GOAL.R, np.array([0.1, -0.2, distance]))
+    kept = goal_keeping_roll(X_TC, GOAL)
+    assert np.allclose(kept.p, GOAL.p)  # on the axis: the place is the same
+    assert np.allclose(kept.R[:, 2], GOAL.R[:, 2])  # optical axis along −z_T, as the goal's
+    left_T = log_so3(kept.R @ X_TC.R.T)  # the turn still to do, in T
+    assert abs(left_T[2]) <= 0.5 * (abs(tx) + abs(ty)) ** 2 + 1e-9
+    if tx == ty == 0.0:
+        assert np.allclose(kept.R, X_TC.R)  # nothing to turn at all
