@@ -130,9 +130,11 @@ class VisionPipeline:
         #: Per system: (capture stamp, X_MT, what it decided — ``decided_parts``) of its latest
         #: valid pose, to seed its next search.
         self._seeds: dict[str, tuple[float, Pose, tuple[bool, bool]]] = {}
-        #: Per busy system seeded by its own pose: what that pose had decided (an answer that
-        #: kept the seed's choice is reported as honestly as the ``Tracker`` would).
-        self._seeded: dict[str, tuple[bool, bool]] = {}
+        #: Per busy system given a prior: what that prior had decided — (roll, circle) as in
+        #: ``decided_parts`` — so that an answer that kept the prior's choice is reported as
+        #: honestly as the ``Tracker`` would (a fused prior: its circle, and its roll while
+        #: fusion has measured it; a system's own seed: what that pose decided).
+        self._prior_decided: dict[str, tuple[bool, bool]] = {}
         self._received = self._processed = self._dropped = self._stale = 0
         self._frame_problem: str | None = None
         self._camera_fault: str | None = None
@@ -247,9 +249,11 @@ class VisionPipeline:
                 searching = self._expected_s(system, acquiring=True)
                 deadline = frame.stamp + self.config.max_frame_age_s - searching
             job = VisionJob(system, frame, prior, now, deadline)
-            self._seeded.pop(system, None)
-            if fused_prior is None and prior is not None:
-                self._seeded[system] = self._seeds[system][2]
+            self._prior_decided.pop(system, None)
+            if fused_prior is not None:
+                self._prior_decided[system] = (self._fused_roll_measured(frame.stamp), True)
+            elif prior is not None:
+                self._prior_decided[system] = self._seeds[system][2]
             self.workers.start(job)
             self._running[system] = job
             free_slots -= 1
@@ -314,6 +318,12 @@ class VisionPipeline:
         if mode in self._took:
             self._took[mode] *= 0.97
 
+    def _fused_roll_measured(self, stamp: float) -> bool:
+        """Whether fusion's track has measured the target's roll (a track that only circles
+        started holds a guessed one)."""
+        sigma = self.fusion.estimate(stamp).roll_sigma_rad()
+        return sigma <= self.fusion.params.max_roll_sigma_rad
+
     def _seed(self, system: str, X_CM: Pose | None, frame: Frame) -> Pose | None:
         """``system``'s own latest pose carried to ``frame``'s capture, if recent enough."""
         seed = self._seeds.get(system)
@@ -331,9 +341,9 @@ class VisionPipeline:
             self._jitter[mode] = 0.75 * self._jitter.get(mode, 0.0) + 0.25 * change
         self._took[mode] = result.processing_s
         capture = job.frame.stamp
-        seeded = self._seeded.pop(job.system, None)
-        if seeded is not None:
-            m = honest(m, *seeded)
+        decided = self._prior_decided.pop(job.system, None)
+        if decided is not None:
+            m = honest(m, *decided)
         if m.valid and m.prior is not None:
             X_CM = self.history.X_CM_at(capture)
             if X_CM is not None:

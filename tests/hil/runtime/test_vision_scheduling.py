@@ -226,3 +226,77 @@ def test_a_system_seeded_by_its_own_undecided_pose_stays_undecided():
     assert len(tracked) >= 5
     assert all(m.ambiguous for m in tracked)
     assert vision.latest().fusion.X_MT is None
+
+
+class RingDecided:
+    """The ring, its normal decided every frame; the roll only a hint (as without a thruster)."""
+
+    system = "ellipses"
+
+    def estimate(self, frame: Frame, prior_X_CT=None) -> Measurement:
+        X = frame.truth.X_CT
+        return Measurement(
+            system=self.system,
+            status="tracking" if prior_X_CT is not None else "acquired",
+            stamp=frame.stamp,
+            seq=frame.seq,
+            circle="ring_outer",
+            center_C=X.p,
+            normal_C=X.R[:, 2],
+            covariance_5dof=np.diag([1e-6] * 3 + [1e-4] * 2),
+            X_CT_hint=X,
+        )
+
+
+class TurnFromPrior:
+    """A square panel with nothing in view to tell its quarter turns apart: with a prior it
+    keeps the prior's turn (``from_prior``), giving its ring circle as well; without, nothing."""
+
+    system = "corners"
+
+    def estimate(self, frame: Frame, prior_X_CT=None) -> Measurement:
+        if prior_X_CT is None:
+            return Measurement.lost(self.system, frame, "quarter turn undecided")
+        X = frame.truth.X_CT
+        return Measurement(
+            system=self.system,
+            status="tracking",
+            stamp=frame.stamp,
+            seq=frame.seq,
+            X_CT=X,
+            covariance=np.eye(6) * 1e-7,
+            from_prior=True,
+            circle="ring_outer",
+            center_C=X.p,
+            normal_C=X.R[:, 2],
+            covariance_5dof=np.diag([1e-6] * 3 + [1e-4] * 2),
+        )
+
+
+def test_a_turn_kept_from_a_fused_prior_without_a_measured_roll_is_reported_without_it():
+    """A track that only circles confirmed holds a guessed roll; a corner pose that kept that
+    prior's quarter turn is logged as what it measured — its circle, the pose a hint."""
+    estimators = {"ellipses": RingDecided(), "corners": TurnFromPrior()}
+    workers = InlineWorkers(estimators, lambda system, **_: 0.03)
+    fusion = PoseFusion(load_mockup("default").target_model(), FusionParams())
+    vision = VisionPipeline(
+        systems=("ellipses", "corners"),
+        fusion=fusion,
+        history=StateHistory(rig_geometry()),
+        workers=workers,
+        config=VisionConfig(log_frames_every_s=0.0),
+    )
+    rng = np.random.default_rng(0)
+    records = []
+    for tick in range(int(1.5 / 0.008)):
+        now = tick * 0.008
+        vision.publish_state(StateSample(now, X_BE, now, 0.0))
+        if tick % 8 == 0:
+            image = rng.integers(0, 255, (48, 64), dtype=np.uint8)
+            vision.on_frame(Frame(image, now - 0.02, INFO, tick // 8, TRUTH), now)
+        vision.step(now)
+        records += [r for r in vision.drain() if hasattr(r, "measurement")]
+    kept = [r.measurement for r in records if r.system == "corners" and r.measurement.valid]
+    assert len(kept) >= 5
+    assert all(m.X_CT is None and m.X_CT_hint is not None for m in kept)
+    assert fusion.estimate(1.5).roll_sigma_rad() > 0.9  # and fusion learnt no roll from them
