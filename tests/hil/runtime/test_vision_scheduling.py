@@ -173,48 +173,22 @@ def test_jobs_carry_a_search_deadline_once_fusion_has_a_track():
         assert job.search_deadline == pytest.approx(expected)
 
 
-class MirrorUndecided:
-    """The ring alone, never decided: acquisition says ambiguous; tracking keeps the pose
-    nearer its prior and says so (``from_prior``), as the ellipse system does."""
-
-    system = "ellipses"
-
-    def estimate(self, frame: Frame, prior_X_CT=None) -> Measurement:
-        X = frame.truth.X_CT
-        normal = X.R[:, 2]
-        mirror = Pose.from_rotvec(np.radians([15.0, 0.0, 0.0]), np.zeros(3)).R @ normal
-        return Measurement(
-            system=self.system,
-            status="tracking" if prior_X_CT is not None else "acquired",
-            stamp=frame.stamp,
-            seq=frame.seq,
-            circle="ring_outer",
-            center_C=X.p,
-            normal_C=normal,
-            covariance_5dof=np.diag([1e-6] * 3 + [1e-4] * 2),
-            X_CT_hint=X,
-            ambiguous=prior_X_CT is None,
-            from_prior=prior_X_CT is not None,
-            alternative_center_C=X.p,
-            alternative_normal_C=mirror,
-        )
+TARGET = load_mockup("default").target_model()
 
 
-def test_a_system_seeded_by_its_own_undecided_pose_stays_undecided():
-    """Issue 13: until fusion confirms a track, a system seeds its next frame with its own last
-    pose. An answer that kept that pose's choice is no more decided than the pose was: it is
-    logged ambiguous, as the ``Tracker`` reports it, and fusion starts no track from it."""
-    workers = InlineWorkers({"ellipses": MirrorUndecided()}, lambda system, **_: 0.04)
+def run_still(estimators: dict, fusion: PoseFusion, *, charged_s: float, seconds: float = 1.5):
+    """The pipeline over a still scene: a frame every 64 ms (20 ms old on arrival), stepped
+    every 8 ms. Returns the pipeline and the vision records of every result."""
     vision = VisionPipeline(
-        systems=("ellipses",),
-        fusion=PoseFusion(load_mockup("default").target_model(), FusionParams()),
+        systems=tuple(estimators),
+        fusion=fusion,
         history=StateHistory(rig_geometry()),
-        workers=workers,
+        workers=InlineWorkers(estimators, lambda system, **_: charged_s),
         config=VisionConfig(log_frames_every_s=0.0),
     )
     rng = np.random.default_rng(0)
     records = []
-    for tick in range(int(1.5 / 0.008)):
+    for tick in range(int(seconds / 0.008)):
         now = tick * 0.008
         vision.publish_state(StateSample(now, X_BE, now, 0.0))
         if tick % 8 == 0:
@@ -222,30 +196,62 @@ def test_a_system_seeded_by_its_own_undecided_pose_stays_undecided():
             vision.on_frame(Frame(image, now - 0.02, INFO, tick // 8, TRUTH), now)
         vision.step(now)
         records += [r for r in vision.drain() if hasattr(r, "measurement")]
-    tracked = [r.measurement for r in records if r.measurement.status == "tracking"]
-    assert len(tracked) >= 5
-    assert all(m.ambiguous for m in tracked)
-    assert vision.latest().fusion.X_MT is None
+    return vision, records
 
 
-class RingDecided:
-    """The ring, its normal decided every frame; the roll only a hint (as without a thruster)."""
+def ring_circle(X_CT: Pose) -> dict:
+    """The ring's circle (centre, normal, 5×5 covariance) at ``X_CT``."""
+    return dict(
+        circle="ring_outer",
+        center_C=X_CT.p,
+        normal_C=X_CT.R[:, 2],
+        covariance_5dof=np.diag([1e-6] * 3 + [1e-4] * 2),
+    )
+
+
+class RingAlone:
+    """The ring alone, its roll only a hint (as without a thruster). ``decided``: its normal
+    decided every frame; otherwise never — acquisition says ambiguous, tracking keeps the pose
+    nearer its prior and says so (``from_prior``), as the ellipse system does."""
 
     system = "ellipses"
 
+    def __init__(self, decided: bool):
+        self.decided = decided
+
     def estimate(self, frame: Frame, prior_X_CT=None) -> Measurement:
         X = frame.truth.X_CT
+        undecided = {}
+        if not self.decided:
+            mirror = Pose.from_rotvec(np.radians([15.0, 0.0, 0.0]), np.zeros(3)).R @ X.R[:, 2]
+            undecided = dict(
+                ambiguous=prior_X_CT is None,
+                from_prior=prior_X_CT is not None,
+                alternative_center_C=X.p,
+                alternative_normal_C=mirror,
+            )
         return Measurement(
             system=self.system,
             status="tracking" if prior_X_CT is not None else "acquired",
             stamp=frame.stamp,
             seq=frame.seq,
-            circle="ring_outer",
-            center_C=X.p,
-            normal_C=X.R[:, 2],
-            covariance_5dof=np.diag([1e-6] * 3 + [1e-4] * 2),
             X_CT_hint=X,
+            **ring_circle(X),
+            **undecided,
         )
+
+
+def test_a_system_seeded_by_its_own_undecided_pose_stays_undecided():
+    """Issue 13: until fusion confirms a track, a system seeds its next frame with its own last
+    pose. An answer that kept that pose's choice is no more decided than the pose was: it is
+    logged ambiguous, as the ``Tracker`` reports it, and fusion starts no track from it."""
+    vision, records = run_still(
+        {"ellipses": RingAlone(decided=False)}, PoseFusion(TARGET, FusionParams()), charged_s=0.04
+    )
+    tracked = [r.measurement for r in records if r.measurement.status == "tracking"]
+    assert len(tracked) >= 5
+    assert all(m.ambiguous for m in tracked)
+    assert vision.latest().fusion.X_MT is None
 
 
 class TurnFromPrior:
@@ -266,36 +272,16 @@ class TurnFromPrior:
             X_CT=X,
             covariance=np.eye(6) * 1e-7,
             from_prior=True,
-            circle="ring_outer",
-            center_C=X.p,
-            normal_C=X.R[:, 2],
-            covariance_5dof=np.diag([1e-6] * 3 + [1e-4] * 2),
+            **ring_circle(X),
         )
 
 
 def test_a_turn_kept_from_a_fused_prior_without_a_measured_roll_is_reported_without_it():
     """A track that only circles confirmed holds a guessed roll; a corner pose that kept that
     prior's quarter turn is logged as what it measured — its circle, the pose a hint."""
-    estimators = {"ellipses": RingDecided(), "corners": TurnFromPrior()}
-    workers = InlineWorkers(estimators, lambda system, **_: 0.03)
-    fusion = PoseFusion(load_mockup("default").target_model(), FusionParams())
-    vision = VisionPipeline(
-        systems=("ellipses", "corners"),
-        fusion=fusion,
-        history=StateHistory(rig_geometry()),
-        workers=workers,
-        config=VisionConfig(log_frames_every_s=0.0),
-    )
-    rng = np.random.default_rng(0)
-    records = []
-    for tick in range(int(1.5 / 0.008)):
-        now = tick * 0.008
-        vision.publish_state(StateSample(now, X_BE, now, 0.0))
-        if tick % 8 == 0:
-            image = rng.integers(0, 255, (48, 64), dtype=np.uint8)
-            vision.on_frame(Frame(image, now - 0.02, INFO, tick // 8, TRUTH), now)
-        vision.step(now)
-        records += [r for r in vision.drain() if hasattr(r, "measurement")]
+    fusion = PoseFusion(TARGET, FusionParams())
+    estimators = {"ellipses": RingAlone(decided=True), "corners": TurnFromPrior()}
+    _, records = run_still(estimators, fusion, charged_s=0.03)
     kept = [r.measurement for r in records if r.system == "corners" and r.measurement.valid]
     assert len(kept) >= 5
     assert all(m.X_CT is None and m.X_CT_hint is not None for m in kept)
