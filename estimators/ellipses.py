@@ -527,17 +527,13 @@ class EllipseEstimator:
     def _edge_residuals(
         self, points: dict[str, tuple[np.ndarray, ...]], X_CT: Pose
     ) -> list[np.ndarray]:
-        """Sampson distances (px) of each circle's point sets to its projection under ``X_CT``
-        (circles other than the outer edge with a free radius, as in ``_cost``)."""
+        """``_residuals`` of each circle's point sets under ``X_CT`` (a circle's sets together,
+        so that a free radius is centred on all of them), one array per set."""
         out = []
         for name, sets in points.items():
-            circle = self.target.circle(name)
-            cone = circle_cone(X_CT.apply(circle.center_T), X_CT.R @ circle.normal_T, circle.radius)
-            conic = self._K_inv.T @ cone @ self._K_inv
-            every = sampson_distances(conic, np.vstack(sets))
-            offset = np.median(every) if name != self.outer.name and len(every) else 0.0
+            every = self._residuals(name, X_CT, np.vstack(sets))
             split = np.cumsum([len(uv) for uv in sets])[:-1]
-            out.extend(np.split(every - offset, split))
+            out.extend(np.split(every, split))
         return out
 
     def _same_normal(self, a: _Fit, b: _Fit) -> bool:
@@ -852,14 +848,21 @@ class EllipseEstimator:
         poses on the same footing whatever their supports (residuals in px, capped at 2)."""
         total, count = 0.0, 0
         for name, e in edges.items():
-            circle = self.target.circle(name)
-            cone = circle_cone(X_CT.apply(circle.center_T), X_CT.R @ circle.normal_T, circle.radius)
-            r = sampson_distances(self._K_inv.T @ cone @ self._K_inv, e.uv_ideal)
-            if name != self.outer.name and len(r):
-                r = r - np.median(r)  # a free radius: only the shape counts
+            r = self._residuals(name, X_CT, e.uv_ideal)
             total += float(np.sum(np.minimum(r**2, 4.0))) + 4.0 * (len(e.samples.uv) - len(r))
             count += len(e.samples.uv)
         return total / max(count, 1)
+
+    def _residuals(self, name: str, X_CT: Pose, uv: np.ndarray) -> np.ndarray:
+        """Sampson distances (px) of ideal pixels ``uv`` to circle ``name``'s image under
+        ``X_CT``; for circles other than the outer edge about their median (a free radius:
+        only the shape counts)."""
+        circle = self.target.circle(name)
+        cone = circle_cone(X_CT.apply(circle.center_T), X_CT.R @ circle.normal_T, circle.radius)
+        r = sampson_distances(self._K_inv.T @ cone @ self._K_inv, uv)
+        if name != self.outer.name and len(r):
+            r = r - np.median(r)
+        return r
 
     def _circle_edges(
         self,

@@ -759,6 +759,11 @@ class PoseFusion:
             return None
         return estimate.X_CT(X_CM)
 
+    def roll_measured(self, stamp: float) -> bool:
+        """Whether the track's roll about the ring's axis is measured at ``stamp`` (1σ ≤
+        ``params.max_roll_sigma_rad``): a track that only circles started holds a guessed one."""
+        return self.estimate(stamp).roll_sigma_rad() <= self.params.max_roll_sigma_rad
+
     # --- the update ---------------------------------------------------------------------
     def update(
         self, measurements: Sequence[Measurement], X_CM: Pose, stamp: float

@@ -275,10 +275,12 @@ class ApproachSequencer:
     def _goal(self, inputs: SequencerInputs, goal: Pose) -> Pose:
         """``goal``, or — while the target's roll is not measured — ``goal`` turned about the
         ring's axis to the camera's present roll: the arm never chases a guessed roll."""
-        measured = math.degrees(inputs.roll_sigma_rad) <= self.config.grasp.max_roll_sigma_deg
-        if measured or inputs.X_TC_est is None:
+        if self._roll_measured(inputs.roll_sigma_rad) or inputs.X_TC_est is None:
             return goal
         return goal_keeping_roll(inputs.X_TC_est, goal)
+
+    def _roll_measured(self, roll_sigma_rad: float) -> bool:
+        return math.degrees(roll_sigma_rad) <= self.config.grasp.max_roll_sigma_deg
 
     def _roll_known(self, roll_sigma_rad: float, t: float) -> bool:
         """Whether the grasp may start: the target's roll is measured. A roll that only a guess
@@ -286,7 +288,7 @@ class ApproachSequencer:
         ``acquire_timeout_s`` for a frame that decides it (issue 13)."""
         limit_deg = self.config.grasp.max_roll_sigma_deg
         sigma_deg = math.degrees(roll_sigma_rad)
-        if sigma_deg <= limit_deg:
+        if self._roll_measured(roll_sigma_rad):
             if self._roll_wait_since is not None:
                 self._events.append(("info", f"roll measured (σ {sigma_deg:.2f}°)"))
             self._roll_wait_since = None

@@ -251,7 +251,7 @@ class VisionPipeline:
             job = VisionJob(system, frame, prior, now, deadline)
             self._prior_decided.pop(system, None)
             if fused_prior is not None:
-                self._prior_decided[system] = (self._fused_roll_measured(frame.stamp), True)
+                self._prior_decided[system] = (self.fusion.roll_measured(frame.stamp), True)
             elif prior is not None:
                 self._prior_decided[system] = self._seeds[system][2]
             self.workers.start(job)
@@ -317,12 +317,6 @@ class VisionPipeline:
         mode = (system, False)
         if mode in self._took:
             self._took[mode] *= 0.97
-
-    def _fused_roll_measured(self, stamp: float) -> bool:
-        """Whether fusion's track has measured the target's roll (a track that only circles
-        started holds a guessed one)."""
-        sigma = self.fusion.estimate(stamp).roll_sigma_rad()
-        return sigma <= self.fusion.params.max_roll_sigma_rad
 
     def _seed(self, system: str, X_CM: Pose | None, frame: Frame) -> Pose | None:
         """``system``'s own latest pose carried to ``frame``'s capture, if recent enough."""
