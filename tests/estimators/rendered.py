@@ -22,12 +22,40 @@ from sim_backends.sensor import expose, frame_rng
 #: fastener layout without four-fold symmetry, thruster elsewhere.
 OTHER_MOCKUP = load_mockup(Path(__file__).resolve().parents[2] / "configs" / "mockup_other.yaml")
 
+#: A deep, dark ring (8.5 cm proud of a lighter face, no thruster): seen 10° off its axis, its
+#: bore wall shifts the inner edge by pixels and, lit, shows an edge of the outer edge's
+#: polarity a ring's width inside it.
+DEEP_RING_MOCKUP = MockupConfig.model_validate(
+    {
+        "name": "deep_ring",
+        "bus_face": {"width": 1.7, "height": 1.3, "color": [0.45, 0.45, 0.45]},
+        "marman_ring": {
+            "outer_diameter": 0.8,
+            "radial_width": 0.065,
+            "protrusion": 0.085,
+            "color": [0.1, 0.1, 0.1],
+        },
+        "centre_panel": {"side": 0.3, "color": [0.8, 0.8, 0.8]},
+        "thruster": None,
+        "fasteners": [
+            {
+                "name": "hole",
+                "surface": "ring",
+                "diameter": 0.014,
+                "color": [0.3, 0.3, 0.3],
+                "circle_pattern": {"radius": 0.375, "count": 8, "phase_deg": 9.0},
+            }
+        ],
+    }
+)
+
 #: A generic pose offset (no edge on the pixel grid): 3 cm, 2 cm, 2°, −3°, 6°.
 GENERIC = (0.03, -0.02, 0.0, np.radians(2.0), np.radians(-3.0), np.radians(6.0))
 
 
 def _mockup(name: str) -> MockupConfig:
-    return OTHER_MOCKUP if name == "other" else load_mockup(name)
+    named = {"other": OTHER_MOCKUP, "deep_ring": DEEP_RING_MOCKUP}
+    return named[name] if name in named else load_mockup(name)
 
 
 @lru_cache(maxsize=32)
