@@ -240,6 +240,35 @@ def fit_ellipse_direct(uv: np.ndarray, weights: np.ndarray | None = None) -> np.
     return normalize_conic(Q)
 
 
+def fit_ellipse_leaving_out_an_arc(uv: np.ndarray, *, blocks: int = 8) -> np.ndarray:
+    """Direct ellipse fit (``fit_ellipse_direct``) of points (N,2) ordered along their curve,
+    robust to one wrong arc: every fit that leaves out a quarter of the curve (two adjacent of
+    ``blocks`` runs of points) competes with the fit of all, by the median absolute Sampson
+    distance of *all* points (least median of squares, Rousseeuw 1984, over contiguous
+    subsets). A least-squares fit, even a Huber one, leans toward a clustered wrong arc: a lit
+    bore wall a ring's width inside its edge, found by the edge search on one side, flattened
+    the ellipse by 9 % (b/a 0.91 for 0.99) and still fitted its points to 0.9 px rms. A subset
+    must be clearly better (median 0.8× the full fit's) to win. Returns the normalised conic."""
+    uv = as_points(uv, 2, "uv")
+    Q_all = fit_ellipse_direct(uv)
+    if len(uv) < 8 * blocks:
+        return Q_all
+    best, best_score = Q_all, 0.8 * float(np.median(np.abs(sampson_distances(Q_all, uv))))
+    runs = np.array_split(np.arange(len(uv)), blocks)
+    for i in range(blocks):
+        keep = np.ones(len(uv), bool)
+        keep[runs[i]] = False
+        keep[runs[(i + 1) % blocks]] = False
+        try:
+            Q = fit_ellipse_direct(uv[keep])
+        except ValueError:
+            continue
+        score = float(np.median(np.abs(sampson_distances(Q, uv))))
+        if score < best_score:
+            best, best_score = Q, score
+    return best
+
+
 def ellipse_angles(e: Ellipse, uv: np.ndarray) -> np.ndarray:
     """Parametric angles (rad, in (−π, π]) of points (N,2) about an ellipse: the angle t with
     the point ≈ centre + R(angle)·[a cos t, b sin t]."""

@@ -42,6 +42,7 @@ from estimators.conics import (
     ellipse_angles,
     ellipse_from_conic,
     fit_ellipse_direct,
+    fit_ellipse_leaving_out_an_arc,
     refine_ellipse,
     sampson_distances,
 )
@@ -395,7 +396,7 @@ def fit_ellipse_subpixel(
             return None
         found = hits.uv[hits.found]
         try:
-            e = ellipse_from_conic(fit_ellipse_direct(found))
+            e = ellipse_from_conic(fit_ellipse_leaving_out_an_arc(found))
             if round_index == rounds - 1:  # geometric refinement once, on the final points
                 e, residuals, sigma = refine_ellipse(found, e, iterations=3)
         except ValueError:

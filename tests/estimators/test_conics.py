@@ -10,6 +10,8 @@ from estimators.conics import (
     conic_from_ellipse,
     conic_residuals,
     ellipse_from_conic,
+    fit_ellipse_direct,
+    fit_ellipse_leaving_out_an_arc,
 )
 from estimators.geometry import intrinsics_from_fov, project
 
@@ -88,3 +90,27 @@ def test_ellipse_validates_axes():
 def test_circle_image_conic_rejects_degenerate_view():
     with pytest.raises(ValueError, match="degenerate"):
         circle_image_conic(np.array([0.0, 0.0, 2.0]), np.array([1.0, 0.0, 0.0]), 0.3, K)
+
+
+@given(st.floats(-np.pi, np.pi), st.floats(0.1, 0.25), st.floats(0.6, 1.0), st.integers(0, 10**6))
+def test_an_ellipse_fit_leaves_out_one_wrong_arc(start, share, ratio, seed):
+    """Points ordered along an ellipse, a run of ``share`` of them moved 10 px inward (another
+    edge beside the one sought): the plain fit is pulled by pixels, the robust one stays on
+    the ellipse; without a wrong arc both agree."""
+    rng = np.random.default_rng(seed)
+    e = Ellipse(320.0, 240.0, 60.0, 60.0 * ratio, 0.3)
+    t = start + np.linspace(0.0, 2.0 * np.pi, 160, endpoint=False)
+    radial = np.column_stack([np.cos(t), np.sin(t) * ratio])
+    R = np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
+    uv = e.center + (60.0 * radial + rng.normal(0.0, 0.05, (160, 2))) @ R.T
+    clean = ellipse_from_conic(fit_ellipse_leaving_out_an_arc(uv))
+    assert (clean.a, clean.b) == pytest.approx((e.a, e.b), abs=0.1)
+    wrong = uv.copy()
+    run = slice(0, int(share * 160))
+    wrong[run] = e.center + (wrong[run] - e.center) * (1.0 - 10.0 / 60.0)
+    robust = ellipse_from_conic(fit_ellipse_leaving_out_an_arc(wrong))
+    assert (robust.cx, robust.cy, robust.a, robust.b) == pytest.approx(
+        (e.cx, e.cy, e.a, e.b), abs=0.1
+    )
+    plain = ellipse_from_conic(fit_ellipse_direct(wrong))
+    assert max(abs(plain.cx - e.cx), abs(plain.cy - e.cy), abs(plain.a - e.a)) > 0.5
