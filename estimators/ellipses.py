@@ -214,16 +214,13 @@ class EllipseEstimator:
             raise ValueError("target circle 'ring_inner' must be coaxial with 'ring_outer'")
         self.off_axis = tuple(c for c in target.circles if not _coaxial(c, self.outer))
         self.foot = _ring_foot(target, self.outer, self.inner)
-        self.outer_foot = _on_face(target, self.outer, "ring_outer_foot")
         # The outer edge's polarity when the model knows which side is brighter (an edge
         # search's polarity is −1 where the image darkens outward): a light that darkens or
         # lights the ring's surroundings unevenly must not make the image choose it.
         self._outer_polarity = (
             None if target.ring_brighter is None else (-1 if target.ring_brighter else 1)
         )
-        self._circles = {
-            c.name: c for c in (*target.circles, self.foot, self.outer_foot) if c is not None
-        }
+        self._circles = {c.name: c for c in (*target.circles, self.foot) if c is not None}
         self.holes = ring_hole_layout(target, self.outer, self.inner)
         self._holes_symmetric = _rotationally_symmetric(self.holes, self.outer)
         self._K_inv = np.linalg.inv(camera.K)
@@ -824,32 +821,10 @@ class EllipseEstimator:
                 if use_inner:
                     sets += self._inner_sets(e.uv_ideal, X_CT)
                 continue
-            if name == self.outer.name:
-                sets += self._outer_sets(e.uv_ideal, X_CT)
-                continue
-            sets.append(EdgeSet(self._circles[name], e.uv_ideal, free_radius=True))
+            sets.append(
+                EdgeSet(self._circles[name], e.uv_ideal, free_radius=name != self.outer.name)
+            )
         return sets
-
-    def _outer_sets(self, uv: np.ndarray, X_CT: Pose | None) -> list[EdgeSet]:
-        """The outer edge's samples as edge sets of the ring's front rim and of its outer
-        wall's foot on the face: seen off its axis the ring's outline is the union of the two
-        circles' images (the wall shows beside the rim on one side, a crescent as wide as the
-        ring's protrusion times the tilt), and each sample belongs to the circle whose image is
-        outermost there."""
-        if self.outer_foot is None or X_CT is None:
-            return [EdgeSet(self.outer, uv, free_radius=False)]
-        on_foot = self._on_outer_foot(X_CT, uv)
-        return [
-            EdgeSet(circle, uv[chosen], free_radius=False)
-            for circle, chosen in ((self.outer, ~on_foot), (self.outer_foot, on_foot))
-            if chosen.sum() >= 3
-        ]
-
-    def _on_outer_foot(self, X_CT: Pose, uv: np.ndarray) -> np.ndarray:
-        """Outer-edge samples where the wall's foot, not the rim, is the ring's outline."""
-        assert self.outer_foot is not None
-        rim, foot = (self._signed_distances(c, X_CT, uv) for c in (self.outer, self.outer_foot))
-        return foot < rim
 
     def _on_inner_foot(self, X_CT: Pose, uv: np.ndarray) -> np.ndarray:
         """Inner-edge samples nearer the bore's foot than its rim (see ``_edge_sets``)."""
@@ -892,16 +867,13 @@ class EllipseEstimator:
 
     def _residuals(self, name: str, X_CT: Pose, uv: np.ndarray) -> np.ndarray:
         """Sampson distances (px) of ideal pixels ``uv`` to circle ``name``'s image under
-        ``X_CT``, by the model the fit uses (``_edge_sets``): the ring's outer edge to the
-        outline of its rim and wall, the bore's to the nearer of rim and foot; for circles other
-        than the outer edge about their median (a free radius: only the shape counts). Poses
-        are judged by the model they were fitted with: a bore wall left out of the judging
-        shifts the inner edge by pixels (8 cm of protrusion at 10° tilt, 3 m), more than the
-        ring's mirror pose moves it."""
+        ``X_CT``, by the model the fit uses (``_edge_sets``: the bore's edge to the nearer of
+        its rim and foot); for circles other than the outer edge about their median (a free
+        radius: only the shape counts). Poses are judged by the model they were fitted with: a
+        bore wall left out of the judging shifts the inner edge by pixels (8 cm of protrusion
+        at 10° tilt, 3 m), more than the ring's mirror pose moves it."""
         circle = self.target.circle(name)
         r = self._signed_distances(circle, X_CT, uv)
-        if name == self.outer.name and self.outer_foot is not None:
-            return np.minimum(r, self._signed_distances(self.outer_foot, X_CT, uv))
         if self.inner is not None and name == self.inner.name and self.foot is not None:
             foot = self._signed_distances(self.foot, X_CT, uv)
             r = np.where(self._on_inner_foot(X_CT, uv), foot, r)
@@ -1389,17 +1361,6 @@ def _ring_foot(target: TargetModel, outer: Circle3D, inner: Circle3D | None) -> 
     return Circle3D(
         "ring_foot", inner.center_T + depth * inner.normal_T, inner.normal_T, inner.radius
     )
-
-
-def _on_face(target: TargetModel, circle: Circle3D, name: str) -> Circle3D | None:
-    """``circle`` moved back along its axis to the face's plane (the outline's), or None when
-    the model does not say where that is or the circle lies in it."""
-    if target.outline_corners_T is None:
-        return None
-    depth = float((target.outline_corners_T.mean(axis=0) - circle.center_T) @ circle.normal_T)
-    if depth >= -1e-4:
-        return None
-    return Circle3D(name, circle.center_T + depth * circle.normal_T, circle.normal_T, circle.radius)
 
 
 def _coaxial(circle: Circle3D, reference: Circle3D) -> bool:

@@ -132,9 +132,9 @@ def test_ellipses_judge_the_rings_two_poses_with_its_walls():
     """A deep, dark ring (``rendered.DEEP_RING_MOCKUP``) turned 8.7° at 3 m: its bore wall
     shifts the inner edge by pixels, more than the ring's mirror pose moves it. Judged with the
     rim alone the mirror (17° off) fitted better and was taken as decided (13.5° and 18° off on
-    these frames, unflagged); judged by the model the fit uses (the bore's rim or foot, the
-    outline of rim and outer wall) the right pose is chosen, and from no prior the answer is
-    right or says it is ambiguous."""
+    these frames, unflagged); judged by the model the fit uses (each bore sample against the
+    nearer of the bore's rim and foot) the right pose is chosen, and from no prior the answer
+    is right or says it is ambiguous."""
     target = rendered.target("deep_ring")
     estimator = build(target, REFERENCE)
     for seq, turn_deg in enumerate((8.66, -8.66)):
