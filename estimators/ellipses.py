@@ -214,6 +214,11 @@ class EllipseEstimator:
             raise ValueError("target circle 'ring_inner' must be coaxial with 'ring_outer'")
         self.off_axis = tuple(c for c in target.circles if not _coaxial(c, self.outer))
         self.foot = _ring_foot(target, self.outer, self.inner)
+        self._bore_depth_m = (
+            0.0
+            if self.foot is None or self.inner is None
+            else float((self.inner.center_T - self.foot.center_T) @ self.inner.normal_T)
+        )
         # The outer edge's polarity when the model knows which side is brighter (an edge
         # search's polarity is −1 where the image darkens outward): a light that darkens or
         # lights the ring's surroundings unevenly must not make the image choose it.
@@ -423,7 +428,12 @@ class EllipseEstimator:
     def _acquire(self, image: _Image, extracted: list[ExtractedEllipse]):
         """Verify ring hypotheses in order; resolve the first that verifies."""
         hypotheses = ring_hypotheses(
-            extracted, self.outer, self.inner, max_count=self.settings.max_hypotheses
+            extracted,
+            self.outer,
+            self.inner,
+            max_count=self.settings.max_hypotheses,
+            bore_depth_m=self._bore_depth_m,
+            focal_px=float(self.camera.K[0, 0]),
         )
         for hypothesis in hypotheses:
             labeled = hypothesis.outer if hypothesis.outer is not None else hypothesis.inner
@@ -434,7 +444,9 @@ class EllipseEstimator:
                 polarities[self.outer.name] = hypothesis.outer.polarity
                 if self._outer_polarity not in (None, hypothesis.outer.polarity):
                     continue  # the ring the model describes is the other way round
-            if hypothesis.inner is not None and self.inner is not None:
+            if hypothesis.inner is not None and self.inner is not None and self.foot is None:
+                # (with a deep bore the ellipse taken for the inner edge may be the bore's
+                # foot, of the other polarity: the image chooses, ``_ring_polarities``)
                 polarities[self.inner.name] = hypothesis.inner.polarity
             ring = None
             for candidate in self._closed_form(labeled, circle):
@@ -745,19 +757,34 @@ class EllipseEstimator:
     ) -> dict[str, int]:
         """The ring's edge polarities when unknown: the two edges of an annulus have opposite
         ones, so both assignments are scored together (edge strength on a few samples of each
-        edge) — a window wide enough to hold both edges cannot then take one for the other."""
+        edge) — a window wide enough to hold both edges cannot then take one for the other.
+
+        The outer edge's polarity comes from the model's colours when it says which side is
+        brighter. The bore's does only for a shallow bore: deep, its edge is between the ring's
+        front and its wall, whose shade depends on the light (a bore 6.8 cm deep, its wall in
+        shade, showed its rim with the outer edge's polarity; searched with the other one, the
+        rim was never found and the ring was taken for its foot, 7 cm too far)."""
         assert self.inner is not None
         if self._outer_polarity is not None:
-            return {self.outer.name: self._outer_polarity, self.inner.name: -self._outer_polarity}
+            if self.foot is None:
+                return {
+                    self.outer.name: self._outer_polarity,
+                    self.inner.name: -self._outer_polarity,
+                }
+            pairs = [
+                (self._outer_polarity, q) for q in (-self._outer_polarity, self._outer_polarity)
+            ]
+        else:
+            pairs = [(p, -p) for p in (1, -1)]
         strengths = {}
-        for p in (1, -1):
+        for pair in pairs:
             total = 0.0
-            for circle, polarity in ((self.outer, p), (self.inner, -p)):
+            for circle, polarity in zip((self.outer, self.inner), pair, strict=True):
                 found = self._circle_edges(image, X_CT, circle, sigma, width, polarity, probe=True)
                 total += 0.0 if found is None else float(found.hits.snr.sum())
-            strengths[p] = total
-        p = max(strengths, key=strengths.get)
-        return {self.outer.name: p, self.inner.name: -p}
+            strengths[pair] = total
+        p, q = max(pairs, key=strengths.get)
+        return {self.outer.name: p, self.inner.name: q}
 
     def _ring_supported(self, edges: dict[str, CircleEdges]) -> bool:
         s = self.settings

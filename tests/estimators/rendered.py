@@ -49,12 +49,39 @@ DEEP_RING_MOCKUP = MockupConfig.model_validate(
     }
 )
 
+#: A small ring with a deep, narrow bore (6.8 cm deep, 3 cm wide; no thruster): close up its
+#: rim and foot form a concentric pair much like the ring's own two edges, and its wall in
+#: shade gives the rim the outer edge's polarity.
+DEEP_BORE_MOCKUP = MockupConfig.model_validate(
+    {
+        "name": "deep_bore",
+        "bus_face": {"width": 1.2, "height": 1.0, "color": [0.55, 0.55, 0.55]},
+        "marman_ring": {
+            "outer_diameter": 0.5,
+            "radial_width": 0.03,
+            "protrusion": 0.068,
+            "color": [0.35, 0.35, 0.35],
+        },
+        "centre_panel": {"side": 0.2, "thickness": 0.004, "color": [0.85, 0.85, 0.85]},
+        "thruster": None,
+        "fasteners": [
+            {
+                "name": "hole",
+                "surface": "ring",
+                "diameter": 0.008,
+                "color": [0.2, 0.2, 0.2],
+                "circle_pattern": {"radius": 0.235, "count": 8, "phase_deg": 9.0},
+            }
+        ],
+    }
+)
+
 #: A generic pose offset (no edge on the pixel grid): 3 cm, 2 cm, 2°, −3°, 6°.
 GENERIC = (0.03, -0.02, 0.0, np.radians(2.0), np.radians(-3.0), np.radians(6.0))
 
 
 def _mockup(name: str) -> MockupConfig:
-    named = {"other": OTHER_MOCKUP, "deep_ring": DEEP_RING_MOCKUP}
+    named = {"other": OTHER_MOCKUP, "deep_ring": DEEP_RING_MOCKUP, "deep_bore": DEEP_BORE_MOCKUP}
     return named[name] if name in named else load_mockup(name)
 
 

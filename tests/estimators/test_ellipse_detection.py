@@ -22,6 +22,7 @@ from estimators.ellipse_detection import (
 from estimators.ellipse_extraction import ExtractedEllipse
 from estimators.geometry import Pose
 from estimators.imaging import smoothed_gradient
+from estimators.target import Circle3D
 from tests.estimators.test_ellipse_extraction import draw_ellipses
 
 CAMERA = load_camera("reference").camera_info()
@@ -64,6 +65,27 @@ def test_ring_hypotheses_prefer_concentric_pairs_and_the_larger_annulus():
     assert hypotheses[0].outer is ring_out and hypotheses[0].inner is ring_in
     assert hypotheses[1].outer is lip_out and hypotheses[1].inner is lip_in
     assert all(not h.concentric for h in hypotheses[2:])
+
+
+def test_ring_hypotheses_take_a_deep_bores_rim_and_foot_for_what_they_are():
+    """A bore 8.8 cm deep seen from 0.5 m: its rim and foot are a concentric pair of opposite
+    polarity whose ratio (0.851) is near the ring's own (0.870). Where the bore's ratio at the
+    distance the rim implies fits better, the pair is also tried as rim and foot — a ring
+    larger by r_outer / r_inner, first; where the ring's own ratio fits better, it is not."""
+    z = np.array([0.0, 0.0, 1.0])
+    outer, inner = Circle3D("o", np.zeros(3), z, 0.338), Circle3D("i", np.zeros(3), z, 0.294)
+    focal = 460.0
+    rim = extracted(Ellipse(296, 240, 270.1, 267.9, 0.0), False)
+    foot = extracted(Ellipse(292, 240, 229.6, 228.5, 0.0), True)
+    hypotheses = ring_hypotheses([foot, rim], outer, inner, bore_depth_m=0.088, focal_px=focal)
+    assert hypotheses[0].outer is None and hypotheses[0].inner is rim
+    assert hypotheses[0].bore_foot is foot
+    assert hypotheses[1].outer is rim and hypotheses[1].inner is foot
+    # The ring's own two edges (ratio 0.870): no bore reading.
+    ring_in = extracted(Ellipse(296, 240, 0.870 * 270.1, 0.870 * 267.9, 0.0), True)
+    hypotheses = ring_hypotheses([ring_in, rim], outer, inner, bore_depth_m=0.088, focal_px=focal)
+    assert hypotheses[0].outer is rim and hypotheses[0].inner is ring_in
+    assert all(h.bore_foot is None for h in hypotheses)
 
 
 def test_pose_with_roll_and_roll_of_are_inverse():

@@ -164,6 +164,23 @@ def test_ellipses_acquire_a_deep_ring_whose_lit_bore_wall_mimics_its_edge(turn_d
     assert math.degrees(error.normal_rad) < 1.0 and error.center_m < 0.01
 
 
+@pytest.mark.parametrize(("distance", "turn_deg"), [(0.5, 0.0), (0.6, 8.0), (0.8, 0.0), (0.8, 8.0)])
+def test_ellipses_acquire_a_ring_with_a_deep_narrow_bore_close_up(distance, turn_deg):
+    """``rendered.DEEP_BORE_MOCKUP`` close up, no prior: the bore's rim and foot (a concentric
+    pair of opposite polarity, ratio near the ring's own) were taken for the ring's two edges,
+    or the foot alone for its inner edge (the ring 6–8 cm too far), and the rim, whose wall in
+    shade gives it the outer edge's polarity, was searched with the other one and never found
+    (at 0.8 m a stray ellipse then won, 20° off). Now the bore's reading of a pair is tried,
+    and the image chooses the bore's polarity."""
+    target = rendered.target("deep_bore")
+    offset = (0.01, 0.0, 0.0, 0.0, math.radians(turn_deg), 0.0)
+    frame = rendered.frame(distance, offset, noise="low", seed=1, mockup="deep_bore", supersample=2)
+    m = build(target, REFERENCE).estimate(frame, None)
+    assert m.valid, m.reason
+    error = _errors(m, frame, target)
+    assert error.center_m < 0.005 and math.degrees(error.normal_rad) < 2.0, error
+
+
 def test_ellipses_track_a_sequence_with_the_prior(estimator, sequence_2m):
     tracker = Tracker(estimator)
     statuses, normals, rolls = [], [], []
