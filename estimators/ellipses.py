@@ -760,13 +760,14 @@ class EllipseEstimator:
         edge) — a window wide enough to hold both edges cannot then take one for the other.
 
         The outer edge's polarity comes from the model's colours when it says which side is
-        brighter. The bore's does only for a shallow bore: deep, its edge is between the ring's
-        front and its wall, whose shade depends on the light (a bore 6.8 cm deep, its wall in
+        brighter. The bore's does only while its wall does not show: where the wall is seen as
+        a band of its own, the edge is between the ring's front and the wall, whose shade
+        depends on the light (a bore 6.8 cm deep, its wall in
         shade, showed its rim with the outer edge's polarity; searched with the other one, the
         rim was never found and the ring was taken for its foot, 7 cm too far)."""
         assert self.inner is not None
         if self._outer_polarity is not None:
-            if self.foot is None:
+            if not self._bore_wall_shows(X_CT, sigma):
                 return {
                     self.outer.name: self._outer_polarity,
                     self.inner.name: -self._outer_polarity,
@@ -785,6 +786,15 @@ class EllipseEstimator:
             strengths[pair] = total
         p, q = max(pairs, key=strengths.get)
         return {self.outer.name: p, self.inner.name: q}
+
+    def _bore_wall_shows(self, X_CT: Pose, sigma: float) -> bool:
+        """Whether the bore's wall shows as a band of its own between rim and foot (wider
+        than the smoothing), so that its shade, not the ring's colours, sets the bore edge's
+        polarity; far off, rim and foot blur into one edge between the face and the ring."""
+        if self.foot is None or self.inner is None:
+            return False
+        gap = abs(self._radius_px(X_CT, self.inner) - self._radius_px(X_CT, self.foot))
+        return gap > 2.0 * sigma + 1.0
 
     def _ring_supported(self, edges: dict[str, CircleEdges]) -> bool:
         s = self.settings
