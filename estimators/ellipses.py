@@ -762,9 +762,9 @@ class EllipseEstimator:
         The outer edge's polarity comes from the model's colours when it says which side is
         brighter. The bore's does only while its wall does not show: where the wall is seen as
         a band of its own, the edge is between the ring's front and the wall, whose shade
-        depends on the light (a bore 6.8 cm deep, its wall in
-        shade, showed its rim with the outer edge's polarity; searched with the other one, the
-        rim was never found and the ring was taken for its foot, 7 cm too far)."""
+        depends on the light (a bore 6.8 cm deep, its wall in shade, showed its rim with the
+        outer edge's polarity; searched with the other one, the rim was never found and the
+        ring was taken for its foot, 7 cm too far)."""
         assert self.inner is not None
         if self._outer_polarity is not None:
             if not self._bore_wall_shows(X_CT, sigma):
@@ -863,11 +863,13 @@ class EllipseEstimator:
             )
         return sets
 
-    def _on_inner_foot(self, X_CT: Pose, uv: np.ndarray) -> np.ndarray:
-        """Inner-edge samples nearer the bore's foot than its rim (see ``_edge_sets``)."""
+    def _bore_distances(self, X_CT: Pose, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Inner-edge samples' distances (px) to the nearer of the bore's rim and foot, and
+        which are nearer the foot (see ``_edge_sets``)."""
         assert self.inner is not None and self.foot is not None
-        rim, foot = (np.abs(self._signed_distances(c, X_CT, uv)) for c in (self.inner, self.foot))
-        return foot < rim
+        rim, foot = (self._signed_distances(c, X_CT, uv) for c in (self.inner, self.foot))
+        on_foot = np.abs(foot) < np.abs(rim)
+        return np.where(on_foot, foot, rim), on_foot
 
     def _signed_distances(self, circle: Circle3D, X_CT: Pose, uv: np.ndarray) -> np.ndarray:
         """Sampson distances (px) of ideal pixels to ``circle``'s image, negative inside."""
@@ -885,7 +887,7 @@ class EllipseEstimator:
         assert self.inner is not None
         if self.foot is None or X_CT is None:
             return [EdgeSet(self.inner, uv, free_radius=True)]
-        on_foot = self._on_inner_foot(X_CT, uv)
+        _, on_foot = self._bore_distances(X_CT, uv)
         return [
             EdgeSet(circle, uv[chosen], free_radius=True)
             for circle, chosen in ((self.inner, ~on_foot), (self.foot, on_foot))
@@ -909,11 +911,10 @@ class EllipseEstimator:
         radius: only the shape counts). Poses are judged by the model they were fitted with: a
         bore wall left out of the judging shifts the inner edge by pixels (8 cm of protrusion
         at 10° tilt, 3 m), more than the ring's mirror pose moves it."""
-        circle = self.target.circle(name)
-        r = self._signed_distances(circle, X_CT, uv)
         if self.inner is not None and name == self.inner.name and self.foot is not None:
-            foot = self._signed_distances(self.foot, X_CT, uv)
-            r = np.where(self._on_inner_foot(X_CT, uv), foot, r)
+            r, _ = self._bore_distances(X_CT, uv)
+        else:
+            r = self._signed_distances(self.target.circle(name), X_CT, uv)
         if name != self.outer.name and len(r):
             r = r - np.median(r)
         return r
