@@ -15,9 +15,9 @@ from hil.analysis.bench_rig import short_trial
 from hil.cli import app
 from sim_backends.ur_emulator import free_loopback_host
 
-# Wall-clock trials share one xdist worker (`make test`: --dist loadgroup): two at once on
-# two cores starve each other's emulators and vision processes.
-pytestmark = pytest.mark.xdist_group("wall_clock")
+# Wall-clock trials run alone (`make test` runs them after the rest, one at a time): beside
+# another test on two cores they starve their own emulators and vision processes.
+pytestmark = pytest.mark.wall_clock
 
 runner = CliRunner()
 

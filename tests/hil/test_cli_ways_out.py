@@ -146,7 +146,7 @@ def _descendants(pid: int) -> list[int]:
     return found
 
 
-@pytest.mark.xdist_group("wall_clock")
+@pytest.mark.wall_clock
 def test_approach_on_the_wall_clock_stopped_by_ctrl_c_leaves_no_process_behind(tmp_path):
     """Ctrl-C in a terminal signals the whole process group: the world, camera, vision and
     estimator processes ignore it, the control process stops the arm and the track, then

@@ -13,9 +13,9 @@ from estimators.geometry import Pose
 from sim_backends.emulated_world import EmulatedEndpoints, EmulatedRig
 from sim_backends.ur_emulator import free_loopback_host
 
-# Wall-clock trials share one xdist worker (`make test`: --dist loadgroup): two at once on
-# two cores starve each other's emulators and vision processes.
-pytestmark = pytest.mark.xdist_group("wall_clock")
+# Wall-clock trials run alone (`make test` runs them after the rest, one at a time): beside
+# another test on two cores they starve their own emulators and vision processes.
+pytestmark = pytest.mark.wall_clock
 
 RIG = load_rig("rig")
 GRASP = Pose(np.eye(3), np.array([0.0, 0.0, 0.35]))  # far from any pose these tests reach

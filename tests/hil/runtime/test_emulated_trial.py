@@ -27,9 +27,9 @@ from sim_backends.loopback import bindable
 from sim_backends.start import sample_start
 from sim_backends.ur_emulator import UREmulator
 
-# Wall-clock trials share one xdist worker (`make test`: --dist loadgroup): two at once on
-# two cores starve each other's emulators and vision processes.
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("wall_clock")]
+# Wall-clock trials run alone (`make test` runs them after the rest, one at a time): beside
+# another test on two cores they starve their own emulators and vision processes.
+pytestmark = [pytest.mark.slow, pytest.mark.wall_clock]
 
 
 def _addresses(sim) -> list[tuple[str, int]]:

@@ -33,9 +33,9 @@ from tests.hil.runtime.loop_fakes import (
 )
 from tests.hil.runtime.test_loop import RecordingLog
 
-# Wall-clock trials share one xdist worker (`make test`: --dist loadgroup): two at once on
-# two cores starve each other's emulators and vision processes.
-pytestmark = pytest.mark.xdist_group("wall_clock")
+# Wall-clock trials run alone (`make test` runs them after the rest, one at a time): beside
+# another test on two cores they starve their own emulators and vision processes.
+pytestmark = pytest.mark.wall_clock
 
 SLEEPY = "tests.hil.fake_estimators:build_sleepy"
 
