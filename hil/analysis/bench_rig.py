@@ -31,15 +31,39 @@ from sim_backends.ur_emulator import free_loopback_host
 ORACLE = "tests.hil.fake_estimators:build_oracle"
 
 
+#: The longest stall the short trial forgives (s): its devices' time-outs and its tick deadline.
+#: A rig's are 0.1 s (configs/real.yaml), and so are configs/emulated.yaml's. Here the emulators
+#: share two cores with the control loop, the vision processes and whatever else runs: with this
+#: trial alone on the shared 2-core machine, everything stalled for up to 0.26 s now and then
+#: (no Modbus request served, the control tick itself 0.12 s late), and about one trial in ten
+#: ended on "no reply within 0.1 s". A longer stall is still a fault, and the injected faults
+#: still stop the arm.
+SHARED_MACHINE_STALL_S = 0.3
+
+
 def emulated_devices() -> dict:
-    """Emulated arm, track and gripper, each on a loopback address nobody else uses now."""
+    """Emulated arm, track and gripper, each on a loopback address nobody else uses now, with
+    the shared machine's time-outs (``SHARED_MACHINE_STALL_S``)."""
     modbus = free_loopback_host()
+    timeout = SHARED_MACHINE_STALL_S
     return {
-        "arm": {"backend": "ur_rtde", "emulate": True, "host": free_loopback_host()},
+        "arm": {
+            "backend": "ur_rtde",
+            "emulate": True,
+            "host": free_loopback_host(),
+            "state_timeout_s": timeout,
+            "watchdog_min_frequency_hz": 1.0 / timeout,
+        },
         "camera": {"backend": "sim"},
-        "track": {"backend": "modbus", "emulate": True, "host": modbus, "port": 5020},
-        "gripper": {"backend": "modbus", "emulate": True, "host": modbus, "port": 5021},
-    }
+        "track": {
+            "backend": "modbus", "emulate": True, "host": modbus, "port": 5020,
+            "timeout_s": timeout,
+        },
+        "gripper": {
+            "backend": "modbus", "emulate": True, "host": modbus, "port": 5021,
+            "timeout_s": timeout,
+        },
+    }  # fmt: skip
 
 
 def short_trial(
@@ -77,9 +101,13 @@ def short_trial(
         "approach": {
             "standoff": {"dwell_s": 0.3},
             "grasp": {"advance_m": 0.04, "speed": 0.03, "hold_s": 0.2},
-            # A short trial shows the plumbing on a shared machine (CI runs other tests beside
-            # it): ages and the tick deadline are relaxed; docs/realtime.md measures the real ones.
-            "supervisor": {"max_estimate_age_s": 2.0, "max_frame_age_s": 2.0, "max_tick_s": 0.1},
+            # A short trial shows the plumbing on a shared machine: ages, the tick deadline and
+            # the devices' time-outs are relaxed; docs/realtime.md measures the real ones.
+            "supervisor": {
+                "max_estimate_age_s": 2.0,
+                "max_frame_age_s": 2.0,
+                "max_tick_s": SHARED_MACHINE_STALL_S,
+            },
         },
         "devices": emulated_devices() if devices is None else devices,
         "max_duration_s": 40.0,
