@@ -118,6 +118,11 @@ class EllipseSettings:
     min_inner_support: float = 0.25
     min_thruster_support: float = 0.45
     max_hypotheses: int = 6
+    #: Of the ring hypotheses that verify, a later one replaces the one kept only when its
+    #: ring's edges are found over this much more of their lengths (mean support of the outer
+    #: and inner edge); a ring found over ``full_ring_support`` ends the search.
+    support_margin: float = 0.1
+    full_ring_support: float = 0.9
     #: Operating range of the ring's centre (m): a ring "found" beyond it is a smaller look-alike
     #: (the thruster's lip is a bright annulus too) and is rejected.
     min_range_m: float = 0.2
@@ -426,7 +431,11 @@ class EllipseEstimator:
 
     # --- acquisition ----------------------------------------------------------------------
     def _acquire(self, image: _Image, extracted: list[ExtractedEllipse]):
-        """Verify ring hypotheses in order; resolve the first that verifies."""
+        """Verify the ring hypotheses in order and resolve the best that verified: the ring
+        whose edges are found over most of their lengths. A stray ellipse — arcs of the ring
+        and the bore at close range, where the ring runs out of the frame, joined into one —
+        can verify too, with the ring it implies found only in part; earlier hypotheses win
+        ties (``support_margin``), and a ring found all round ends the search."""
         hypotheses = ring_hypotheses(
             extracted,
             self.outer,
@@ -435,6 +444,8 @@ class EllipseEstimator:
             bore_depth_m=self._bore_depth_m,
             focal_px=float(self.camera.K[0, 0]),
         )
+        s = self.settings
+        best, best_support = None, 0.0
         for hypothesis in hypotheses:
             labeled = hypothesis.outer if hypothesis.outer is not None else hypothesis.inner
             circle = self.outer if hypothesis.outer is not None else self.inner
@@ -453,9 +464,14 @@ class EllipseEstimator:
                 ring = self._refine_ring(image, candidate, polarities)
                 if ring is not None:
                     break
-            if ring is not None:
-                return (*self._resolve(image, ring), False)
-        return None
+            if ring is None:
+                continue
+            support = self._ring_support(ring.edges)
+            if best is None or support > best_support + s.support_margin:
+                best, best_support = ring, support
+            if best_support >= s.full_ring_support:
+                break
+        return None if best is None else (*self._resolve(image, best), False)
 
     def _closed_form(self, labeled: ExtractedEllipse, circle: Circle3D) -> list[CirclePose]:
         """The two closed-form poses of the ring's reference circle from one labeled ellipse
@@ -807,6 +823,11 @@ class EllipseEstimator:
             return True
         inner = edges.get(self.inner.name)
         return inner is not None and inner.support >= s.min_inner_support
+
+    def _ring_support(self, edges: dict[str, CircleEdges]) -> float:
+        """Mean support of the ring's edges (the outer alone when the model has no inner)."""
+        names = [self.outer.name] + ([self.inner.name] if self.inner is not None else [])
+        return float(np.mean([edges[name].support for name in names]))
 
     def _radius_px(self, X_CT: Pose, circle: Circle3D) -> float:
         return float(
