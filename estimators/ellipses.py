@@ -436,15 +436,15 @@ class EllipseEstimator:
         and the bore at close range, where the ring runs out of the frame, joined into one —
         can verify too, with the ring it implies found only in part; earlier hypotheses win
         ties (``support_margin``), and a ring found all round ends the search."""
+        s = self.settings
         hypotheses = ring_hypotheses(
             extracted,
             self.outer,
             self.inner,
-            max_count=self.settings.max_hypotheses,
+            max_count=s.max_hypotheses,
             bore_depth_m=self._bore_depth_m,
             focal_px=float(self.camera.K[0, 0]),
         )
-        s = self.settings
         best, best_support = None, 0.0
         for hypothesis in hypotheses:
             labeled = hypothesis.outer if hypothesis.outer is not None else hypothesis.inner

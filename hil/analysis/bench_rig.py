@@ -32,7 +32,7 @@ ORACLE = "tests.hil.fake_estimators:build_oracle"
 
 
 #: The longest stall the short trial forgives (s): its devices' time-outs and its tick deadline.
-#: A rig's are 0.1 s (configs/real.yaml), and so are configs/emulated.yaml's. Here the emulators
+#: A rig's are 0.1 s and 24 ms (configs/real.yaml; configs/emulated.yaml too). Here the emulators
 #: share two cores with the control loop, the vision processes and whatever else runs: with this
 #: trial alone on the shared 2-core machine, everything stalled for up to 0.26 s now and then
 #: (no Modbus request served, the control tick itself 0.12 s late), and about one trial in ten
