@@ -61,7 +61,11 @@ def child_pids(pid: int) -> list[int]:
 
 
 def stop_process(process: BaseProcess, timeout_s: float = 10.0) -> None:
-    """Wait for ``process`` to end by itself, then terminate, then kill: never hang."""
+    """Wait for ``process`` to end by itself, then terminate, then kill: never hang. A process
+    that never started (its ``start`` raised) is left alone: joining it would raise and hide
+    the error that stopped it starting."""
+    if process.pid is None:
+        return
     process.join(timeout=timeout_s)
     if process.is_alive():
         process.terminate()
