@@ -782,25 +782,22 @@ class EllipseEstimator:
         outer edge's polarity; searched with the other one, the rim was never found and the
         ring was taken for its foot, 7 cm too far)."""
         assert self.inner is not None
-        if self._outer_polarity is not None:
+
+        def strength(circle: Circle3D, polarity: int) -> float:
+            found = self._circle_edges(image, X_CT, circle, sigma, width, polarity, probe=True)
+            return 0.0 if found is None else float(found.hits.snr.sum())
+
+        p = self._outer_polarity
+        if p is not None:
             if not self._bore_wall_shows(X_CT, sigma):
-                return {
-                    self.outer.name: self._outer_polarity,
-                    self.inner.name: -self._outer_polarity,
-                }
-            pairs = [
-                (self._outer_polarity, q) for q in (-self._outer_polarity, self._outer_polarity)
-            ]
-        else:
-            pairs = [(p, -p) for p in (1, -1)]
-        strengths = {}
-        for pair in pairs:
-            total = 0.0
-            for circle, polarity in zip((self.outer, self.inner), pair, strict=True):
-                found = self._circle_edges(image, X_CT, circle, sigma, width, polarity, probe=True)
-                total += 0.0 if found is None else float(found.hits.snr.sum())
-            strengths[pair] = total
-        p, q = max(pairs, key=strengths.get)
+                return {self.outer.name: p, self.inner.name: -p}
+            # The outer edge's polarity is known: only the bore's is in question.
+            q = max((-p, p), key=lambda q: strength(self.inner, q))
+            return {self.outer.name: p, self.inner.name: q}
+        pairs = [(p, -p) for p in (1, -1)]
+        p, q = max(
+            pairs, key=lambda pair: strength(self.outer, pair[0]) + strength(self.inner, pair[1])
+        )
         return {self.outer.name: p, self.inner.name: q}
 
     def _bore_wall_shows(self, X_CT: Pose, sigma: float) -> bool:
