@@ -650,12 +650,12 @@ class CornerEstimator:
         choice, keep = fitted
         fit = choice.fit
         support = self.support.score(gradients, fit.X_CT)
-        reason = self._validate(fit, int(keep.sum()), support)
+        reason, confirmed_by_prior = self._validate(fit, int(keep.sum()), support, tracking)
         roll_undecided = False
         # The planar flip: decided by the residuals, or taken from the prior (a lock only if
         # the prior's was decided: the Tracker knows), or undecided.
         ambiguous = choice.decided_by == "lower_residual"
-        from_prior = choice.decided_by == "prior"
+        from_prior = choice.decided_by == "prior" or confirmed_by_prior
         if not reason and not tracking:
             # Few or faint features may favour the wrong flip even decisively: the whole
             # model (the ring standing in front of the panel, the outline) judges it.
@@ -709,28 +709,21 @@ class CornerEstimator:
             from_prior=from_prior,
         )
 
-    def _validate(self, fit, count: int, support: Support) -> str:
+    def _validate(self, fit, count: int, support: Support, tracking: bool) -> tuple[str, bool]:
         """Why the fit is not a valid pose ('' if it is): too few or inconsistent features,
         or a reprojected model that the image does not support — every panel edge, and the
-        strongest other contour in view (the ring), must stand out of the noise."""
+        strongest other contour in view (the ring), must stand out of the noise; and whether
+        the prior stood in for the other contours (``Support.confirmation``)."""
         options = self.options
         if count < options.min_features:
-            return f"only {count} consistent features"
+            return f"only {count} consistent features", False
         if fit.reduced_chi2 > options.max_reduced_chi2:
-            return f"features disagree with the model (χ²/dof {fit.reduced_chi2:.1f})"
+            return f"features disagree with the model (χ²/dof {fit.reduced_chi2:.1f})", False
         panel = support.panel()
         if len(panel) < 4 or min(panel) < options.min_edge_support:
             weakest = min(panel) if panel else float("nan")
-            return f"a reprojected panel edge has no edge support (z {weakest:.1f})"
-        # Another part of the mock-up (ring, outline, thruster) must confirm the panel: a quad
-        # taken for the panel at a wrong scale (the face's outline as the panel) puts them
-        # all out of view.
-        others = support.others()
-        if not others:
-            return "no other part of the mock-up in view to confirm the panel"
-        if max(others.values()) < options.min_edge_support:
-            return "the reprojected ring/thruster have no edge support"
-        return ""
+            return f"a reprojected panel edge has no edge support (z {weakest:.1f})", False
+        return support.confirmation(options.min_edge_support, tracking=tracking)
 
 
 def _bilinear(image: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -487,7 +487,8 @@ class LineEstimator:
             if other.total > support.total:
                 fit, support = choice.alternative, other
         X = fit.X_CT
-        reason = self._validate(fit.reduced_chi2, support)
+        reason, confirmed_by_prior = self._validate(fit.reduced_chi2, support, tracking)
+        from_prior = from_prior or confirmed_by_prior
         roll_undecided = False
         if not reason and not tracking:
             # Without the outline the panel's edges alone may favour the wrong flip (a small
@@ -826,23 +827,17 @@ class LineEstimator:
             return None
         return choose_pose(fits, X0 if tracking else None)
 
-    def _validate(self, reduced_chi2: float, support: Support) -> str:
+    def _validate(self, reduced_chi2: float, support: Support, tracking: bool) -> tuple[str, bool]:
+        """Why the fit is not a valid pose ('' if it is), and whether the prior stood in for
+        the mock-up's other contours (``Support.confirmation``)."""
         options = self.options
         if reduced_chi2 > options.max_reduced_chi2:
-            return f"edge points disagree with the model (χ²/dof {reduced_chi2:.1f})"
+            return f"edge points disagree with the model (χ²/dof {reduced_chi2:.1f})", False
         panel = support.panel()
         if len(panel) < 4 or min(panel) < options.min_edge_support:
             weakest = min(panel) if panel else float("nan")
-            return f"a reprojected panel edge has no edge support (z {weakest:.1f})"
-        # Another part of the mock-up (ring, outline, thruster) must confirm the panel: a quad
-        # taken for the panel at a wrong scale (the face's outline as the panel) puts them
-        # all out of view.
-        others = support.others()
-        if not others:
-            return "no other part of the mock-up in view to confirm the panel"
-        if max(others.values()) < options.min_edge_support:
-            return "the reprojected ring/thruster have no edge support"
-        return ""
+            return f"a reprojected panel edge has no edge support (z {weakest:.1f})", False
+        return support.confirmation(options.min_edge_support, tracking=tracking)
 
 
 def build(target: TargetModel, camera: CameraInfo, **options) -> LineEstimator:

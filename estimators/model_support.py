@@ -48,6 +48,23 @@ class Support:
     def others(self) -> dict[str, float]:
         return {n: z for n, z in self.contours.items() if not n.startswith("panel_edge")}
 
+    def confirmation(self, min_edge_support: float, *, tracking: bool) -> tuple[str, bool]:
+        """Whether another part of the mock-up (ring, outline, thruster) confirms the panel:
+        a quad taken for the panel at a wrong scale (the face's outline as the panel) puts
+        them all out of view. Returns (why not, '' when confirmed; whether the prior stands in
+        for them). Close up, in tracking, the panel may be all that is left in view (the
+        grasp's last 15 cm): the prior then confirms it — reported as ``from_prior``, which
+        fusion uses only on a track whose roll is measured, gated, and never to start one.
+        Parts in view that do not show are evidence against the panel either way."""
+        others = self.others()
+        if not others:
+            if tracking:
+                return "", True
+            return "no other part of the mock-up in view to confirm the panel", False
+        if max(others.values()) < min_edge_support:
+            return "the reprojected ring/thruster have no edge support", False
+        return "", False
+
     @property
     def total(self) -> float:
         """Sum of all z-scores (a log-likelihood-like score to rank hypotheses)."""
