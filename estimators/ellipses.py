@@ -218,7 +218,7 @@ class EllipseEstimator:
         if self.inner is not None and not _coaxial(self.inner, self.outer):
             raise ValueError("target circle 'ring_inner' must be coaxial with 'ring_outer'")
         self.off_axis = tuple(c for c in target.circles if not _coaxial(c, self.outer))
-        self.foot = _ring_foot(target, self.outer, self.inner)
+        self.foot = target.ring_foot
         self._bore_depth_m = (
             0.0
             if self.foot is None or self.inner is None
@@ -1404,19 +1404,6 @@ def _rotationally_symmetric(holes: FeatureLayout, outer: Circle3D) -> bool:
         if np.all(np.any(match & same, axis=1)):
             return True
     return False
-
-
-def _ring_foot(target: TargetModel, outer: Circle3D, inner: Circle3D | None) -> Circle3D | None:
-    """Where the bore's wall meets the face behind the ring: the inner circle moved back to
-    the face's plane (the outline's), or None when the model does not say where that is."""
-    if inner is None or target.outline_corners_T is None:
-        return None
-    depth = float((target.outline_corners_T.mean(axis=0) - inner.center_T) @ inner.normal_T)
-    if depth >= -1e-4:
-        return None
-    return Circle3D(
-        "ring_foot", inner.center_T + depth * inner.normal_T, inner.normal_T, inner.radius
-    )
 
 
 def _coaxial(circle: Circle3D, reference: Circle3D) -> bool:

@@ -114,6 +114,22 @@ class TargetModel:
     def has_circle(self, name: str) -> bool:
         return any(c.name == name for c in self.circles)
 
+    @property
+    def ring_foot(self) -> Circle3D | None:
+        """Where the bore's wall meets the face behind the ring (``ring_foot``): the inner
+        circle moved back to the face's plane (the outline's), or None when the model does not
+        say where that is. Close up the wall shows as a band of its own, and the foot, not the
+        ring's inner rim, is the edge the image holds (wall against face)."""
+        if not self.has_circle("ring_inner") or self.outline_corners_T is None:
+            return None
+        inner = self.circle("ring_inner")
+        depth = float((self.outline_corners_T.mean(axis=0) - inner.center_T) @ inner.normal_T)
+        if depth >= -1e-4:
+            return None
+        return Circle3D(
+            "ring_foot", inner.center_T + depth * inner.normal_T, inner.normal_T, inner.radius
+        )
+
     def points_T(self, kind: str | None = None) -> np.ndarray:
         """Positions (N,3) of the point features, optionally only of one kind."""
         return np.array([f.p_T for f in self.point_features if kind is None or f.kind == kind])
