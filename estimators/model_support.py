@@ -1,7 +1,7 @@
 """How well a pose explains the image: edge support of the reprojected target model.
 
 For every contour of the model (the panel's four edges, the outline of the face it sits on,
-each circle: ring rims, thruster exit)
+each circle: ring rims, the bore's foot, thruster exit)
 sample points are projected with the pose and the smoothed image gradient is read there. On a
 true edge the gradient is across the contour (|g·n| large); off any edge it is isotropic noise,
 so |g·n| and |g·t| (along the contour) have the same distribution. The support of a contour is
@@ -102,7 +102,10 @@ class ModelSupport:
                 names.append(f"outline_edge_{i}")
                 points.append(a + t * (b - a))
                 across.append(np.broadcast_to(out / np.linalg.norm(out), (len(t), 3)))
-        for circle in target.circles:
+        # The bore's foot too: close up its wall shows as a band, the inner rim (ring against
+        # wall) may not stand out at all, and the foot (wall against face) is the edge in view.
+        foot = target.ring_foot
+        for circle in (*target.circles, *([foot] if foot is not None else [])):
             n = circle.normal_T
             u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
             u /= np.linalg.norm(u)

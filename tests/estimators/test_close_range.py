@@ -58,3 +58,19 @@ def test_panel_alone_in_view_is_tracked_as_kept_from_the_prior_and_never_acquire
     m = build_estimator(system, rendered.target("random:103"), frame.info).estimate(frame)
     assert not m.valid
     assert "no other part of the mock-up in view" in m.reason
+
+
+def test_lines_track_on_the_bores_foot_when_its_inner_rim_does_not_show():
+    """Random mock-up 101 in the grasp's advance (0.42 m): a dark ring 8.6 cm deep. Close up
+    its bore's wall shows as a band as dark as the ring's front, so the inner rim — the only
+    other part of the model in view — has no edge, and the panel was refused ("the
+    reprojected ring/thruster have no edge support") on every frame. The edge in view is the
+    foot, the wall against the face: the model holds it now, and it confirms the panel."""
+    frame = rendered.frame(0.42, HEAD_ON, mockup="random:101", seq=42)
+    truth = frame.truth.X_CT
+    estimator = build_estimator("lines", rendered.target("random:101"), frame.info)
+    prior = Pose(truth.R, truth.p + np.array([0.002, -0.001, 0.003]))
+    m = estimator.estimate(frame, prior_X_CT=prior)
+    assert m.valid, m.reason
+    assert not m.from_prior and not m.ambiguous
+    assert np.linalg.norm(m.X_CT.p - truth.p) < 1.5e-3
