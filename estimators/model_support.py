@@ -116,6 +116,12 @@ class ModelSupport:
             points.append(circle.center_T + circle.radius * radial)
             across.append(radial)
         self.names = tuple(names)
+        self._foot = foot
+        self._bore_depth_m = (
+            0.0
+            if foot is None
+            else float((target.circle("ring_inner").center_T - foot.center_T) @ foot.normal_T)
+        )
         self.points_T = np.concatenate(points)
         self.across_T = np.concatenate(across)
         self.contour_of = np.concatenate([np.full(len(p), i) for i, p in enumerate(points)])
@@ -188,6 +194,9 @@ class ModelSupport:
             across_T = self.across_T[chosen]
             contour_of = self.contour_of[chosen]
         uv, visible = self._project(X_CT, points_T, margin)
+        if self._foot is not None:
+            on_foot = contour_of == self.names.index("ring_foot")
+            visible[on_foot] &= self._foot_unoccluded(X_CT, points_T[on_foot])
         depth = np.maximum(np.abs(X_CT.apply(points_T)[:, 2]), 1e-3)
         ahead_uv, ahead_ok = self._project(
             X_CT, points_T + (0.002 * depth)[:, None] * across_T, 0.0
@@ -234,6 +243,31 @@ class ModelSupport:
                     scores[name] = float(best[i])
         polarity = self._disc_polarity(gradients, X_CT, shift_px) if discs else math.nan
         return Support(scores, polarity)
+
+    def _foot_unoccluded(self, X_CT: Pose, feet_T: np.ndarray) -> np.ndarray:
+        """Which points of the bore's foot the bore's own wall does not hide from the camera.
+
+        The ray from a foot point F up to the camera c stays inside the bore (radius r about
+        its axis) up to the rim, a height h above the foot, when its horizontal part
+        q(s) = F + s·(c − F), s = z / z_c, has |q(s)| ≤ r at s = h / z_c; |q(0)| = r, and |q|²
+        is convex in s, so that end decides: 2 F·(c − F) + (h / z_c)·|c − F|² ≤ 0 (horizontal
+        parts, about the axis; s at most 1, where the ray reaches a camera below the rim). Foot
+        points on the camera's side of the bore are behind its wall."""
+        foot = self._foot
+        assert foot is not None
+        n = foot.normal_T
+        camera_T = -X_CT.R.T @ X_CT.p
+        height = float((camera_T - foot.center_T) @ n)
+        if height <= 1e-9:
+            return np.zeros(len(feet_T), bool)  # the camera is behind the face
+        radial = feet_T - foot.center_T
+        radial -= np.outer(radial @ n, n)
+        toward = camera_T - foot.center_T
+        toward = toward - (toward @ n) * n - radial  # horizontal part of c − F
+        # (a camera below the rim, inside the bore, ends the ray before it: s ≤ 1)
+        reach = 2.0 * np.einsum("ij,ij->i", radial, toward)
+        reach += min(self._bore_depth_m / height, 1.0) * np.einsum("ij,ij->i", toward, toward)
+        return reach <= 1e-12
 
     def _disc_polarity(self, gradients: GradientImage, X_CT: Pose, shift_px: float) -> float:
         """z-score of Σ sign·(disc centre − ring around it) over the discs in view."""

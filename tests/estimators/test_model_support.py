@@ -1,9 +1,11 @@
 import numpy as np
 
 from estimators.acquisition import TurnChecker, quarter_turns
+from estimators.geometry import Pose
 from estimators.imaging import GradientImage, image_stack
 from estimators.model_support import ModelSupport
 from estimators.planar_pose import retract
+from estimators.target import facing_camera
 from tests.estimators import rendered
 
 
@@ -56,3 +58,26 @@ def test_turn_checker_finds_the_true_quarter_turn():
         wrong = f.truth.X_CT @ turns[k]
         result = checker.check(gradients, wrong)
         assert (result.best + k) % 4 == 0 and result.margin > 8
+
+
+def test_the_bores_foot_is_scored_only_where_its_wall_does_not_hide_it():
+    target = rendered.target()
+    foot = target.ring_foot
+    assert foot is not None
+    support = ModelSupport(target, rendered.render(2.0)[2])
+    on_foot = support.contour_of == support.names.index("ring_foot")
+    feet_T = support.points_T[on_foot]
+    # On the axis, 2 m out: the whole foot is in sight.
+    assert support._foot_unoccluded(facing_camera(2.0).inverse(), feet_T).all()
+    # Far off to the side, beyond the bore's radius: the wall hides the foot on the camera's
+    # side (a ray from there leaves the bore through its wall), not the far side.
+    side = 3.0 * foot.radius * np.array([1.0, 0.0, 0.0])
+    X_TC = facing_camera(2.0)
+    X_CT = Pose(X_TC.R, X_TC.p + side).inverse()
+    seen = support._foot_unoccluded(X_CT, feet_T)
+    toward = (feet_T - foot.center_T)[:, 0] / foot.radius  # cos of the angle to the camera
+    assert not seen[toward > 0.5].any() and seen[toward < 0.0].all()
+    # Behind the face nothing of it is in sight.
+    assert not support._foot_unoccluded(
+        Pose(X_TC.R, np.array([0, 0, -1.0])).inverse(), feet_T
+    ).any()
