@@ -49,21 +49,22 @@ class Support:
         return {n: z for n, z in self.contours.items() if not n.startswith("panel_edge")}
 
     def confirmation(self, min_edge_support: float, *, tracking: bool) -> tuple[str, bool]:
-        """Whether another part of the mock-up (ring, outline, thruster) confirms the panel:
-        a quad taken for the panel at a wrong scale (the face's outline as the panel) puts
-        them all out of view. Returns (why not, '' when confirmed; whether the prior stands in
-        for them). Close up, in tracking, the panel may be all that is left in view (the
-        grasp's last 15 cm): the prior then confirms it — reported as ``from_prior``, which
-        fusion uses only on a track whose roll is measured, gated, and never to start one.
-        Parts in view that do not show are evidence against the panel either way."""
+        """Whether another part of the mock-up (ring, its bore's foot, outline, thruster)
+        confirms the panel: a quad taken for the panel at a wrong scale (the face's outline as
+        the panel) puts them all out of view or off their edges. Returns (why not, '' when
+        confirmed; whether the prior stands in for them). In tracking the prior fixes the
+        scale, and close up the panel may be all that shows (the grasp's last 15 cm: the ring
+        out of view, or a bore's foot too faint under a low sun): the prior then confirms it
+        — reported as ``from_prior``, which fusion uses only on a track whose roll is
+        measured, gated, and never to start one."""
         others = self.others()
+        if others and max(others.values()) >= min_edge_support:
+            return "", False
+        if tracking:
+            return "", True
         if not others:
-            if tracking:
-                return "", True
             return "no other part of the mock-up in view to confirm the panel", False
-        if max(others.values()) < min_edge_support:
-            return "the reprojected ring/thruster have no edge support", False
-        return "", False
+        return "the reprojected ring/thruster have no edge support", False
 
     @property
     def total(self) -> float:

@@ -3,7 +3,7 @@ import numpy as np
 from estimators.acquisition import TurnChecker, quarter_turns
 from estimators.geometry import Pose
 from estimators.imaging import GradientImage, image_stack
-from estimators.model_support import ModelSupport
+from estimators.model_support import ModelSupport, Support
 from estimators.planar_pose import retract
 from estimators.target import facing_camera
 from tests.estimators import rendered
@@ -58,6 +58,22 @@ def test_turn_checker_finds_the_true_quarter_turn():
         wrong = f.truth.X_CT @ turns[k]
         result = checker.check(gradients, wrong)
         assert (result.best + k) % 4 == 0 and result.margin > 8
+
+
+def test_the_prior_confirms_a_panel_in_tracking_only():
+    """Another part of the mock-up must confirm the panel's scale; without a prior nothing
+    else can, in tracking the prior does — said as ``from_prior``."""
+    panel = {f"panel_edge_{i}": 12.0 for i in range(4)}
+    faint_foot = Support({**panel, "ring_foot": 1.0}, float("nan"))
+    alone = Support(panel, float("nan"))
+    shown = Support({**panel, "ring_inner": 9.0}, float("nan"))
+    assert shown.confirmation(4.0, tracking=False) == ("", False)
+    assert shown.confirmation(4.0, tracking=True) == ("", False)
+    for support in (faint_foot, alone):
+        assert support.confirmation(4.0, tracking=True) == ("", True)
+        reason, by_prior = support.confirmation(4.0, tracking=False)
+        assert reason and not by_prior
+    assert "no other part" in alone.confirmation(4.0, tracking=False)[0]
 
 
 def test_the_bores_foot_is_scored_only_where_its_wall_does_not_hide_it():
