@@ -175,6 +175,20 @@ def with_overrides(config: SimulationConfig, **changes: object) -> SimulationCon
         raise ValueError(_one_line(exc)) from None
 
 
+def with_light(config: SimulationConfig, light: str, seed: int) -> SimulationConfig:
+    """``config`` under a named light (``configuration.random_mockup.named_lighting``):
+    ``default``, ``harsh`` or ``random`` — a random mock-up's own random light (the one the
+    matrix and the open-loop path use for it), else the light of ``seed``. ValueError naming
+    the light otherwise."""
+    from configuration.random_mockup import is_random_name, named_lighting, seed_of
+
+    light_seed = seed_of(config.mockup) if is_random_name(config.mockup) else seed
+    lighting = named_lighting(light, light_seed)
+    return with_overrides(
+        config, render=config.render.model_copy(update={"lighting": lighting}).model_dump()
+    )
+
+
 def with_settings(config: SimulationConfig, settings: list[str]) -> SimulationConfig:
     """``config`` with dotted settings applied, each ``key.path=value`` with the value read as
     YAML (``vision.fuse_at=arrival``, ``camera_timing.latency_s=0.1``), validated again.

@@ -888,6 +888,14 @@ def approach(
         ),
     ] = None,
     settings: SetOpt = None,
+    light: Annotated[
+        str | None,
+        typer.Option(
+            "--light",
+            help="Light: default | harsh (a low side sun with shadows) | random (a random "
+            "mock-up's own, else the seed's). [default: the config's]",
+        ),
+    ] = None,
     log_dir: Annotated[Path, typer.Option(help="Directory for the trial log.")] = Path("runs"),
     report_too: Annotated[
         bool, typer.Option("--report/--no-report", help="Write the report after the trial.")
@@ -904,9 +912,15 @@ def approach(
     the reason is printed and logged); 130 / 143 interrupted by SIGINT / SIGTERM."""
     import time
 
+    from configuration.simulation import with_light
     from hil.runtime.signals import Interrupted, StopSignals
 
     sim = _simulation(config, noise, systems, links, clock, settings)
+    if light is not None:
+        try:
+            sim = with_light(sim, light, seed)
+        except ValueError as exc:
+            raise _fail(f"--light: {exc}") from None
     _output_dir(log_dir, "--log-dir")
     stamp = time.strftime("%Y%m%d-%H%M%S")
     log_path = log_dir / f"approach_{sim.noise.preset}_seed{seed}_{stamp}.mcap"

@@ -212,3 +212,20 @@ def test_mockup_refuses_overlapping_fasteners_and_a_panel_off_the_ring(tmp_path)
         load_mockup(_write(tmp_path, text))
     with pytest.raises(ConfigError, match="panel's corners must lie inside"):
         load_mockup(_write(tmp_path, "name: m\ncentre_panel: {center: [0.1, 0.0]}\n" + BOLTS))
+
+
+def test_a_named_light_for_a_closed_loop_approach():
+    """``satgrasp approach --light``: a random mock-up gets its own random light (the one the
+    matrix and the open-loop path render it under), any other mock-up the seed's."""
+    from configuration.random_mockup import random_lighting
+    from configuration.render import HARSH_LIGHTING
+    from configuration.simulation import with_light, with_settings
+
+    sim = load_simulation("sim")
+    on_random = with_settings(sim, ["mockup=random:103"])
+    assert with_light(on_random, "random", 1).render.lighting == random_lighting(103)
+    assert with_light(sim, "random", 7).render.lighting == random_lighting(7)
+    assert with_light(sim, "harsh", 7).render.lighting == HARSH_LIGHTING
+    assert with_light(sim, "harsh", 7).render.supersample == sim.render.supersample
+    with pytest.raises(ValueError, match="light must be one of default, harsh, random"):
+        with_light(sim, "dusk", 1)

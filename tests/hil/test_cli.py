@@ -162,3 +162,10 @@ def test_bench_estimate_json_parses():
     (row,) = document["rows"]
     assert row["system"] == "ellipses" and row["distance_m"] == 2.0 and row["frames"] == 1
     assert {"tracking_median_ms", "opencv_median_ms", "time_ratio"} <= row.keys()
+
+
+def test_approach_rejects_an_unknown_light_before_anything_starts(tmp_path):
+    result = runner.invoke(app, ["approach", "--light", "dusk", "--log-dir", str(tmp_path)])
+    assert result.exit_code == 2
+    assert "--light: light must be one of default, harsh, random" in " ".join(result.output.split())
+    assert not list(tmp_path.iterdir())  # no trial log: nothing ran
