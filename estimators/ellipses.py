@@ -219,11 +219,7 @@ class EllipseEstimator:
             raise ValueError("target circle 'ring_inner' must be coaxial with 'ring_outer'")
         self.off_axis = tuple(c for c in target.circles if not _coaxial(c, self.outer))
         self.foot = target.ring_foot
-        self._bore_depth_m = (
-            0.0
-            if self.foot is None or self.inner is None
-            else float((self.inner.center_T - self.foot.center_T) @ self.inner.normal_T)
-        )
+        self._bore_depth_m = target.bore_depth_m
         # The outer edge's polarity when the model knows which side is brighter (an edge
         # search's polarity is −1 where the image darkens outward): a light that darkens or
         # lights the ring's surroundings unevenly must not make the image choose it.

@@ -118,11 +118,7 @@ class ModelSupport:
             across.append(radial)
         self.names = tuple(names)
         self._foot = foot
-        self._bore_depth_m = (
-            0.0
-            if foot is None
-            else float((target.circle("ring_inner").center_T - foot.center_T) @ foot.normal_T)
-        )
+        self._bore_depth_m = target.bore_depth_m
         self.points_T = np.concatenate(points)
         self.across_T = np.concatenate(across)
         self.contour_of = np.concatenate([np.full(len(p), i) for i, p in enumerate(points)])

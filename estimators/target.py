@@ -130,6 +130,14 @@ class TargetModel:
             "ring_foot", inner.center_T + depth * inner.normal_T, inner.normal_T, inner.radius
         )
 
+    @property
+    def bore_depth_m(self) -> float:
+        """How far the ring's inner rim stands in front of its foot (0 without a foot)."""
+        foot = self.ring_foot
+        if foot is None:
+            return 0.0
+        return float((self.circle("ring_inner").center_T - foot.center_T) @ foot.normal_T)
+
     def points_T(self, kind: str | None = None) -> np.ndarray:
         """Positions (N,3) of the point features, optionally only of one kind."""
         return np.array([f.p_T for f in self.point_features if kind is None or f.kind == kind])
