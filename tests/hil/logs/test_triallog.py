@@ -427,9 +427,12 @@ while True:
     now = time.monotonic()  # the same clock as the parent's (CLOCK_MONOTONIC)
     t = now - start
     record = dataclasses.replace(trial.ticks[tick % len(trial.ticks)], t=t, tick=tick)
-    flushes = writer.flush_count
     if tick % 10 == 0:  # a vision result every 0.1 s
+        flushes = writer.flush_count
         writer.write_vision(dataclasses.replace(trial.vision[tick // 10 % len(trial.vision)], t=t))
+        if writer.flush_count > flushes:  # flushed before this tick was written
+            print("flushed", tick - 1, now, flush=True)
+    flushes = writer.flush_count
     writer.write_tick(record)
     if writer.flush_count > flushes:
         print("flushed", tick, now, flush=True)
