@@ -497,7 +497,10 @@ def test_killed_writer_log_opens_with_every_tick_up_to_the_last_flush(killed_log
     assert killed_log.kill_time - newest <= 1.0 + 0.03, killed_log.kill_time - newest
     assert ticks[-1].truth is not None and ticks[-1].truth.X_CT is not None
     vision = list(log.vision())
-    assert len(vision) == numbers[-1] // 10 + 1 and not log.problems
+    # A vision record is written before its tick (every tenth): when it set off the last flush,
+    # it is in the log and its tick is not.
+    last = numbers[-1]
+    assert len(vision) in {last // 10 + 1, (last + 1) // 10 + 1} and not log.problems
 
 
 def test_recover_of_a_killed_log_opens_with_the_standard_reader(killed_log, tmp_path):
