@@ -131,9 +131,12 @@ def test_loop_runs_a_full_approach_on_fakes(full_run):
     assert all(r.fused_at_t == r.capture_t for r in fused)
     latency = np.array([r.latency_ms for r in fused])
     assert latency.min() >= 140 and latency.max() <= 190  # 120 + 30/40, quantised to 8 ms ticks
-    # The tick never did vision work: its wall-clock work is small, no deadline missed.
+    # The tick never did vision work: its work is small (a vision step in it would take tens of
+    # ms on every frame). One tick in a thousand may still overrun: on this shared VM the
+    # thread's CPU time per tick varied threefold over an hour with the same code, and a CI run
+    # saw 1 miss in 4354 ticks (p99 3.0 ms).
     work = np.array([t.timing.work_ms for t in log.ticks])
-    assert np.percentile(work, 99) < 8.0 and outcome.deadline_misses == 0
+    assert np.percentile(work, 99) < 8.0 and outcome.deadline_misses <= len(log.ticks) // 1000
 
 
 def test_loop_acts_on_the_estimate_brought_forward_to_the_tick(full_run):
