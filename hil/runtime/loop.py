@@ -70,7 +70,15 @@ from hil.runtime.history import StateSample
 from hil.runtime.rig import RigGeometry
 from hil.runtime.sequencer import TERMINAL, ApproachSequencer, SequencerInputs
 from hil.runtime.servo import camera_twist_to_flange
-from hil.runtime.supervisor import SafetySnapshot, Violation, check, rate_exceeded_since
+from hil.runtime.supervisor import (
+    ARM_ACCELERATION_BASELINE_S,
+    TRACK_ACCELERATION_BASELINE_S,
+    SafetySnapshot,
+    Violation,
+    acceleration_baseline,
+    check,
+    rate_exceeded_since,
+)
 from hil.runtime.vision import LoggedImage, VisionStatus
 
 #: Camera images that may wait for a tick with room to log them (``ControlLoop._log_vision``).
@@ -302,9 +310,11 @@ class ControlLoop:
             period_s=self.period_s,
             previous_V_BE=None if self._sent is None else self._sent[0],
             previous_track_velocity=None if self._sent is None else self._sent[1],
-            previous_arm=_baseline(self._arm_states, arm),
+            previous_arm=acceleration_baseline(self._arm_states, arm, ARM_ACCELERATION_BASELINE_S),
             track=track,
-            previous_track=_baseline(self._track_states, track),
+            previous_track=acceleration_baseline(
+                self._track_states, track, TRACK_ACCELERATION_BASELINE_S
+            ),
             R_BE_start=self._R_BE_start,
             target_rate=rate,
             target_rate_since=self._rate_since,
@@ -576,23 +586,6 @@ class ControlLoop:
     @property
     def t0(self) -> float:
         return self._t0
-
-
-#: Measured accelerations are differenced against a state at least this much older: over one
-#: 8 ms period the jitter of when a device sampled its state reads as acceleration (the
-#: emulated track, accelerating at its 0.5 m/s², read 0.76 m/s² against a 0.75 m/s² limit).
-ACCELERATION_BASELINE_S = 0.032
-
-
-def _baseline(states: deque, now: ArmState | TrackState | None):
-    """The newest of ``states`` at least ``ACCELERATION_BASELINE_S`` older than ``now`` (the
-    oldest one kept while there is none that old yet)."""
-    if now is None or not states:
-        return None
-    for state in reversed(states):
-        if now.stamp - state.stamp >= ACCELERATION_BASELINE_S:
-            return state
-    return states[0]
 
 
 def describe_exception(exc: BaseException) -> str:

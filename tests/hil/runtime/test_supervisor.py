@@ -5,6 +5,7 @@ The scene: the camera looks along +x_B at the ring face 1.2 m ahead; the track b
 target toward the arm when its velocity is positive (axis_W = −x, W = B)."""
 
 import math
+from collections import deque
 
 import numpy as np
 import pytest
@@ -17,8 +18,11 @@ from estimators.geometry import Pose
 from hil.runtime.rig import RigGeometry
 from hil.runtime.servo import speed_limit
 from hil.runtime.supervisor import (
+    ARM_ACCELERATION_BASELINE_S,
     MOVING_PHASES,
+    TRACK_ACCELERATION_BASELINE_S,
     SafetySnapshot,
+    acceleration_baseline,
     camera_velocity_B,
     check,
     rate_exceeded_since,
@@ -540,6 +544,43 @@ def test_supervisor_track_acceleration_at_its_edges():
     )
     assert limit == (0.25 - 0.0625) / 0.25  # exactly, in binary
     assert "acceleration" not in kind_names(at)
+
+
+def measured_track_accelerations(acceleration: float, stall_s: float, baseline_s: float):
+    """What the supervisor measures, tick by tick, of a track speeding up at ``acceleration``
+    from 0.05 m/s, read every period and stamped on receipt by the host, whose drive stops
+    refreshing its registers for ``stall_s`` half-way (the reads then return the sample from
+    the stall's start), with the loop's history of 32 states."""
+    states: deque[TrackState] = deque(maxlen=32)
+    measured = []
+    stall_start = 0.3
+    for k in range(80):
+        t = 1.0 + k * DT
+        sampled = t - 1.0
+        if stall_start <= sampled < stall_start + stall_s:
+            sampled = stall_start
+        now = track(1.0, 0.05 + acceleration * sampled, stamp=t)
+        snap = snapshot(
+            stamp=t,
+            track=now,
+            previous_track=acceleration_baseline(states, now, baseline_s),
+            commanded_track_velocity=now.velocity,
+            previous_track_velocity=now.velocity,
+        )
+        measured.append(message(snap, "acceleration"))
+        states.append(now)
+    return [m for m in measured if "measured track acceleration" in m]
+
+
+def test_supervisor_track_acceleration_forgives_a_drive_that_refreshes_its_state_late():
+    """A stale sample stamped on receipt reads as acceleration over a short baseline (CI saw
+    0.81 m/s² from the emulated track at its 0.5 m/s² over 32 ms); the track's 0.1 s baseline
+    takes a drive 40 ms late, and still sees the track accelerating twice as hard as it can."""
+    a = RIG.max_track_acceleration
+    assert measured_track_accelerations(a, 0.040, TRACK_ACCELERATION_BASELINE_S) == []
+    assert measured_track_accelerations(a, 0.040, ARM_ACCELERATION_BASELINE_S)  # the arm's is short
+    over = measured_track_accelerations(2.0 * a, 0.0, TRACK_ACCELERATION_BASELINE_S)
+    assert len(over) >= 70 and "measured track acceleration 1.00 m/s²" in over[-1]
 
 
 def test_supervisor_track_travel_needs_the_track_limits():
