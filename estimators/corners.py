@@ -75,7 +75,8 @@ class CornerOptions:
 
     ``gate_m``: labeling gate around a predicted feature in tracking — how far (m, at the
     target) it may have moved since the prior; in pixels it shrinks with distance;
-    ``min_features``: features needed for a pose; ``max_reduced_chi2``: the largest χ²/dof of
+    ``min_features``: features needed for a pose (the panel's four corners alone also do);
+    ``max_reduced_chi2``: the largest χ²/dof of
     a valid fit (feature covariances come from their own fits, so 1 is ideal);
     ``min_edge_support``: z-score the reprojected panel edges (and, when in view, another model
     contour) must reach; ``pose_method``: ``gauss_newton`` or ``lhm``.
@@ -464,8 +465,10 @@ class CornerEstimator:
         good &= sign * fits.contrast_snr >= self.options.min_disc_snr
         return index[good], fits.uv[good], fits.covariance[good]
 
-    def _fit_panel_corners(self, image, X_CT: Pose, pred, visible, labels):
-        """Wedge fits of the labeled panel corners around their predictions under ``X_CT``."""
+    def _fit_panel_corners(self, image, X_CT: Pose, pred, visible, labels, gate):
+        """Wedge fits of the labeled panel corners around their predictions under ``X_CT``;
+        a fit may move from its prediction as far as the round's labeling gate ``gate`` (px,
+        per feature) within its window, and 2.5 px in any case."""
         index = np.array([i for i in labels if not self.layout.is_disc[i] and visible[i]], int)
         if len(index) == 0:
             return index, np.zeros((0, 2)), np.zeros((0, 2, 2))
@@ -506,18 +509,37 @@ class CornerEstimator:
             ok &= np.all(gap > disc_r + margin_m, axis=1)
             return ok
 
+        directions, windows = np.array(directions), np.array(windows)
         fits = fit_corners(
-            image.pixels,
-            pred[index],
-            np.array(directions),
-            np.array(windows),
-            keep,
-            noise_sigma=image.clip_sigma,
+            image.pixels, pred[index], directions, windows, keep, noise_sigma=image.clip_sigma
         )
+        # Where discs refined the pose first the prediction is good to a pixel; where the
+        # corners are all there is (close up, or fasteners too faint), the prior's error is the
+        # gate's, several pixels at the stand-off — more than one fit's schedule of steps
+        # settles from: a fit that has not settled goes once more from where it got to.
+        reach = np.maximum(2.5, np.minimum(gate[index], windows))
+        uv, covariance, ok, snr = fits.uv, fits.covariance, fits.ok, fits.contrast_snr
+        again = np.flatnonzero(
+            ~ok
+            & np.all(np.isfinite(uv), axis=1)
+            & (np.linalg.norm(uv - pred[index], axis=1) <= reach)
+        )
+        if len(again):
+            more = fit_corners(
+                image.pixels,
+                uv[again],
+                directions[again],
+                windows[again],
+                keep,
+                noise_sigma=image.clip_sigma,
+            )
+            uv, covariance, ok, snr = uv.copy(), covariance.copy(), ok.copy(), snr.copy()
+            uv[again], covariance[again] = more.uv, more.covariance
+            ok[again], snr[again] = more.ok, more.contrast_snr
         polarity = 1.0 if self.layout.brighter[index[0]] else -1.0
-        moved = np.linalg.norm(fits.uv - pred[index], axis=1)
-        good = fits.ok & (moved <= 2.5) & (polarity * fits.contrast_snr >= 4.0)
-        return index[good], fits.uv[good], fits.covariance[good]
+        moved = np.linalg.norm(uv - pred[index], axis=1)
+        good = ok & (moved <= reach) & (polarity * snr >= 4.0)
+        return index[good], uv[good], covariance[good]
 
     def _observations(self, index, uv, cov) -> PointObservations:
         return PointObservations.from_image(
@@ -532,7 +554,7 @@ class CornerEstimator:
         (p ≈ 3·10⁻⁴) times a robust variance factor (median χ² / 1.386, within [1, 4]) are then
         dropped and the pose refitted on the inliers by plain least squares (covariance) —
         from both IPPE poses too in the final round (the planar two-fold ambiguity)."""
-        if len(index) < self.options.min_features:
+        if not self._enough(index):
             return None
         K = self.camera.K
         method = self.options.pose_method
@@ -544,7 +566,7 @@ class CornerEstimator:
         keep = chi2 <= 16.0 * float(np.clip(np.median(chi2) / 1.386, 1.0, 4.0))
         choice = None
         for _ in range(3):
-            if keep.sum() < self.options.min_features:
+            if not self._enough(index[keep]):
                 return None
             obs = PointObservations(
                 obs_all.points_T[keep], obs_all.uv[keep], obs_all.covariance[keep]
@@ -563,7 +585,7 @@ class CornerEstimator:
             if np.array_equal(new_keep, keep):
                 break
             keep = new_keep
-        if choice is None or keep.sum() < self.options.min_features:
+        if choice is None or not self._enough(index[keep]):
             return None
         return choice, keep
 
@@ -584,7 +606,7 @@ class CornerEstimator:
         # Gates in metres at the target: how far the features may be from their prediction.
         gates_m = [options.gate_m, 0.0] if tracking else [2.0 * options.gate_m, options.gate_m, 0.0]
         pred, visible, A, radius_px = self._predict(X)
-        if visible.sum() < options.min_features:
+        if not self._enough(np.flatnonzero(visible)):
             return self._failure(f"only {int(visible.sum())} point features in view")
         px_per_m = np.sqrt(np.abs(np.linalg.det(np.nan_to_num(A))))
         reach = float(np.max(options.gate_m * px_per_m[visible])) + 5.0
@@ -617,14 +639,14 @@ class CornerEstimator:
             new_index, new_uv, new_cov = self._fit_discs(image, smoothed, labels, A, radius_px, X)
             for i, p, c in zip(new_index, new_uv, new_cov, strict=True):
                 measured[int(i)] = (p, c)
-            if final or len(measured) < options.min_features:
+            if final or not self._enough(list(measured)):
                 corner_labels = {i: p for i, p in labels.items() if not self.layout.is_disc[i]}
                 c_index, c_uv, c_cov = self._fit_panel_corners(
-                    image, X, pred, visible, corner_labels
+                    image, X, pred, visible, corner_labels, gate
                 )
                 for i, p, c in zip(c_index, c_uv, c_cov, strict=True):
                     measured[int(i)] = (p, c)
-            if len(measured) < options.min_features:
+            if not self._enough(list(measured)):
                 if not final:
                     continue  # too few clear features yet: the guided search comes next round
                 return self._failure(
@@ -650,7 +672,7 @@ class CornerEstimator:
         choice, keep = fitted
         fit = choice.fit
         support = self.support.score(gradients, fit.X_CT)
-        reason, confirmed_by_prior = self._validate(fit, int(keep.sum()), support, tracking)
+        reason, confirmed_by_prior = self._validate(fit, index[keep], support, tracking)
         roll_undecided = False
         # The planar flip: decided by the residuals, or taken from the prior (a lock only if
         # the prior's was decided: the Tracker knows), or undecided.
@@ -709,14 +731,27 @@ class CornerEstimator:
             from_prior=from_prior,
         )
 
-    def _validate(self, fit, count: int, support: Support, tracking: bool) -> tuple[str, bool]:
+    def _enough(self, features) -> bool:
+        """Whether the features (indices) can fix a pose: ``min_features`` of them, or the
+        panel's four corners alone — a whole quad, each of whose edges the model support then
+        has to find in the image. Far off the fasteners fade first; close up they leave the
+        frame before the panel does."""
+        features = np.unique(np.asarray(features, dtype=int))
+        if len(features) >= self.options.min_features:
+            return True
+        corners = np.flatnonzero(~self.layout.is_disc)
+        return len(corners) == 4 and np.isin(corners, features).all()
+
+    def _validate(
+        self, fit, features: np.ndarray, support: Support, tracking: bool
+    ) -> tuple[str, bool]:
         """Why the fit is not a valid pose ('' if it is): too few or inconsistent features,
         or a reprojected model that the image does not support — every panel edge, and the
         strongest other contour in view (the ring), must stand out of the noise; and whether
         the prior stood in for the other contours (``Support.confirmation``)."""
         options = self.options
-        if count < options.min_features:
-            return f"only {count} consistent features", False
+        if not self._enough(features):
+            return f"only {len(features)} consistent features", False
         if fit.reduced_chi2 > options.max_reduced_chi2:
             return f"features disagree with the model (χ²/dof {fit.reduced_chi2:.1f})", False
         panel = support.panel()
