@@ -76,10 +76,10 @@ class CornerOptions:
     ``gate_m``: labeling gate around a predicted feature in tracking — how far (m, at the
     target) it may have moved since the prior; in pixels it shrinks with distance;
     ``min_features``: features needed for a pose (the panel's four corners alone also do);
-    ``max_reduced_chi2``: the largest χ²/dof of
-    a valid fit (feature covariances come from their own fits, so 1 is ideal);
-    ``min_edge_support``: z-score the reprojected panel edges (and, when in view, another model
-    contour) must reach; ``pose_method``: ``gauss_newton`` or ``lhm``.
+    ``max_reduced_chi2``: the largest χ²/dof of a valid fit (feature covariances come from
+    their own fits, so 1 is ideal); ``min_edge_support``: z-score the reprojected panel edges
+    (and, when in view, another model contour) must reach; ``pose_method``: ``gauss_newton`` or
+    ``lhm``.
     """
 
     gate_m: float = 0.04
