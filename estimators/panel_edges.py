@@ -332,6 +332,10 @@ def edge_observations(ends_T: np.ndarray, edges: Sequence[FittedEdge | None]) ->
     return EdgeObservations(ends_T, np.concatenate(edge), np.concatenate(uv), np.concatenate(sigma))
 
 
+#: An edge fitted on fewer of its strips than this is fitted again from the fallback strips.
+COVERED_FRACTION = 0.75
+
+
 def fit_panel_edges(
     pixels: np.ndarray,
     strips: list[EdgeStrips],
@@ -349,8 +353,9 @@ def fit_panel_edges(
     """Fit the four edges from their strips (``search_px`` per edge or for all). An edge
     counts as found when its grey levels differ with the model's polarity (+1: the panel is
     brighter) by ``min_contrast_snr`` standard deviations and a robust line fits at least three
-    points; an edge not found from ``strips`` is tried again from ``fallback`` (e.g. the
-    prior's prediction when a labeled image line misled)."""
+    points; an edge not found from ``strips``, or found on fewer than ``COVERED_FRACTION`` of
+    them, is tried again from ``fallback`` (e.g. the prior's prediction when a labeled image
+    line misled), and the fit with more inlier points is kept."""
     searches = list(search_px) if isinstance(search_px, list | tuple) else [search_px] * len(strips)
     fitted = []
     for i, strip in enumerate(strips):
@@ -362,8 +367,14 @@ def fit_panel_edges(
             noise_sigma=noise_sigma,
         )
         edge = fit_edge(pixels, strip, camera, search_px=searches[i], **settings)
-        if not edge.found and fallback is not None:
-            edge = fit_edge(pixels, fallback[i], camera, search_px=fallback_search_px, **settings)
+        if fallback is not None and len(edge.used) < COVERED_FRACTION * len(strip.centers_uv):
+            # A labeled image line a little askew crosses the edge: a narrow search along it
+            # finds the edge only near the crossing, and the line through those few points
+            # keeps the image line's tilt. The prior's own strips, searched wider, then find
+            # more of the edge.
+            other = fit_edge(pixels, fallback[i], camera, search_px=fallback_search_px, **settings)
+            if len(other.used) > len(edge.used):
+                edge = other
         fitted.append(edge)
     corners = None
     if all(e.found for e in fitted):
