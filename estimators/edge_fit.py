@@ -6,7 +6,9 @@ across) is fitted with a step I = b + (a − b)·Φ((d − δ)/s) of the signed 
 predicted line, on the raw pixels: δ is the strip's sub-pixel edge offset (maximum likelihood
 under Gaussian noise), with variance σ²/Σ(∂I/∂δ)². Grey levels a, b are shared by the whole
 edge. A coarse search of one common offset for all strips first absorbs a prior that is off by
-a few pixels; the strips are then fitted coarse to fine (s from 1.2 px down to 0.45 px).
+a few pixels — or, for a prior uncertain by more, of a line through the strips' own coarse
+offsets (a prior tilted against the edge) — and the strips are then fitted coarse to fine (s
+from 1.2 px down to 0.45 px) within a pixel or two of that start.
 
 Clipping. A sensor clips its noise at black and white, so the mean of a pixel near either end
 is not its intensity (lifted near 0, lowered near 1). A step against black (the face's outline
@@ -124,7 +126,79 @@ def _profile_levels(values, d, delta, wall, s, levels, sigma):
 
 
 @numba.njit(cache=True)
-def _fit_offsets(values, d, strip, k, grid, half_width, wall_of_strip, noise_sigma):
+def _step_cost(values, d, strip, base):
+    """Least-squares cost of the best two-level step (blur 1.2 px) at offsets ``base[strip]``
+    across the band, and its grey levels (cost inf when no step fits)."""
+    n = len(values)
+    s11 = s12 = s22 = t1 = t2 = vv = 0.0
+    for i in range(n):
+        step = normal_cdf((d[i] - base[strip[i]]) / 1.2)
+        other = 1.0 - step
+        s11 += step * step
+        s12 += step * other
+        s22 += other * other
+        t1 += step * values[i]
+        t2 += other * values[i]
+        vv += values[i] * values[i]
+    det = s11 * s22 - s12 * s12
+    if n < 3 or abs(det) < 1e-9 * max(s11 * s22, 1e-12):
+        return np.inf, np.nan, np.nan
+    a, b = (s22 * t1 - s12 * t2) / det, (s11 * t2 - s12 * t1) / det
+    # Σ(v − a·step − b·other)², expanded: the sums above already hold it.
+    cost = vv - 2.0 * (a * t1 + b * t2)
+    cost += a * a * s11 + 2.0 * a * b * s12 + b * b * s22
+    return cost, a, b
+
+
+@numba.njit(cache=True)
+def _tilted_start(values, d, strip, k, grid, max_slope):
+    """The prediction's error as a line across the strips (offset of each strip's start,
+    K,), when the prediction may be tilted against the edge by up to ``max_slope`` px per
+    strip: each strip's own best step offset on ``grid``, then the median of the pairwise
+    slopes and of the intercepts (Theil–Sen: H. Theil 1950, P. K. Sen 1968), robust to strips
+    that found clutter."""
+    m = len(grid)
+    sums = np.zeros((k, m, 5))
+    for g in range(m):
+        for i in range(len(values)):
+            step = normal_cdf((d[i] - grid[g]) / 1.2)
+            other = 1.0 - step
+            row = sums[strip[i], g]
+            row[0] += step * step
+            row[1] += step * other
+            row[2] += other * other
+            row[3] += step * values[i]
+            row[4] += other * values[i]
+    place, found = np.empty(k), np.empty(k)
+    count = 0
+    for j in range(k):
+        best, at = np.inf, np.nan
+        for g in range(m):
+            s11, s12, s22, t1, t2 = sums[j, g]
+            det = s11 * s22 - s12 * s12
+            if abs(det) < 1e-9 * max(s11 * s22, 1e-12):
+                continue
+            a, b = (s22 * t1 - s12 * t2) / det, (s11 * t2 - s12 * t1) / det
+            # The strip's own cost up to its Σv² (the same for every offset).
+            cost = -2.0 * (a * t1 + b * t2) + a * a * s11 + 2.0 * a * b * s12 + b * b * s22
+            if cost < best:
+                best, at = cost, grid[g]
+        if math.isfinite(at):
+            place[count], found[count] = j, at
+            count += 1
+    if count < 3:
+        return np.full(k, np.nan)
+    slopes = []
+    for p in range(count):
+        for q in range(p + 1, count):
+            slopes.append((found[q] - found[p]) / (place[q] - place[p]))
+    slope = min(max(np.median(np.array(slopes)), -max_slope), max_slope)
+    intercept = np.median(found[:count] - slope * place[:count])
+    return intercept + slope * np.arange(k)
+
+
+@numba.njit(cache=True)
+def _fit_offsets(values, d, strip, k, grid, half_width, wall_of_strip, noise_sigma, max_slope):
     """Steps 1–3 of ``fit_edge_points`` on a band's pixels (see there): the strips' offsets,
     their standard deviations and usable flags, the grey levels, the contrast's standard
     deviation and the residual noise; ``ok`` all False when no step fits."""
@@ -138,39 +212,36 @@ def _fit_offsets(values, d, strip, k, grid, half_width, wall_of_strip, noise_sig
         np.inf,
         np.nan,
     )
-    # 1. One common offset for the whole edge: grid search of the step fit on a fixed band.
-    best_cost, delta0, a, b = np.inf, 0.0, np.nan, np.nan
-    vv = np.sum(values * values)
+    # 1. Where the strips start: one common offset for the whole edge (a grid search of the
+    # step fit on a fixed band) or, when the prediction may be tilted against the edge, the
+    # line through the strips' own offsets, if its step fits better.
+    best_cost, a, b = np.inf, np.nan, np.nan
+    base = np.zeros(k)
+    trial = np.empty(k)
     for offset in grid:
-        s11 = s12 = s22 = t1 = t2 = 0.0
-        for i in range(n):
-            step = normal_cdf((d[i] - offset) / 1.2)
-            other = 1.0 - step
-            s11 += step * step
-            s12 += step * other
-            s22 += other * other
-            t1 += step * values[i]
-            t2 += other * values[i]
-        det = s11 * s22 - s12 * s12
-        if n < 3 or abs(det) < 1e-9 * max(s11 * s22, 1e-12):
-            continue
-        a_try, b_try = (s22 * t1 - s12 * t2) / det, (s11 * t2 - s12 * t1) / det
-        # Σ(v − a·step − b·other)², expanded: the sums above already hold it.
-        cost = vv - 2.0 * (a_try * t1 + b_try * t2)
-        cost += a_try * a_try * s11 + 2.0 * a_try * b_try * s12 + b_try * b_try * s22
+        trial[:] = offset
+        cost, a_try, b_try = _step_cost(values, d, strip, trial)
         if cost < best_cost:
-            best_cost, delta0, a, b = cost, offset, a_try, b_try
+            best_cost, a, b = cost, a_try, b_try
+            base[:] = offset
+    if max_slope > 0:
+        tilted = _tilted_start(values, d, strip, k, grid, max_slope)
+        if np.all(np.isfinite(tilted)):
+            cost, a_try, b_try = _step_cost(values, d, strip, tilted)
+            if cost < best_cost:
+                best_cost, a, b = cost, a_try, b_try
+                base[:] = tilted
     if not math.isfinite(a):
         return failed
-    near = np.abs(d - delta0) <= half_width
+    near = np.abs(d - base[strip]) <= half_width
     values, d, strip = values[near], d[near], strip[near]
     n = len(values)
     counts = np.bincount(strip, minlength=k)
 
-    # 2. Per-strip offsets within ±max_shift of the common one, coarse to fine, with shared
+    # 2. Per-strip offsets within ±max_shift of their start, coarse to fine, with shared
     # grey levels refreshed between scales (a scoring step on the clipped likelihood).
     max_shift = max(1.0, half_width - 1.5)
-    delta = np.full(k, delta0)
+    delta = base.copy()
     w = wall_of_strip[strip]
     levels = _profile_levels(values, d, delta[strip], w, 1.2, np.array([a, b, b]), noise_sigma)
     if not np.all(np.isfinite(levels)):
@@ -190,7 +261,7 @@ def _fit_offsets(values, d, strip, k, grid, half_width, wall_of_strip, noise_sig
                 jr[j] += J * score
             for j in range(k):
                 step = min(max(jr[j] / max(jj[j], 1e-12), -0.5), 0.5)
-                delta[j] = min(max(delta[j] + step, delta0 - max_shift), delta0 + max_shift)
+                delta[j] = min(max(delta[j] + step, base[j] - max_shift), base[j] + max_shift)
         levels = _profile_levels(values, d, delta[strip], w, s, levels, noise_sigma)
         if not np.all(np.isfinite(levels)):
             return failed
@@ -236,7 +307,7 @@ def _fit_offsets(values, d, strip, k, grid, half_width, wall_of_strip, noise_sig
     contrast_sigma = np.inf
     if det != 0.0:
         contrast_sigma = math.sqrt(max(noise2 * (oo + aa + 2.0 * ao) / det, 0.0))
-    ok = (counts >= 4) & np.isfinite(delta) & (np.abs(delta - delta0) < max_shift - 1e-6)
+    ok = (counts >= 4) & np.isfinite(delta) & (np.abs(delta - base) < max_shift - 1e-6)
     ok &= np.isfinite(sigma) & (info > 0)
     return delta, sigma, ok, levels[0], levels[1], contrast_sigma, math.sqrt(noise2)
 
@@ -323,6 +394,7 @@ def fit_edge_points(
     keep: Callable[[np.ndarray], np.ndarray] | None = None,
     noise_sigma: float = 0.0,
     wall_px: np.ndarray | None = None,
+    tilt_px: float = 0.0,
 ) -> EdgePoints:
     """Fit one straight edge in strips.
 
@@ -330,7 +402,9 @@ def fit_edge_points(
     ``normals`` (K,2): unit normals there, pointing to the side whose grey level is reported
     as ``inside``. ``half_length_px``: each strip's half length along the edge;
     ``half_width_px``: the band's half width across it. ``search_px``: how far (px) the true
-    edge may lie from the prediction. ``keep(coords (P,2)) -> bool (P,)`` may exclude pixels
+    edge may lie from the prediction; ``tilt_px``: by how much more (px) one end of the
+    prediction may be off than the other (a rough hypothesis, tilted against the edge; the
+    tilted start is taken when its step fits the band better than any common offset). ``keep(coords (P,2)) -> bool (P,)`` may exclude pixels
     on other features.
     """
     centers = np.asarray(centers_uv, dtype=float).reshape(-1, 2)
@@ -351,7 +425,7 @@ def fit_edge_points(
     grid = np.arange(-search_px, search_px + 1e-9, 1.0) if search_px > 0 else np.zeros(1)
     wall = np.zeros(k) if wall_px is None else np.clip(np.nan_to_num(wall_px), 0.0, 3.0)
     delta, sigma, ok, a, b, contrast_sigma, noise = _fit_offsets(
-        values, d, strip, k, grid, float(half_width_px), wall, float(noise_sigma)
+        values, d, strip, k, grid, float(half_width_px), wall, float(noise_sigma), tilt_px / (k - 1)
     )
     if not math.isfinite(a):  # no step fits the band
         return _no_points(k)

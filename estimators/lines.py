@@ -461,6 +461,11 @@ class LineEstimator:
             keep=self._keep_mask(X0),
             fallback=strips,  # a wrong segment must not hide an edge the prior predicts
             fallback_search_px=min(gate_px, 2.0 * options.band_px),
+            # Without a prior, a wrong segment costs a wrong lock: every edge is also fitted
+            # from the hypothesis itself (in tracking only a poorly covered one: time), whose
+            # strips may be tilted against the edge.
+            compare_fallback=not tracking,
+            rough=not tracking,
             noise_sigma=image.clip_sigma,
         )
         if not edges.all_found:

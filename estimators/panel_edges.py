@@ -247,6 +247,14 @@ class FittedEdge:
     def found(self) -> bool:
         return self.line is not None and len(self.used) >= 3
 
+    @property
+    def information(self) -> float:
+        """Σ 1/σ² over the inliers (px⁻²; 0 when not found): more points on the edge, and
+        sharper ones, measure it better — points found on noise beside it are few and blurred."""
+        if not self.found:
+            return 0.0
+        return float(np.sum(1.0 / np.square(self.sigma_ideal[self.used])))
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class PanelEdges:
@@ -281,12 +289,14 @@ def fit_edge(
     polarity: float = 1.0,
     keep: Callable[[np.ndarray], np.ndarray] | None = None,
     noise_sigma: float = 0.0,
+    tilt_px: float = 0.0,
 ) -> FittedEdge:
     """One straight edge from its strips: step-edge points (``estimators.edge_fit``) converted
     to ideal pixels, and a robust line through them. Found when the grey levels differ with
     ``polarity`` (+1: brighter on the normals' side, −1: darker, 0: either) by
     ``min_contrast_snr`` standard deviations and the line has at least three inliers.
-    ``noise_sigma``: the image noise, for the model of clipped pixels."""
+    ``noise_sigma``: the image noise, for the model of clipped pixels; ``tilt_px``: how much
+    more one end of the strips may be off the edge than the other (``fit_edge_points``)."""
     points = fit_edge_points(
         pixels,
         strip.centers_uv,
@@ -297,6 +307,7 @@ def fit_edge(
         keep=keep,
         noise_sigma=noise_sigma,
         wall_px=strip.wall_px,
+        tilt_px=tilt_px,
     )
     ok = np.flatnonzero(points.ok)
     empty = FittedEdge(points, np.zeros((0, 2)), np.zeros(0), None, np.zeros(0, int))
@@ -334,6 +345,10 @@ def edge_observations(ends_T: np.ndarray, edges: Sequence[FittedEdge | None]) ->
 
 #: An edge fitted on fewer of its strips than this is fitted again from the fallback strips.
 COVERED_FRACTION = 0.75
+#: Strips of a rough hypothesis searched up to this wide (px) keep their direction.
+TILT_FREE_SEARCH_PX = 2.0
+#: The largest tilt (px, end to end) of a rough hypothesis's strips against their edge.
+MAX_TILT_PX = 4.0
 
 
 def fit_panel_edges(
@@ -348,15 +363,28 @@ def fit_panel_edges(
     keep: Callable[[np.ndarray], np.ndarray] | None = None,
     fallback: list[EdgeStrips] | None = None,
     fallback_search_px: float = 4.0,
+    compare_fallback: bool = False,
     noise_sigma: float = 0.0,
+    rough: bool = False,
 ) -> PanelEdges:
     """Fit the four edges from their strips (``search_px`` per edge or for all). An edge
     counts as found when its grey levels differ with the model's polarity (+1: the panel is
     brighter) by ``min_contrast_snr`` standard deviations and a robust line fits at least three
-    points; an edge not found from ``strips``, or found on fewer than ``COVERED_FRACTION`` of
-    them, is tried again from ``fallback`` (e.g. the prior's prediction when a labeled image
-    line misled), and the fit with more inlier points is kept."""
+    points. An edge not found from ``strips``, or found on fewer than ``COVERED_FRACTION`` of
+    them — every edge with ``compare_fallback``, unless its strips are the fallback's — is
+    fitted again from ``fallback`` (e.g. the prior's prediction, when a labeled image line
+    misled), and the fit that measures the edge better (``FittedEdge.information``) is kept.
+    ``rough``: the strips come from a rough hypothesis, not a tracked pose — a strip set
+    searched wider than ``TILT_FREE_SEARCH_PX`` may then be tilted against its edge by up to
+    the rest of its search (at most ``MAX_TILT_PX``)."""
     searches = list(search_px) if isinstance(search_px, list | tuple) else [search_px] * len(strips)
+
+    def tilt(search: float) -> float:
+        # A hypothesis several pixels off is off in direction too: one from a quad cut at a
+        # grey level had a side 3.9 px off at one end and 0.6 px at the other, and a common
+        # offset for its strips found noise beside the edge (a pose 17° off).
+        return min(max(search - TILT_FREE_SEARCH_PX, 0.0), MAX_TILT_PX) if rough else 0.0
+
     fitted = []
     for i, strip in enumerate(strips):
         settings = dict(
@@ -366,14 +394,25 @@ def fit_panel_edges(
             keep=keep,
             noise_sigma=noise_sigma,
         )
-        edge = fit_edge(pixels, strip, camera, search_px=searches[i], **settings)
-        if fallback is not None and len(edge.used) < COVERED_FRACTION * len(strip.centers_uv):
+        edge = fit_edge(
+            pixels, strip, camera, search_px=searches[i], tilt_px=tilt(searches[i]), **settings
+        )
+        covered = len(edge.used) >= COVERED_FRACTION * len(strip.centers_uv)
+        compare = compare_fallback and fallback is not None and fallback[i] is not strip
+        if fallback is not None and (compare or not covered):
             # A labeled image line a little askew crosses the edge: a narrow search along it
-            # finds the edge only near the crossing, and the line through those few points
-            # keeps the image line's tilt. The prior's own strips, searched wider, then find
-            # more of the edge.
-            other = fit_edge(pixels, fallback[i], camera, search_px=fallback_search_px, **settings)
-            if len(other.used) > len(edge.used):
+            # meets the edge only near the crossing, elsewhere it finds noise, and the line
+            # through those points keeps the image line's tilt. The prior's own strips,
+            # searched wider, then measure the edge better.
+            other = fit_edge(
+                pixels,
+                fallback[i],
+                camera,
+                search_px=fallback_search_px,
+                tilt_px=tilt(fallback_search_px),
+                **settings,
+            )
+            if other.information > edge.information:
                 edge = other
         fitted.append(edge)
     corners = None

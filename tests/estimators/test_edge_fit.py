@@ -100,3 +100,43 @@ def test_fit_edge_points_is_unbiased_against_black_when_told_the_noise():
     plain, modelled = np.mean(offsets[0.0]), np.mean(offsets[sigma])
     assert plain > 0.05  # toward the bright side
     assert abs(modelled) < 0.02
+
+
+def test_fit_edge_points_follows_a_prediction_tilted_against_the_edge():
+    """A rough hypothesis 3.9 px off the edge at one end and 0.6 px at the other: no common
+    offset brings every strip within its reach (the end strips stop at their limit, unusable),
+    a tilted start does, and the points lie on the edge."""
+    angle = math.radians(30.0)
+    normal = np.array([math.cos(angle), math.sin(angle)])
+    offset = 40.3
+    clean = _half_plane_image(normal, offset, 0.15, 0.05)
+    tangent = np.array([-normal[1], normal[0]])
+    foot = normal * offset
+    foot = foot + ((np.array([40.0, 40.0]) - foot) @ tangent) * tangent
+    t = np.linspace(-30, 30, 11)
+    off = np.linspace(3.9, 0.6, 11)
+    centers = foot + t[:, None] * tangent - off[:, None] * normal
+    rng = np.random.default_rng(5)
+    found = {0.0: [], 4.0: []}
+    errors = []
+    for _ in range(20):
+        noisy = clean + rng.normal(0, 0.03, clean.shape).astype(np.float32)
+        for tilt in found:
+            points = fit_edge_points(
+                noisy,
+                centers,
+                np.tile(normal, (11, 1)),
+                3.0,
+                3.0,
+                search_px=5.0,
+                noise_sigma=0.03,
+                tilt_px=tilt,
+            )
+            found[tilt].append(points.ok.sum())
+            if tilt > 0:
+                errors.extend(points.uv[points.ok] @ normal - offset)
+    assert min(found[4.0]) == 11
+    assert np.mean(found[0.0]) < 10  # why the tilt is needed
+    errors = np.array(errors)
+    assert abs(errors.mean()) < 0.05
+    assert np.sqrt(np.mean(errors**2)) < 0.2
