@@ -18,14 +18,20 @@ def _half_plane_image(normal, offset, inside, outside):
     return outside + (inside - outside) * mask
 
 
-def test_fit_edge_points_locates_a_slanted_edge_from_an_offset_prediction():
-    angle = math.radians(12.0)
+def _slanted_edge(angle_deg, offset, inside, outside):
+    """The half-plane image whose edge has the normal at ``angle_deg``, that normal, the edge's
+    direction, and the edge's point nearest the image's middle."""
+    angle = math.radians(angle_deg)
     normal = np.array([math.cos(angle), math.sin(angle)])
-    offset = 40.3
-    clean = _half_plane_image(normal, offset, 0.63, 0.35)
     tangent = np.array([-normal[1], normal[0]])
     foot = normal * offset
-    foot = foot + ((np.array([40.0, 40.0]) - foot) @ tangent) * tangent  # mid-image
+    foot = foot + ((np.array([40.0, 40.0]) - foot) @ tangent) * tangent
+    return _half_plane_image(normal, offset, inside, outside), normal, tangent, foot
+
+
+def test_fit_edge_points_locates_a_slanted_edge_from_an_offset_prediction():
+    angle, offset = math.radians(12.0), 40.3
+    clean, normal, tangent, foot = _slanted_edge(12.0, offset, 0.63, 0.35)
     rng = np.random.default_rng(8)
     errors, z = [], []
     for _ in range(30):
@@ -106,13 +112,8 @@ def test_fit_edge_points_follows_a_prediction_tilted_against_the_edge():
     """A rough hypothesis 3.9 px off the edge at one end and 0.6 px at the other: no common
     offset brings every strip within its reach (the end strips stop at their limit, unusable),
     a tilted start does, and the points lie on the edge."""
-    angle = math.radians(30.0)
-    normal = np.array([math.cos(angle), math.sin(angle)])
     offset = 40.3
-    clean = _half_plane_image(normal, offset, 0.15, 0.05)
-    tangent = np.array([-normal[1], normal[0]])
-    foot = normal * offset
-    foot = foot + ((np.array([40.0, 40.0]) - foot) @ tangent) * tangent
+    clean, normal, tangent, foot = _slanted_edge(30.0, offset, 0.15, 0.05)
     t = np.linspace(-30, 30, 11)
     off = np.linspace(3.9, 0.6, 11)
     centers = foot + t[:, None] * tangent - off[:, None] * normal
