@@ -404,8 +404,8 @@ def fit_edge_points(
     ``half_width_px``: the band's half width across it. ``search_px``: how far (px) the true
     edge may lie from the prediction; ``tilt_px``: by how much more (px) one end of the
     prediction may be off than the other (a rough hypothesis, tilted against the edge; the
-    tilted start is taken when its step fits the band better than any common offset). ``keep(coords (P,2)) -> bool (P,)`` may exclude pixels
-    on other features.
+    tilted start is taken when its step fits the band better than any common offset).
+    ``keep(coords (P,2)) -> bool (P,)`` may exclude pixels on other features.
     """
     centers = np.asarray(centers_uv, dtype=float).reshape(-1, 2)
     normals = np.asarray(normals, dtype=float).reshape(-1, 2)
