@@ -23,6 +23,7 @@ import yaml
 from typer.testing import CliRunner
 
 from drivers.track_modbus import ModbusTrack
+from hil.analysis.bench_rig import SHARED_MACHINE_STALL_S
 from hil.cli import CODEC_NAMES, app
 from hil.evaluation.recording import CODECS
 from hil.logs.triallog import TrialLog, TrialLogError
@@ -47,6 +48,10 @@ def small_config(folder: Path, **changes) -> Path:
         "systems": [ORACLE],
         "noise": {"preset": "none"},
         "vision": {"log_frames_every_s": 0},
+        # These trials test the ways out, not the tick deadline (test_supervisor, test_loop):
+        # on the shared machine a tick of the wall-clock trial's first second once took 34 ms
+        # and the approach aborted on its 24 ms deadline before Ctrl-C could be sent.
+        "approach": {"supervisor": {"max_tick_s": SHARED_MACHINE_STALL_S}},
         **changes,
     }
     path = config_dir / "sim.yaml"
