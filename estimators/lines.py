@@ -464,7 +464,6 @@ class LineEstimator:
             # Without a prior, a wrong segment costs a wrong lock: every edge is also fitted
             # from the hypothesis itself (in tracking only a poorly covered one: time), whose
             # strips may be tilted against the edge.
-            compare_fallback=not tracking,
             rough=not tracking,
             noise_sigma=image.clip_sigma,
         )

@@ -363,7 +363,6 @@ def fit_panel_edges(
     keep: Callable[[np.ndarray], np.ndarray] | None = None,
     fallback: list[EdgeStrips] | None = None,
     fallback_search_px: float = 4.0,
-    compare_fallback: bool = False,
     noise_sigma: float = 0.0,
     rough: bool = False,
 ) -> PanelEdges:
@@ -371,12 +370,12 @@ def fit_panel_edges(
     counts as found when its grey levels differ with the model's polarity (+1: the panel is
     brighter) by ``min_contrast_snr`` standard deviations and a robust line fits at least three
     points. An edge not found from ``strips``, or found on fewer than ``COVERED_FRACTION`` of
-    them — every edge with ``compare_fallback``, unless its strips are the fallback's — is
-    fitted again from ``fallback`` (e.g. the prior's prediction, when a labeled image line
-    misled), and the fit that measures the edge better (``FittedEdge.information``) is kept.
-    ``rough``: the strips come from a rough hypothesis, not a tracked pose — a strip set
-    searched wider than ``TILT_FREE_SEARCH_PX`` may then be tilted against its edge by up to
-    the rest of its search (at most ``MAX_TILT_PX``)."""
+    them — every edge when ``rough``, unless its strips are the fallback's — is fitted again
+    from ``fallback`` (e.g. the prior's prediction, when a labeled image line misled), and the
+    fit that measures the edge better (``FittedEdge.information``) is kept. ``rough``: the
+    strips come from a rough hypothesis, not a tracked pose — a strip set searched wider than
+    ``TILT_FREE_SEARCH_PX`` may then also be tilted against its edge by up to the rest of its
+    search (at most ``MAX_TILT_PX``)."""
     searches = list(search_px) if isinstance(search_px, list | tuple) else [search_px] * len(strips)
 
     def tilt(search: float) -> float:
@@ -398,7 +397,7 @@ def fit_panel_edges(
             pixels, strip, camera, search_px=searches[i], tilt_px=tilt(searches[i]), **settings
         )
         covered = len(edge.used) >= COVERED_FRACTION * len(strip.centers_uv)
-        compare = compare_fallback and fallback is not None and fallback[i] is not strip
+        compare = rough and fallback is not None and fallback[i] is not strip
         if fallback is not None and (compare or not covered):
             # A labeled image line a little askew crosses the edge: a narrow search along it
             # meets the edge only near the crossing, elsewhere it finds noise, and the line
