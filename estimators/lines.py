@@ -163,6 +163,11 @@ class _Solution:
 #: A joint fit is taken as found when it used this share of the outline's strips in view.
 _GOOD_OUTLINE_SHARE = 0.7
 
+#: The tilts searched for the outline without a prior: ±16° about the panel's centre in steps
+#: of 4°, then steps of 1° around the best (the coarse gradients meet an edge a few pixels off).
+OUTLINE_TILT_RANGE_DEG = 16.0
+OUTLINE_TILT_STEP_DEG = 4.0
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class _Joint:
@@ -228,6 +233,7 @@ class LineEstimator:
         self.axis_circle = turn_axis_circle(target)
         warn_if_roll_ambiguous(SYSTEM, target, self.turns)
         self._outline_ends = outline_edge_ends(target) if options.use_outline else None
+        self._outline_names = frozenset(n for n in self.support.names if n.startswith("outline_"))
         self._outline_turns = _outline_turns(target, self.turns.turns)
         self._panel_ends = panel_edge_ends(target)
         # Parts that may stand in front of the outline's edges (fasteners, circles and their
@@ -626,7 +632,9 @@ class LineEstimator:
         may have changed since (``tilt_change_deg``) in tracking. When that finds less than
         most of the outline in view, the panel's own pose (all starts, as without an outline)
         predicts it, searched within its covariance, and the prediction that explains more of
-        the outline wins."""
+        the outline wins. Without a prior every distinct quarter turn predicts it too, each
+        again at the tilt the outline supports best when none found most of it
+        (``_outline_tilt``), and the whole model's support at each joint pose decides."""
         if self._outline_ends is None:
             return None
         best: _Joint | None = None
@@ -663,18 +671,80 @@ class LineEstimator:
                     predictions.append((turned, relabeled))
         else:
             predictions = [(X, edges) for X in predictions]
-        for X_pred, panel_edges in predictions:
-            corners = self._outline_image(X_pred)
-            if any(np.max(np.abs(corners - c)) < 2.0 for c in tried):
-                continue
-            tried.append(corners)
-            starts = flip if panel_edges is edges else []
-            joint = self._joint_fit(image, panel_edges, X_pred, fit.covariance, starts, prior)
-            if joint is not None and (best is None or joint.points > best.points):
-                best = joint
-            if best is not None and best.good and len(self._outline_turns) == 1:
-                break
+        # In tracking the prior fixes the turn, and the joint fit that found more of the
+        # outline wins. Without one, a wrong turn at a wrong tilt may line up as much of the
+        # outline as the right turn (a panel off the face's centre, a face not square): the
+        # whole model at each joint pose — the ring, which moves with the tilt alone — decides.
+        gradients = image.gradients(2.0)
+        best_score = -math.inf if best is None else float(best.points)  # tracking's X_tilt fit
+        for round_ in range(1 if tracking else 2):
+            if round_ == 1:
+                if best is not None and best.good:
+                    break
+                # The panel's edges may leave the tilt 10° off: the outline at the right turn
+                # then lies beyond its search, while the wrong turn, tilted further, lines one
+                # of its edges up with one in the image. When no prediction found most of the
+                # outline, each predicts it again at the tilt its edges support best.
+                searched = [
+                    (self._outline_tilt(image, X_pred, panel_edges), panel_edges)
+                    for X_pred, panel_edges in predictions
+                ]
+                predictions = [(X, e) for X, e in searched if X is not None]
+            for X_pred, panel_edges in predictions:
+                corners = self._outline_image(X_pred)
+                if any(np.max(np.abs(corners - c)) < 2.0 for c in tried):
+                    continue
+                tried.append(corners)
+                starts = flip if panel_edges is edges else []
+                joint = self._joint_fit(image, panel_edges, X_pred, fit.covariance, starts, prior)
+                if joint is None:
+                    continue
+                score = (
+                    float(joint.points)
+                    if tracking
+                    else self.support.score(gradients, joint.choice.fit.X_CT).total
+                )
+                if best is None or score > best_score:
+                    best, best_score = joint, score
+                if best.good and len(self._outline_turns) == 1:
+                    break
         return best
+
+    def _outline_tilt(self, image: ImageStack, X_CT: Pose, edges: PanelEdges) -> Pose | None:
+        """The tilt (within ±``OUTLINE_TILT_RANGE_DEG`` of ``X_CT``'s, about the panel's
+        centre) at which the outline's edges find the most support on the coarse gradients,
+        with the position and roll that fit the panel's ``edges`` there; None when ``X_CT``
+        puts none of the outline in view, or no tilt puts it on an edge better than its own."""
+        gradients = coarse_gradients(image)
+        centre_C = X_CT.apply(self.target.panel_corners_T.mean(axis=0)[None])[0]
+        axes = np.linalg.svd(centre_C[None] / np.linalg.norm(centre_C))[2][1:]  # ⊥ line of sight
+
+        def tilted(a: float, b: float) -> Pose:
+            R = Pose.from_rotvec(np.radians(a) * axes[0] + np.radians(b) * axes[1], np.zeros(3)).R
+            return Pose(R @ X_CT.R, centre_C + R @ (X_CT.p - centre_C))
+
+        def outline(X: Pose) -> dict[str, float]:
+            return self.support.score(gradients, X, only=self._outline_names, discs=False).contours
+
+        own = outline(X_CT)
+        if not own:
+            return None  # no outline edge in view (close up): no tilt to search by
+        best, best_score = (0.0, 0.0), sum(own.values())
+        for step, span in (
+            (OUTLINE_TILT_STEP_DEG, OUTLINE_TILT_RANGE_DEG),
+            (0.25 * OUTLINE_TILT_STEP_DEG, 0.5 * OUTLINE_TILT_STEP_DEG),
+        ):
+            centre = best
+            grid = np.arange(-span, span + 1e-9, step)
+            for a in grid:
+                for b in grid:
+                    candidate = (centre[0] + a, centre[1] + b)
+                    value = sum(outline(tilted(*candidate)).values())
+                    if value > best_score:
+                        best, best_score = candidate, value
+        if best == (0.0, 0.0):
+            return None
+        return self._with_tilt_of(tilted(*best), edges)
 
     def _tilt_change(self, X_CT: Pose) -> np.ndarray:
         """Covariance (6×6) of a prediction whose tilt may be ``tilt_change_deg`` off (per

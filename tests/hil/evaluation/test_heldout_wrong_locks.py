@@ -30,6 +30,10 @@ HELD_OUT = MatrixSpec(
         # Without a prior, a hypothesis 3.9 px off one end of an edge and 0.6 px off the other:
         # a common offset for its strips found noise beside it (50 mm / 17° off, NEES 89).
         ("random:111", "none"),
+        # A face taller than wide with only its sides in view and a hypothesis 10° off in
+        # tilt: the outline at the right quarter turn lay beyond its search, the wrong turn
+        # tilted 16° lined one side up (5-DOF circle 23 mm / 16° off, NEES 10⁵).
+        ("random:117", "turn_y_10deg"),
     ],
 )
 def test_lines_on_held_out_mockups_at_1_2_m_report_no_wrong_lock(mockup, maneuver):
