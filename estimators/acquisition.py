@@ -189,6 +189,17 @@ def planar_flip(X_CT: Pose, target: TargetModel, camera: CameraInfo) -> Pose | N
     return max(others, key=lambda X: rotation_error_geodesic(X, X_CT)) if others else None
 
 
+def rotation_beyond(X_other: Pose, X_CT: Pose, covariance: np.ndarray, sigmas: float = 5.0) -> bool:
+    """Whether ``X_other``'s rotation lies beyond ``sigmas``σ of ``X_CT``'s rotation
+    ``covariance`` (6×6, rotation first): the two are then different answers, not one answer
+    and its noise (True too when the covariance is singular)."""
+    turn = Pose(X_other.R @ X_CT.R.T, np.zeros(3)).rotvec
+    try:
+        return float(turn @ np.linalg.solve(covariance[:3, :3], turn)) >= sigmas**2
+    except np.linalg.LinAlgError:
+        return True
+
+
 def judge_flip(
     support: ModelSupport,
     gradients: GradientImage,
@@ -205,12 +216,8 @@ def judge_flip(
     flip = planar_flip(X_CT, target, support.camera)
     if flip is None:
         return "kept", None
-    turn = Pose(flip.R @ X_CT.R.T, np.zeros(3)).rotvec
-    try:
-        if float(turn @ np.linalg.solve(covariance[:3, :3], turn)) < 25.0:
-            return "kept", None
-    except np.linalg.LinAlgError:
-        pass
+    if not rotation_beyond(flip, X_CT, covariance):
+        return "kept", None
     # Both judged with the same tolerance: the flip is not refined on the image.
     own = support.score(gradients, X_CT, shift_px=2.0).total
     other = support.score(gradients, flip, shift_px=2.0).total
@@ -219,6 +226,91 @@ def judge_flip(
     if other - own >= FLIP_MARGIN:
         return "other", flip
     return "undecided", flip
+
+
+#: The tilts searched about the panel's centre: ±16° in steps of 4°, then steps of 1° around
+#: the best (the coarse gradients meet an edge a few pixels off).
+TILT_SEARCH_RANGE_DEG = 16.0
+TILT_SEARCH_STEP_DEG = 4.0
+
+#: Support (z units, coarse gradients) by which a tilt of a pose must explain the model's
+#: other parts (ring, outline, thruster) better than the pose itself for the pose to be judged
+#: wrong in its tilt: far above the noise of their summed z-scores (a few units), and of the
+#: best of the search's grid over them.
+TILT_MARGIN = 30.0
+
+
+@dataclass(frozen=True, slots=True)
+class TiltSearch:
+    """The tilt of a pose (about the panel's centre) at which some of the model's contours
+    find the most support: that pose (None when no tilt beats the pose's own, or none of the
+    contours is in view) and the support gained over the pose's own."""
+
+    X_CT: Pose | None
+    gain: float
+
+
+def search_tilt(
+    support: ModelSupport,
+    gradients: GradientImage,
+    X_CT: Pose,
+    target: TargetModel,
+    names: frozenset[str],
+) -> TiltSearch:
+    """Grid search (``TILT_SEARCH_RANGE_DEG``, ``TILT_SEARCH_STEP_DEG``) over the two tilts
+    across the line of sight to the panel's centre, about that centre (the panel's image
+    barely moves), for the summed support of the contours ``names``."""
+    centre_C = X_CT.apply(target.panel_corners_T.mean(axis=0)[None])[0]
+    axes = np.linalg.svd(centre_C[None] / np.linalg.norm(centre_C))[2][1:]
+
+    def tilted(a: float, b: float) -> Pose:
+        R = Pose.from_rotvec(np.radians(a) * axes[0] + np.radians(b) * axes[1], np.zeros(3)).R
+        return Pose(R @ X_CT.R, centre_C + R @ (X_CT.p - centre_C))
+
+    def contours(X: Pose) -> dict[str, float]:
+        return support.score(gradients, X, only=names, discs=False).contours
+
+    own = contours(X_CT)
+    if not own:
+        return TiltSearch(None, 0.0)
+    best, own_score = (0.0, 0.0), sum(own.values())
+    best_score = own_score
+    for step, span in (
+        (TILT_SEARCH_STEP_DEG, TILT_SEARCH_RANGE_DEG),
+        (0.25 * TILT_SEARCH_STEP_DEG, 0.5 * TILT_SEARCH_STEP_DEG),
+    ):
+        centre = best
+        grid = np.arange(-span, span + 1e-9, step)
+        for a in grid:
+            for b in grid:
+                candidate = (centre[0] + a, centre[1] + b)
+                value = sum(contours(tilted(*candidate)).values())
+                if value > best_score:
+                    best, best_score = candidate, value
+    if best == (0.0, 0.0):
+        return TiltSearch(None, 0.0)
+    return TiltSearch(tilted(*best), best_score - own_score)
+
+
+def judge_tilt(
+    support: ModelSupport,
+    image: ImageStack,
+    X_CT: Pose,
+    target: TargetModel,
+    covariance: np.ndarray,
+) -> TiltSearch:
+    """Whether a pose's tilt is wrong beyond what it claims: the tilt at which the model's parts
+    other than the panel (ring, outline, thruster) find the most support, when it beats the
+    pose's own by ``TILT_MARGIN`` and lies beyond 5σ of the pose's rotation ``covariance``
+    (6×6; else ``TiltSearch(None, gain)``). A pose from a small panel's corners or edges may be
+    10–20° off in tilt with a covariance that claims a degree, while the ring beside it, imaged
+    as the wrong ellipse, says otherwise; a pose a degree or two off that says so is left be
+    (a contrasted outline gains tens of z units from a degree)."""
+    names = frozenset(n for n in support.names if not n.startswith("panel_edge"))
+    found = search_tilt(support, coarse_gradients(image), X_CT, target, names)
+    if found.X_CT is None or found.gain < TILT_MARGIN:
+        return TiltSearch(None, found.gain)
+    return found if rotation_beyond(found.X_CT, X_CT, covariance) else TiltSearch(None, found.gain)
 
 
 def turn_axis_circle(target: TargetModel) -> Circle3D | None:

@@ -36,6 +36,7 @@ from estimators.acquisition import (
     TurnChecker,
     coarse_gradients,
     judge_flip,
+    judge_tilt,
     judge_turn,
     pose_hypotheses,
     roll_free_measurement,
@@ -716,6 +717,14 @@ class CornerEstimator:
                     roll_undecided = True
                 else:
                     reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
+        if not reason and not tracking:
+            # The tilt of a pose from a few faint features may be 10–20° off with a covariance
+            # that claims a degree: the ring and the outline judge it (``judge_tilt``).
+            tilt = judge_tilt(self.support, image, fit.X_CT, self.target, fit.covariance)
+            if tilt.X_CT is not None:
+                if retry:
+                    return self._solve(image, gradients, tilt.X_CT, tracking=False, retry=False)
+                reason = f"a tilt of the pose fits the ring and outline better (by {tilt.gain:.0f})"
         return _Solution(
             fit.X_CT,
             fit.covariance,

@@ -41,6 +41,7 @@ from estimators.acquisition import (
     judge_turn,
     pose_hypotheses,
     roll_free_measurement,
+    search_tilt,
     turn_axis_circle,
     warn_if_roll_ambiguous,
 )
@@ -162,11 +163,6 @@ class _Solution:
 
 #: A joint fit is taken as found when it used this share of the outline's strips in view.
 _GOOD_OUTLINE_SHARE = 0.7
-
-#: The tilts searched for the outline without a prior: ±16° about the panel's centre in steps
-#: of 4°, then steps of 1° around the best (the coarse gradients meet an edge a few pixels off).
-OUTLINE_TILT_RANGE_DEG = 16.0
-OUTLINE_TILT_STEP_DEG = 4.0
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -711,40 +707,13 @@ class LineEstimator:
         return best
 
     def _outline_tilt(self, image: ImageStack, X_CT: Pose, edges: PanelEdges) -> Pose | None:
-        """The tilt (within ±``OUTLINE_TILT_RANGE_DEG`` of ``X_CT``'s, about the panel's
-        centre) at which the outline's edges find the most support on the coarse gradients,
-        with the position and roll that fit the panel's ``edges`` there; None when ``X_CT``
-        puts none of the outline in view, or no tilt puts it on an edge better than its own."""
-        gradients = coarse_gradients(image)
-        centre_C = X_CT.apply(self.target.panel_corners_T.mean(axis=0)[None])[0]
-        axes = np.linalg.svd(centre_C[None] / np.linalg.norm(centre_C))[2][1:]  # ⊥ line of sight
-
-        def tilted(a: float, b: float) -> Pose:
-            R = Pose.from_rotvec(np.radians(a) * axes[0] + np.radians(b) * axes[1], np.zeros(3)).R
-            return Pose(R @ X_CT.R, centre_C + R @ (X_CT.p - centre_C))
-
-        def outline(X: Pose) -> dict[str, float]:
-            return self.support.score(gradients, X, only=self._outline_names, discs=False).contours
-
-        own = outline(X_CT)
-        if not own:
-            return None  # no outline edge in view (close up): no tilt to search by
-        best, best_score = (0.0, 0.0), sum(own.values())
-        for step, span in (
-            (OUTLINE_TILT_STEP_DEG, OUTLINE_TILT_RANGE_DEG),
-            (0.25 * OUTLINE_TILT_STEP_DEG, 0.5 * OUTLINE_TILT_STEP_DEG),
-        ):
-            centre = best
-            grid = np.arange(-span, span + 1e-9, step)
-            for a in grid:
-                for b in grid:
-                    candidate = (centre[0] + a, centre[1] + b)
-                    value = sum(outline(tilted(*candidate)).values())
-                    if value > best_score:
-                        best, best_score = candidate, value
-        if best == (0.0, 0.0):
-            return None
-        return self._with_tilt_of(tilted(*best), edges)
+        """The tilt at which the outline's edges find the most support on the coarse gradients
+        (``search_tilt``), with the position and roll that fit the panel's ``edges`` there;
+        None when ``X_CT`` puts none of the outline in view or no tilt explains it better."""
+        found = search_tilt(
+            self.support, coarse_gradients(image), X_CT, self.target, self._outline_names
+        )
+        return None if found.X_CT is None else self._with_tilt_of(found.X_CT, edges)
 
     def _tilt_change(self, X_CT: Pose) -> np.ndarray:
         """Covariance (6×6) of a prediction whose tilt may be ``tilt_change_deg`` off (per

@@ -5,15 +5,17 @@ import numpy as np
 import pytest
 
 from estimators.acquisition import (
+    TILT_MARGIN,
     TurnChecker,
     coarse_gradients,
     find_panel_quads,
+    judge_tilt,
     judge_turn,
     pose_hypotheses,
     poses_from_corners,
     quarter_turns,
 )
-from estimators.geometry import rotation_error_geodesic
+from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GradientImage, image_stack
 from estimators.model_support import ModelSupport
 from estimators.planar_pose import project_ideal
@@ -102,3 +104,28 @@ def test_the_quarter_turn_is_not_decided_on_the_noise_of_many_faint_fasteners():
     assert decided < 0.05 * 300, decided
     shown = TurnChecker(target, _NoiseOnlyImage(target, camera, rng, signal=40.0))
     assert judge_turn(shown.check(None, X_CT), 6.0, 3.0) == "kept"
+
+
+@pytest.mark.parametrize("distance", [2.0, 1.2])
+def test_judge_tilt_finds_a_wrong_tilt_by_the_ring_and_outline_and_passes_the_truth(distance):
+    """A pose 12° off in tilt about the panel's centre images the panel nearly where the truth
+    does; the ring and the face's outline do not fit it, and the tilt search brings the pose
+    back within a couple of degrees — when the pose claims a degree. A pose that says its
+    tilt is uncertain by 5° is not overturned, and neither is the true pose."""
+    f = rendered.frame(distance, noise="high", seed=4)
+    image = image_stack(f)
+    support = ModelSupport(TARGET, f.info)
+    X_true = f.truth.X_CT
+
+    def claiming(sigma_deg: float) -> np.ndarray:
+        return np.diag([math.radians(sigma_deg) ** 2] * 3 + [1e-6] * 3)
+
+    assert judge_tilt(support, image, X_true, TARGET, claiming(1.0)).X_CT is None
+    centre = X_true.apply(TARGET.panel_corners_T.mean(axis=0)[None])[0]
+    for axis in ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.6, 0.8, 0.0]):
+        R = Pose.from_rotvec(math.radians(12.0) * np.array(axis), np.zeros(3)).R
+        X_off = Pose(R @ X_true.R, centre + R @ (X_true.p - centre))
+        judged = judge_tilt(support, image, X_off, TARGET, claiming(1.0))
+        assert judged.X_CT is not None and judged.gain >= TILT_MARGIN, axis
+        assert math.degrees(rotation_error_geodesic(judged.X_CT, X_true)) < 2.0, axis
+        assert judge_tilt(support, image, X_off, TARGET, claiming(5.0)).X_CT is None, axis
