@@ -126,6 +126,21 @@ def _profile_levels(values, d, delta, wall, s, levels, sigma):
 
 
 @numba.njit(cache=True)
+def _two_levels(s11, s12, s22, t1, t2, vv):
+    """The least-squares grey levels a, b of v ≈ a·step + b·(1 − step) from the sums
+    Σstep², Σstep·other, Σother², Σstep·v, Σother·v, and the cost Σ(v − a·step − b·other)²
+    given Σv² = ``vv`` (cost inf when the two columns are degenerate)."""
+    det = s11 * s22 - s12 * s12
+    if abs(det) < 1e-9 * max(s11 * s22, 1e-12):
+        return np.inf, np.nan, np.nan
+    a, b = (s22 * t1 - s12 * t2) / det, (s11 * t2 - s12 * t1) / det
+    # Σ(v − a·step − b·other)², expanded: the sums already hold it.
+    cost = vv - 2.0 * (a * t1 + b * t2)
+    cost += a * a * s11 + 2.0 * a * b * s12 + b * b * s22
+    return cost, a, b
+
+
+@numba.njit(cache=True)
 def _step_cost(values, d, strip, base):
     """Least-squares cost of the best two-level step (blur 1.2 px) at offsets ``base[strip]``
     across the band, and its grey levels (cost inf when no step fits)."""
@@ -140,14 +155,9 @@ def _step_cost(values, d, strip, base):
         t1 += step * values[i]
         t2 += other * values[i]
         vv += values[i] * values[i]
-    det = s11 * s22 - s12 * s12
-    if n < 3 or abs(det) < 1e-9 * max(s11 * s22, 1e-12):
+    if n < 3:
         return np.inf, np.nan, np.nan
-    a, b = (s22 * t1 - s12 * t2) / det, (s11 * t2 - s12 * t1) / det
-    # Σ(v − a·step − b·other)², expanded: the sums above already hold it.
-    cost = vv - 2.0 * (a * t1 + b * t2)
-    cost += a * a * s11 + 2.0 * a * b * s12 + b * b * s22
-    return cost, a, b
+    return _two_levels(s11, s12, s22, t1, t2, vv)
 
 
 @numba.njit(cache=True)
@@ -175,12 +185,8 @@ def _tilted_start(values, d, strip, k, grid, max_slope):
         best, at = np.inf, np.nan
         for g in range(m):
             s11, s12, s22, t1, t2 = sums[j, g]
-            det = s11 * s22 - s12 * s12
-            if abs(det) < 1e-9 * max(s11 * s22, 1e-12):
-                continue
-            a, b = (s22 * t1 - s12 * t2) / det, (s11 * t2 - s12 * t1) / det
             # The strip's own cost up to its Σv² (the same for every offset).
-            cost = -2.0 * (a * t1 + b * t2) + a * a * s11 + 2.0 * a * b * s12 + b * b * s22
+            cost, _, _ = _two_levels(s11, s12, s22, t1, t2, 0.0)
             if cost < best:
                 best, at = cost, grid[g]
         if math.isfinite(at):

@@ -673,19 +673,9 @@ class LineEstimator:
         # whole model at each joint pose — the ring, which moves with the tilt alone — decides.
         gradients = image.gradients(2.0)
         best_score = -math.inf if best is None else float(best.points)  # tracking's X_tilt fit
-        for round_ in range(1 if tracking else 2):
-            if round_ == 1:
-                if best is not None and best.good:
-                    break
-                # The panel's edges may leave the tilt 10° off: the outline at the right turn
-                # then lies beyond its search, while the wrong turn, tilted further, lines one
-                # of its edges up with one in the image. When no prediction found most of the
-                # outline, each predicts it again at the tilt its edges support best.
-                searched = [
-                    (self._outline_tilt(image, X_pred, panel_edges), panel_edges)
-                    for X_pred, panel_edges in predictions
-                ]
-                predictions = [(X, e) for X, e in searched if X is not None]
+
+        def consider(predictions: list[tuple[Pose, PanelEdges]]) -> None:
+            nonlocal best, best_score
             for X_pred, panel_edges in predictions:
                 corners = self._outline_image(X_pred)
                 if any(np.max(np.abs(corners - c)) < 2.0 for c in tried):
@@ -703,7 +693,16 @@ class LineEstimator:
                 if best is None or score > best_score:
                     best, best_score = joint, score
                 if best.good and len(self._outline_turns) == 1:
-                    break
+                    return
+
+        consider(predictions)
+        if not tracking and (best is None or not best.good):
+            # The panel's edges may leave the tilt 10° off: the outline at the right turn then
+            # lies beyond its search, while the wrong turn, tilted further, lines one of its
+            # edges up with one in the image. When no prediction found most of the outline,
+            # each predicts it again at the tilt its edges support best.
+            searched = [(self._outline_tilt(image, X, e), e) for X, e in predictions]
+            consider([(X, e) for X, e in searched if X is not None])
         return best
 
     def _outline_tilt(self, image: ImageStack, X_CT: Pose, edges: PanelEdges) -> Pose | None:
