@@ -27,12 +27,13 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GradientImage, ImageStack, smooth
 from estimators.measurement import Measurement, circle_of_pose
-from estimators.model_support import ModelSupport, Support
+from estimators.model_support import ModelSupport, Support, summed_support
 from estimators.panel_edges import fit_panel_edges, strips_from_quad
 from estimators.planar_pose import ippe_poses, project_ideal
 from estimators.target import Circle3D, TargetModel
@@ -117,15 +118,16 @@ class TurnChecker:
             return TurnCheck(0, math.nan, False)
         totals = np.zeros(len(self.turns))
         terms = np.zeros(len(self.turns))
-        for k, turn in enumerate(self.turns):
-            X = X_CT @ turn
-            if self.parts:
-                support = self.support.score(
-                    gradients, X, only=self.parts, discs=False, shift_px=search_px
-                )
-                totals[k] += sum(support.contours.values())
-                terms[k] += len(support.contours)
-            if len(self.discs):
+        turned = [X_CT @ turn for turn in self.turns]
+        if self.parts:
+            R_CT, p_CT = np.stack([X.R for X in turned]), np.stack([X.p for X in turned])
+            z = self.support.contour_scores(
+                gradients, R_CT, p_CT, only=self.parts, shift_px=search_px
+            )
+            totals += summed_support(z)
+            terms += np.sum(np.isfinite(z), axis=1)
+        if len(self.discs):
+            for k, X in enumerate(turned):
                 z = self.support.disc_responses(gradients, X, self.discs, shift_px=search_px)
                 totals[k] += float(np.nansum(z))
                 terms[k] += int(np.sum(np.isfinite(z)))
@@ -263,33 +265,33 @@ def search_tilt(
     centre_C = X_CT.apply(target.panel_corners_T.mean(axis=0)[None])[0]
     axes = np.linalg.svd(centre_C[None] / np.linalg.norm(centre_C))[2][1:]
 
-    def tilted(a: float, b: float) -> Pose:
-        R = Pose.from_rotvec(np.radians(a) * axes[0] + np.radians(b) * axes[1], np.zeros(3)).R
-        return Pose(R @ X_CT.R, centre_C + R @ (X_CT.p - centre_C))
+    def tilted(tilts_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rotations and translations of the pose tilted by each (a, b) of ``tilts_deg``."""
+        R = Rotation.from_rotvec(np.radians(tilts_deg) @ axes).as_matrix()
+        return R @ X_CT.R, centre_C + R @ (X_CT.p - centre_C)
 
-    def contours(X: Pose) -> dict[str, float]:
-        return support.score(gradients, X, only=names, discs=False).contours
+    def summed(tilts_deg: np.ndarray) -> np.ndarray:
+        return summed_support(support.contour_scores(gradients, *tilted(tilts_deg), only=names))
 
-    own = contours(X_CT)
-    if not own:
+    own = support.contour_scores(gradients, X_CT.R[None], X_CT.p[None], only=names)
+    if not np.isfinite(own).any():
         return TiltSearch(None, 0.0)
-    best, own_score = (0.0, 0.0), sum(own.values())
+    best, own_score = np.zeros(2), float(summed_support(own)[0])
     best_score = own_score
     for step, span in (
         (TILT_SEARCH_STEP_DEG, TILT_SEARCH_RANGE_DEG),
         (0.25 * TILT_SEARCH_STEP_DEG, 0.5 * TILT_SEARCH_STEP_DEG),
     ):
-        centre = best
         grid = np.arange(-span, span + 1e-9, step)
-        for a in grid:
-            for b in grid:
-                candidate = (centre[0] + a, centre[1] + b)
-                value = sum(contours(tilted(*candidate)).values())
-                if value > best_score:
-                    best, best_score = candidate, value
-    if best == (0.0, 0.0):
+        candidates = best + np.stack(np.meshgrid(grid, grid, indexing="ij"), axis=-1).reshape(-1, 2)
+        values = summed(candidates)
+        top = int(np.argmax(values))  # the first of equals, as a scan keeping strict gains
+        if values[top] > best_score:
+            best, best_score = candidates[top], float(values[top])
+    if not best.any():
         return TiltSearch(None, 0.0)
-    return TiltSearch(tilted(*best), best_score - own_score)
+    R, p = tilted(best[None])
+    return TiltSearch(Pose(R[0], p[0]), best_score - own_score)
 
 
 def judge_tilt(

@@ -30,6 +30,8 @@ WHOLE_FIELD_FRACTION = 0.5
 #: Below this spread of intensities (on [0, 1]) there is nothing to see.
 MIN_INTENSITY_SPREAD = 0.03
 
+_REMAP_COLUMNS = 4096
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class GradientImage:
@@ -56,10 +58,22 @@ class GradientImage:
 
     def sample(self, uv: np.ndarray) -> np.ndarray:
         """Bilinear samples of the smoothed image at pixel positions (N,2)."""
-        map_xy = np.asarray(uv, dtype=np.float32).reshape(1, -1, 2)
-        return cv2.remap(
-            self.smoothed, map_xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-        )[0].astype(float)
+        points = np.asarray(uv, dtype=np.float32).reshape(-1, 2)
+        if not len(points):
+            return np.zeros(0)
+        # OpenCV's remap takes maps of fewer than 32767 columns: lay the points out in rows.
+        columns = min(max(len(points), 1), _REMAP_COLUMNS)
+        rows = -(-len(points) // columns)
+        map_xy = np.zeros((rows * columns, 2), np.float32)
+        map_xy[: len(points)] = points
+        samples = cv2.remap(
+            self.smoothed,
+            map_xy.reshape(rows, columns, 2),
+            None,
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+        return samples.reshape(-1)[: len(points)].astype(float)
 
     def directional(self, uv: np.ndarray, direction: np.ndarray) -> np.ndarray:
         """Derivative of the smoothed image at points (N,2) along unit directions (N,2) or (2,)

@@ -75,6 +75,15 @@ class Support:
         return float(sum(values))
 
 
+def summed_support(z: np.ndarray) -> np.ndarray:
+    """Each pose's sum of the contour z-scores in view (rows of ``ModelSupport.contour_scores``),
+    added in the model's order as a sum over a ``Support``'s contours adds them."""
+    total = np.zeros(len(z))
+    for column in np.asarray(z).T:
+        total += np.where(np.isfinite(column), column, 0.0)
+    return total
+
+
 class ModelSupport:
     """The target's contours, sampled once, and their support at any pose."""
 
@@ -128,21 +137,19 @@ class ModelSupport:
         self.disc_radius_m = np.array([f.diameter / 2 for f in discs])
         self._field_radius = field_radius(camera.K, camera.dist, camera.width, camera.height)
 
-    def _project(self, X_CT: Pose, points_T: np.ndarray, margin_px: float):
-        """Pixels (N,2) and an in-view mask (N,) of model points seen at ``X_CT``."""
+    def _project(self, points_C: np.ndarray, margin_px: float):
+        """Pixels (N,2) and an in-view mask (N,) of model points (N,3) in the camera frame."""
         camera = self.camera
-        P = X_CT.apply(points_T)
-        ok = P[:, 2] > 1e-6
-        uv = np.full((len(P), 2), np.nan)
-        if not np.any(ok):
-            return uv, ok
-        xy = P[ok, :2] / P[ok, 2:3]
-        ok[ok] = np.linalg.norm(xy, axis=1) <= 1.02 * self._field_radius
-        if np.any(ok):
-            uv[ok] = camera.project(P[ok])
+        ok = points_C[:, 2] > 1e-6
+        # Points behind the camera are projected from a stand-in and masked: no fancy indexing
+        # on the hundred thousand samples of a grid search.
+        ahead = np.where(ok[:, None], points_C, (0.0, 0.0, 1.0))
+        xy = ahead[:, :2] / ahead[:, 2:3]
+        ok &= np.linalg.norm(xy, axis=1) <= 1.02 * self._field_radius
+        uv = camera.project(np.where(ok[:, None], ahead, (0.0, 0.0, 1.0)))
         ok &= (uv[:, 0] >= margin_px) & (uv[:, 0] <= camera.width - 1 - margin_px)
         ok &= (uv[:, 1] >= margin_px) & (uv[:, 1] <= camera.height - 1 - margin_px)
-        return uv, ok
+        return np.where(ok[:, None], uv, np.nan), ok
 
     def symmetric_under(self, turn: Pose, tolerance_m: float = 1e-3) -> tuple[set[str], bool]:
         """Which contours map onto the model's own contours under ``turn`` (X_TT'), and whether
@@ -182,7 +189,28 @@ class ModelSupport:
     ) -> Support:
         """Support of every contour (or of those named in ``only``) and of the discs (unless
         ``discs`` is False) at ``X_CT`` (see module docstring)."""
+        z = self.contour_scores(gradients, X_CT.R[None], X_CT.p[None], shift_px=shift_px, only=only)
+        z = z[0]
+        scores = {name: float(z[i]) for i, name in enumerate(self.names) if np.isfinite(z[i])}
+        polarity = self._disc_polarity(gradients, X_CT, shift_px) if discs else math.nan
+        return Support(scores, polarity)
+
+    def contour_scores(
+        self,
+        gradients: GradientImage,
+        R_CT: np.ndarray,
+        p_CT: np.ndarray,
+        *,
+        shift_px: float = 0.0,
+        only: frozenset[str] | None = None,
+    ) -> np.ndarray:
+        """Edge support z-score (k, len(names)) of every contour (or of those named in
+        ``only``) at each of k poses (rotations ``R_CT`` (k,3,3), translations ``p_CT``
+        (k,3)), NaN where a contour has fewer than 8 samples in view. All poses in one pass:
+        a grid search scores a hundred poses of the same contours, and one pass over their
+        samples costs a fraction of a hundred."""
         margin = 4.0 + shift_px
+        count = len(self.names)
         if only is None:
             points_T, across_T, contour_of = self.points_T, self.across_T, self.contour_of
         else:
@@ -190,59 +218,68 @@ class ModelSupport:
             points_T = self.points_T[chosen]
             across_T = self.across_T[chosen]
             contour_of = self.contour_of[chosen]
-        uv, visible = self._project(X_CT, points_T, margin)
+        k = len(R_CT)
+        p_CT = np.asarray(p_CT, dtype=float).reshape(k, 1, 3)
+        points_C = points_T @ R_CT.transpose(0, 2, 1) + p_CT  # (k, samples, 3)
+        uv, visible = self._project(points_C.reshape(-1, 3), margin)
         if self._foot is not None:
             on_foot = contour_of == self.names.index("ring_foot")
-            visible[on_foot] &= self._foot_unoccluded(X_CT, points_T[on_foot])
-        depth = np.maximum(np.abs(X_CT.apply(points_T)[:, 2]), 1e-3)
+            camera_T = -np.einsum("kji,kj->ki", R_CT, p_CT[:, 0])
+            foot_seen = np.ones(points_C.shape[:2], bool)
+            foot_seen[:, on_foot] = self._foot_unoccluded(camera_T, points_T[on_foot])
+            visible &= foot_seen.reshape(-1)
+        depth = np.maximum(np.abs(points_C[..., 2]), 1e-3)
+        ahead_T = points_T + (0.002 * depth)[..., None] * across_T
         ahead_uv, ahead_ok = self._project(
-            X_CT, points_T + (0.002 * depth)[:, None] * across_T, 0.0
+            (ahead_T @ R_CT.transpose(0, 2, 1) + p_CT).reshape(-1, 3), 0.0
         )
         visible &= ahead_ok
         normal = ahead_uv - uv
         length = np.linalg.norm(np.nan_to_num(normal), axis=1)
         visible &= length > 1e-9
         normal = normal / np.where(length > 1e-9, length, 1.0)[:, None]
-        scores: dict[str, float] = {}
-        counts = np.bincount(contour_of[visible], minlength=len(self.names))
-        if np.any(counts >= _MIN_SAMPLES):
-            shifts = [(0.0, 0.0)]
-            if shift_px > 0:
-                # A grid of image offsets 1.5 px apart within ±shift_px.
-                half = max(1, round(shift_px / 1.5))
-                steps = np.linspace(-shift_px, shift_px, 2 * half + 1)
-                shifts = [(dx, dy) for dx in steps for dy in steps]
-            points = uv[visible]
-            n = normal[visible]
-            contour = contour_of[visible]
-            best = np.full(len(self.names), -np.inf)
-            tangent = np.column_stack([-n[:, 1], n[:, 0]])
-            # Samples closer than the smoothing's correlation length (≈ 2σ) are not independent:
-            # count the contour's image length in units of it.
-            step = np.zeros(len(points))
-            same = contour[1:] == contour[:-1]
-            step[1:][same] = np.linalg.norm(np.diff(points, axis=0), axis=1)[same]
-            length = np.bincount(contour, step, minlength=len(self.names))
-            independent = np.clip(length / (2.0 * gradients.sigma_px), 1.0, np.maximum(counts, 1))
-            for dx, dy in shifts:
-                shifted = points + np.array([dx, dy])
-                across = np.abs(gradients.directional(shifted, n))
-                along = np.abs(gradients.directional(shifted, tangent))
-                diff_sum = np.bincount(contour, across - along, minlength=len(self.names))
-                along_sq = np.bincount(contour, along * along, minlength=len(self.names))
-                along_sum = np.bincount(contour, along, minlength=len(self.names))
-                safe = np.maximum(counts, 1)
-                spread = np.sqrt(np.maximum(along_sq / safe - (along_sum / safe) ** 2, 0)) + 1e-12
-                z = (diff_sum / safe) / (spread * np.sqrt(2.0 / independent))
-                best = np.maximum(best, z)
-            for i, name in enumerate(self.names):
-                if counts[i] >= _MIN_SAMPLES:
-                    scores[name] = float(best[i])
-        polarity = self._disc_polarity(gradients, X_CT, shift_px) if discs else math.nan
-        return Support(scores, polarity)
+        # One group per (pose, contour): the samples of each stay contiguous and in order.
+        group = (np.arange(k)[:, None] * count + contour_of).reshape(-1)
+        groups = k * count
+        counts = np.bincount(group[visible], minlength=groups)
+        z = np.full(groups, np.nan)
+        if not np.any(counts >= _MIN_SAMPLES):
+            return z.reshape(k, count)
+        shifts = [(0.0, 0.0)]
+        if shift_px > 0:
+            # A grid of image offsets 1.5 px apart within ±shift_px.
+            half = max(1, round(shift_px / 1.5))
+            steps = np.linspace(-shift_px, shift_px, 2 * half + 1)
+            shifts = [(dx, dy) for dx in steps for dy in steps]
+        points = uv[visible]
+        n = normal[visible]
+        group = group[visible]
+        best = np.full(groups, -np.inf)
+        tangent = np.column_stack([-n[:, 1], n[:, 0]])
+        # Samples closer than the smoothing's correlation length (≈ 2σ) are not independent:
+        # count the contour's image length in units of it.
+        step = np.zeros(len(points))
+        same = group[1:] == group[:-1]
+        step[1:][same] = np.linalg.norm(np.diff(points, axis=0), axis=1)[same]
+        length = np.bincount(group, step, minlength=groups)
+        independent = np.clip(length / (2.0 * gradients.sigma_px), 1.0, np.maximum(counts, 1))
+        safe = np.maximum(counts, 1)
+        for dx, dy in shifts:
+            shifted = points + np.array([dx, dy])
+            across = np.abs(gradients.directional(shifted, n))
+            along = np.abs(gradients.directional(shifted, tangent))
+            diff_sum = np.bincount(group, across - along, minlength=groups)
+            along_sq = np.bincount(group, along * along, minlength=groups)
+            along_sum = np.bincount(group, along, minlength=groups)
+            spread = np.sqrt(np.maximum(along_sq / safe - (along_sum / safe) ** 2, 0)) + 1e-12
+            best = np.maximum(best, (diff_sum / safe) / (spread * np.sqrt(2.0 / independent)))
+        seen = counts >= _MIN_SAMPLES
+        z[seen] = best[seen]
+        return z.reshape(k, count)
 
-    def _foot_unoccluded(self, X_CT: Pose, feet_T: np.ndarray) -> np.ndarray:
-        """Which points of the bore's foot the bore's own wall does not hide from the camera.
+    def _foot_unoccluded(self, camera_T: np.ndarray, feet_T: np.ndarray) -> np.ndarray:
+        """Which points (n,3) of the bore's foot the bore's own wall does not hide from cameras
+        at ``camera_T`` (k,3), as a (k, n) mask.
 
         The ray from a foot point F up to the camera c stays inside the bore (radius r about
         its axis) up to the rim, a height h above the foot, when its horizontal part
@@ -253,18 +290,18 @@ class ModelSupport:
         foot = self._foot
         assert foot is not None
         n = foot.normal_T
-        camera_T = -X_CT.R.T @ X_CT.p
-        height = float((camera_T - foot.center_T) @ n)
-        if height <= 1e-9:
-            return np.zeros(len(feet_T), bool)  # the camera is behind the face
+        height = (camera_T - foot.center_T) @ n  # (k,)
         radial = feet_T - foot.center_T
         radial -= np.outer(radial @ n, n)
         toward = camera_T - foot.center_T
-        toward = toward - (toward @ n) * n - radial  # horizontal part of c − F
+        toward = toward - np.outer(toward @ n, n)
+        toward = toward[:, None, :] - radial[None]  # horizontal part of c − F, (k, n, 3)
         # (a camera below the rim, inside the bore, ends the ray before it: s ≤ 1)
-        reach = 2.0 * np.einsum("ij,ij->i", radial, toward)
-        reach += min(self._bore_depth_m / height, 1.0) * np.einsum("ij,ij->i", toward, toward)
-        return reach <= 1e-12
+        reach = 2.0 * np.einsum("nj,knj->kn", radial, toward)
+        rim = np.minimum(self._bore_depth_m / np.maximum(height, 1e-9), 1.0)
+        reach += rim[:, None] * np.einsum("knj,knj->kn", toward, toward)
+        # A camera behind the face sees none of it.
+        return (reach <= 1e-12) & (height > 1e-9)[:, None]
 
     def _disc_polarity(self, gradients: GradientImage, X_CT: Pose, shift_px: float) -> float:
         """z-score of Σ sign·(disc centre − ring around it) over the discs in view."""
@@ -293,7 +330,7 @@ class ModelSupport:
     def _disc_responses(self, gradients, X_CT: Pose, discs: np.ndarray, shift_px: float):
         """Per-disc z-scores (NaN out of view) at each trial offset within ±``shift_px``."""
         centres = self.disc_centres_T[discs]
-        uv, visible = self._project(X_CT, centres, 6.0 + shift_px)
+        uv, visible = self._project(X_CT.apply(centres), 6.0 + shift_px)
         if not np.any(visible):
             return [np.full(len(discs), np.nan)]
         depth = X_CT.apply(centres[visible])[:, 2]

@@ -1,5 +1,4 @@
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -74,14 +73,15 @@ class _NoiseOnlyImage(ModelSupport):
 
     def __init__(self, target, camera, rng, signal=0.0):
         super().__init__(target, camera)
-        self.rng, self.signal, self.calls = rng, signal, 0
+        self.rng, self.signal = rng, signal
 
-    def score(self, gradients, X_CT, *, only=None, **_):
-        self.calls += 1
-        z = {name: float(self.rng.standard_normal()) for name in sorted(only or ())}
-        if self.signal and self.calls % 4 == 1:  # the checker scores turn 0 first
-            z[next(iter(z))] += self.signal
-        return SimpleNamespace(contours=z)
+    def contour_scores(self, gradients, R_CT, p_CT, *, only=None, **_):
+        z = np.full((len(R_CT), len(self.names)), np.nan)
+        named = [i for i, name in enumerate(self.names) if name in (only or ())]
+        z[:, named] = self.rng.standard_normal((len(R_CT), len(named)))
+        if self.signal:  # the checker scores turn 0 first
+            z[0, named[0]] += self.signal
+        return z
 
     def disc_responses(self, gradients, X_CT, discs, **_):
         return self.rng.standard_normal(len(discs))

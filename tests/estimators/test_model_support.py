@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from estimators.acquisition import TurnChecker, quarter_turns
 from estimators.geometry import Pose
@@ -30,6 +31,36 @@ def test_model_support_is_high_at_the_true_pose_and_near_zero_off_it():
     near = retract(f.truth.X_CT, np.array([0, 0, 0, 0.008, 0, 0]))  # 2 px
     coarse = GradientImage.of(image_stack(f).pixels, 4.0, image_stack(f).noise_sigma)
     assert support.score(coarse, near).total > 0.7 * support.score(coarse, f.truth.X_CT).total
+
+
+def test_many_poses_scored_in_one_pass_score_as_each_alone():
+    """A grid search scores a hundred poses in one pass (``contour_scores``): each pose's row
+    is that pose's own support — partly out of view, turned, behind the camera — whatever
+    poses share the pass, with and without image offsets."""
+    f = rendered.frame(1.2, noise="high")
+    support = ModelSupport(rendered.target(), f.info)
+    gradients = _gradients(f)
+    X = f.truth.X_CT
+    poses = [
+        X,
+        retract(X, np.array([0.1, -0.05, 0.3, 0.02, 0.01, 0.0])),
+        retract(X, np.array([0, 0, 0, 0.6, 0.0, 0.0])),  # the panel's far side out of view
+        Pose(X.R, X.p - np.array([0, 0, 5.0])),  # behind the camera
+    ] * 30  # over 32767 samples: more than OpenCV's remap takes in one row
+
+    def rows(poses, **options):
+        R_CT, p_CT = np.stack([X.R for X in poses]), np.stack([X.p for X in poses])
+        return support.contour_scores(gradients, R_CT, p_CT, **options)
+
+    for shift_px in (0.0, 2.0):
+        together = rows(poses[: 4 if shift_px else None], shift_px=shift_px)
+        for row, pose in zip(together, poses, strict=False):
+            alone = support.score(gradients, pose, shift_px=shift_px).contours
+            assert {n: z for n, z in zip(support.names, row, strict=True) if np.isfinite(z)} == (
+                pytest.approx(alone, abs=1e-9)
+            )
+    assert np.isnan(rows([poses[3]])).all()
+    assert 0 < np.isfinite(rows([poses[2]])).sum() < len(support.names)
 
 
 def test_turn_checker_uses_only_the_asymmetric_parts():
@@ -83,17 +114,17 @@ def test_the_bores_foot_is_scored_only_where_its_wall_does_not_hide_it():
     support = ModelSupport(target, rendered.render(2.0)[2])
     on_foot = support.contour_of == support.names.index("ring_foot")
     feet_T = support.points_T[on_foot]
+    # Three cameras at once (the foot's mask is computed for many poses in one pass).
+    X_TC = facing_camera(2.0)
+    side = 3.0 * foot.radius * np.array([1.0, 0.0, 0.0])
+    on_axis, off_side, behind = support._foot_unoccluded(
+        np.stack([X_TC.p, X_TC.p + side, np.array([0, 0, -1.0])]), feet_T
+    )
     # On the axis, 2 m out: the whole foot is in sight.
-    assert support._foot_unoccluded(facing_camera(2.0).inverse(), feet_T).all()
+    assert on_axis.all()
     # Far off to the side, beyond the bore's radius: the wall hides the foot on the camera's
     # side (a ray from there leaves the bore through its wall), not the far side.
-    side = 3.0 * foot.radius * np.array([1.0, 0.0, 0.0])
-    X_TC = facing_camera(2.0)
-    X_CT = Pose(X_TC.R, X_TC.p + side).inverse()
-    seen = support._foot_unoccluded(X_CT, feet_T)
     toward = (feet_T - foot.center_T)[:, 0] / foot.radius  # cos of the angle to the camera
-    assert not seen[toward > 0.5].any() and seen[toward < 0.0].all()
+    assert not off_side[toward > 0.5].any() and off_side[toward < 0.0].all()
     # Behind the face nothing of it is in sight.
-    assert not support._foot_unoccluded(
-        Pose(X_TC.R, np.array([0, 0, -1.0])).inverse(), feet_T
-    ).any()
+    assert not behind.any()
