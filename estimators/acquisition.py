@@ -396,34 +396,45 @@ def _polarity(target: TargetModel) -> float:
     return 1.0 if (not corners or corners[0].brighter) else -1.0
 
 
-def _side_support(gradients: GradientImage, quad: np.ndarray, polarity: float) -> float:
-    """Smallest z-score over the four sides of mean(−polarity · g·n_out) (n_out outward),
-    each side taken at its best offset within ±3 px (quad corners are rough)."""
-    centre = quad.mean(axis=0)
-    worst = math.inf
+#: Offsets (px, along the outward normal) at which each side of a rough quad is tried.
+_SIDE_SHIFTS_PX = np.array([-3.0, -1.5, 0.0, 1.5, 3.0])
+
+
+def _side_supports(gradients: GradientImage, quads: list[np.ndarray], polarity: float) -> np.ndarray:
+    """For each quad (4,2), the smallest z-score over its four sides of mean(−polarity · g·n_out)
+    (n_out outward), each side taken at its best offset within ±3 px (quad corners are rough);
+    −inf where a side has fewer than 4 samples in the image at every offset. The samples of all
+    quads, sides and offsets are read in one pass."""
+    if not quads:
+        return np.zeros(0)
     h, w = gradients.smoothed.shape
-    for i in range(4):
-        a, b = quad[i], quad[(i + 1) % 4]
-        length = float(np.linalg.norm(b - a))
-        count = max(6, int(length / 3))
-        t = np.linspace(0.15, 0.85, count)[:, None]
-        normal = np.array([-(b - a)[1], (b - a)[0]]) / max(length, 1e-9)
-        if normal @ (0.5 * (a + b) - centre) < 0:
-            normal = -normal
-        best = -math.inf
-        for shift in (-3.0, -1.5, 0.0, 1.5, 3.0):
-            points = a + t * (b - a) + shift * normal
-            inside = (points[:, 0] >= 0) & (points[:, 0] <= w - 1) & (points[:, 1] >= 0)
-            inside &= points[:, 1] <= h - 1
-            if inside.sum() < 4:
-                continue
-            points = points[inside]
-            g = gradients.directional(points, normal)
-            # Samples ~3 px apart along a side are treated as independent.
-            z = float(-polarity * g.mean() / (gradients.gradient_noise / math.sqrt(len(g))))
-            best = max(best, z)
-        worst = min(worst, best)
-    return worst
+    shifts = len(_SIDE_SHIFTS_PX)
+    points, normals, groups = [], [], []
+    for q, quad in enumerate(quads):
+        centre = quad.mean(axis=0)
+        for i in range(4):
+            a, b = quad[i], quad[(i + 1) % 4]
+            length = float(np.linalg.norm(b - a))
+            count = max(6, int(length / 3))
+            t = np.linspace(0.15, 0.85, count)[:, None]
+            normal = np.array([-(b - a)[1], (b - a)[0]]) / max(length, 1e-9)
+            if normal @ (0.5 * (a + b) - centre) < 0:
+                normal = -normal
+            side = a + t * (b - a)
+            points.append((side[None] + _SIDE_SHIFTS_PX[:, None, None] * normal).reshape(-1, 2))
+            normals.append(np.broadcast_to(normal, (shifts * count, 2)))
+            groups.append(np.repeat((4 * q + i) * shifts + np.arange(shifts), count))
+    uv, normal, group = np.concatenate(points), np.concatenate(normals), np.concatenate(groups)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+    g = gradients.directional(uv[inside], normal[inside])
+    total = 4 * len(quads) * shifts
+    counts = np.bincount(group[inside], minlength=total)
+    sums = np.bincount(group[inside], g, minlength=total)
+    safe = np.maximum(counts, 1)
+    # Samples ~3 px apart along a side are treated as independent.
+    z = -polarity * (sums / safe) / (gradients.gradient_noise / np.sqrt(safe))
+    z = np.where(counts >= 4, z, -np.inf).reshape(len(quads), 4, shifts)
+    return z.max(axis=2).min(axis=1)
 
 
 def find_panel_quads(
@@ -477,7 +488,8 @@ def find_panel_quads(
             found.append(quad)
     # The same region cut at several levels gives near-copies of one quad: the best
     # supported copy stands for them (the first level to cut it out may have cut it badly).
-    scored = [Quad(quad, _side_support(gradients, quad, polarity)) for quad in found]
+    supports = _side_supports(gradients, found, polarity)
+    scored = [Quad(quad, float(z)) for quad, z in zip(found, supports, strict=True)]
     scored.sort(key=lambda q: -q.support)
     quads: list[Quad] = []
     for quad in scored:

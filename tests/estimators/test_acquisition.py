@@ -6,6 +6,7 @@ import pytest
 from estimators.acquisition import (
     TILT_MARGIN,
     TurnChecker,
+    _side_supports,
     coarse_gradients,
     find_panel_quads,
     judge_tilt,
@@ -36,6 +37,35 @@ def test_find_panel_quads_finds_the_panel_among_other_squares(distance):
         for q in quads
     ]
     assert min(gaps) < 4.0
+
+
+def test_a_quads_side_support_is_its_weakest_sides_at_its_best_offset():
+    """Each side of a rough quad takes its best offset within ±3 px; the quad scores its
+    weakest side. The panel's own outline scores high — 2 px off too — and a quad with a
+    side off the panel or out of the image does not; many quads scored together score as
+    each alone."""
+    f = rendered.frame(2.0, noise="high", seed=2)
+    image = image_stack(f)
+    gradients = GradientImage.of(image.pixels, 2.0, image.noise_sigma)
+    panel = f.info.project(f.truth.X_CT.apply(TARGET.panel_corners_T))
+    widened = panel + 16.0 * (panel - panel.mean(axis=0)) / np.linalg.norm(
+        panel - panel.mean(axis=0), axis=1, keepdims=True
+    )
+    along = panel[1] - panel[0]
+    out_of_side = np.array([-along[1], along[0]]) / np.linalg.norm(along)
+    if out_of_side @ (panel[0] - panel.mean(axis=0)) < 0:
+        out_of_side = -out_of_side
+    one_side_off = panel.copy()
+    one_side_off[:2] += 10.0 * out_of_side  # the side 0–1 moved 10 px out
+    outside = panel - panel.min(axis=0) - 40.0  # two sides beyond the image's corner
+    quads = [panel, panel + 2.0, widened, one_side_off, outside]
+    together = _side_supports(gradients, quads, polarity=1.0)
+    alone = [_side_supports(gradients, [q], polarity=1.0)[0] for q in quads]
+    np.testing.assert_allclose(together, alone, rtol=1e-12)
+    truth, shifted, wide, off, out = together
+    assert truth > 8.0 and shifted > 0.8 * truth
+    assert wide < 3.0 and off < 3.0  # the support a quad needs is 2.5
+    assert out == -np.inf
 
 
 def test_poses_from_corners_include_every_quarter_turn_of_the_truth():
