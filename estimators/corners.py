@@ -39,6 +39,7 @@ from estimators.acquisition import (
     judge_tilt,
     judge_turn,
     pose_hypotheses,
+    prior_tilt_fits_better,
     roll_free_measurement,
     turn_axis_circle,
     warn_if_roll_ambiguous,
@@ -717,6 +718,14 @@ class CornerEstimator:
                     roll_undecided = True
                 else:
                     reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
+        if (
+            not reason
+            and tracking
+            and prior_tilt_fits_better(
+                self.support, gradients, fit.X_CT, X0, self.target, fit.covariance
+            )
+        ):
+            reason = "the prior's tilt fits the ring and outline better than the pose's"
         if not reason and not tracking:
             # The tilt of a pose from a few faint features may be 10–20° off with a covariance
             # that claims a degree: the ring and the outline judge it (``judge_tilt``).

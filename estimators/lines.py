@@ -40,6 +40,7 @@ from estimators.acquisition import (
     judge_flip,
     judge_turn,
     pose_hypotheses,
+    prior_tilt_fits_better,
     roll_free_measurement,
     search_tilt,
     turn_axis_circle,
@@ -495,6 +496,12 @@ class LineEstimator:
         X = fit.X_CT
         reason, confirmed_by_prior = self._validate(fit.reduced_chi2, support, tracking)
         from_prior = from_prior or confirmed_by_prior
+        if (
+            not reason
+            and tracking
+            and prior_tilt_fits_better(self.support, gradients, X, X0, self.target, fit.covariance)
+        ):
+            reason = "the prior's tilt fits the ring and outline better than the pose's"
         roll_undecided = False
         if not reason and not tracking:
             # Without the outline the panel's edges alone may favour the wrong flip (a small

@@ -13,6 +13,7 @@ from estimators.acquisition import (
     judge_turn,
     pose_hypotheses,
     poses_from_corners,
+    prior_tilt_fits_better,
     quarter_turns,
 )
 from estimators.geometry import Pose, rotation_error_geodesic
@@ -134,6 +135,33 @@ def test_the_quarter_turn_is_not_decided_on_the_noise_of_many_faint_fasteners():
     assert decided < 0.05 * 300, decided
     shown = TurnChecker(target, _NoiseOnlyImage(target, camera, rng, signal=40.0))
     assert judge_turn(shown.check(None, X_CT), 6.0, 3.0) == "kept"
+
+
+@pytest.mark.parametrize("distance", [2.0, 1.2])
+def test_a_tracked_pose_whose_tilt_the_ring_refuses_for_the_priors_is_caught(distance):
+    """A pose 12° off in tilt about the panel's centre, claiming 1°, from a prior at the true
+    attitude: the ring and outline fit the prior's tilt far better. Not caught: the true pose
+    from a prior 12° off, a pose 12° off that claims 5°, the true pose from a prior 1° off."""
+    f = rendered.frame(distance, noise="high", seed=4)
+    gradients = image_stack(f).gradients(2.0)  # those tracking scores its poses on
+    support = ModelSupport(TARGET, f.info)
+    X_true = f.truth.X_CT
+    centre = X_true.apply(TARGET.panel_corners_T.mean(axis=0)[None])[0]
+
+    def tilted(degrees: float, axis) -> Pose:
+        R = Pose.from_rotvec(math.radians(degrees) * np.asarray(axis), np.zeros(3)).R
+        return Pose(R @ X_true.R, centre + R @ (X_true.p - centre))
+
+    def claiming(sigma_deg: float) -> np.ndarray:
+        return np.diag([math.radians(sigma_deg) ** 2] * 3 + [1e-6] * 3)
+
+    for axis in ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0]):
+        X_off = tilted(12.0, axis)
+        assert prior_tilt_fits_better(support, gradients, X_off, X_true, TARGET, claiming(1.0))
+        assert not prior_tilt_fits_better(support, gradients, X_true, X_off, TARGET, claiming(1.0))
+        assert not prior_tilt_fits_better(support, gradients, X_off, X_true, TARGET, claiming(5.0))
+        near = tilted(1.0, axis)
+        assert not prior_tilt_fits_better(support, gradients, X_true, near, TARGET, claiming(0.1))
 
 
 @pytest.mark.parametrize("distance", [2.0, 1.2])

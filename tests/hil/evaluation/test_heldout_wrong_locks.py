@@ -36,6 +36,10 @@ HELD_OUT = MatrixSpec(
         # tilt: the outline at the right quarter turn lay beyond its search, the wrong turn
         # tilted 16° lined one side up (5-DOF circle 23 mm / 16° off, NEES 10⁵).
         ("random:117", "turn_y_10deg"),
+        # The face's outline out of view and high noise: a track from a prior 2° off drifted
+        # 12° in tilt on the panel's edges alone, claiming 1.4° (20 mm / 12° off, NEES 83); the
+        # ring scores 69 z units more at the prior's tilt.
+        ("random:103", "turn_y_10deg"),
     ],
 )
 def test_lines_on_held_out_mockups_at_1_2_m_report_no_wrong_lock(mockup, maneuver):
