@@ -4,10 +4,12 @@
    noise), smoothed to the noise level and cut at several grey levels (the panel is a region
    brighter — or darker — than all around it, at some level). Outer contours whose convex hull
    reduces to four corners (Douglas–Peucker), with the area they enclose close to the hull's,
-   are candidate panels; each is verified by edge support along all four sides (the gradient
-   across each side, with the polarity the model gives, as a z-score against the noise) and
-   kept only if its size and shape fit the model: the four corners must be the image of a
-   square of the panel's side at a plausible distance (IPPE residual small, pose in front).
+   are candidate panels (where none is found, the image is cut again smoother and each quad's
+   corners are its fitted sides' intersections: a faint panel under heavy noise); each is
+   verified by edge support along all four sides (the gradient across each side, with the
+   polarity the model gives, as a z-score against the noise) and kept only if its size and
+   shape fit the model: the four corners must be the image of a square of the panel's side at
+   a plausible distance (IPPE residual small, pose in front).
 2. Pose hypotheses. A quad may be the panel or the outline of the face it sits on (large and
    contrasted against the background). A square has four rotations that map its corners onto
    the quad, and each has the two planar-ambiguity poses. The reprojected *whole* model
@@ -475,6 +477,14 @@ def _side_supports(
     return z.max(axis=2).min(axis=1)
 
 
+#: How the reduced image is cut, in turn until one finds a panel-like quad: (smoothing, px of
+#: the reduced image; whether each quad's sides are fitted to its region's boundary). The
+#: second is for a faint panel under heavy noise — a dark one loses a third of its contrast
+#: where the sensor clips — whose region at the first smoothing is too ragged to reduce to a
+#: quad, and at the second still has spurs and bites at its corners.
+_CUTS = ((1.0, False), (2.0, True))
+
+
 def find_panel_quads(
     image: ImageStack,
     gradients: GradientImage,
@@ -488,8 +498,40 @@ def find_panel_quads(
     """Candidate panel quadrilaterals, best supported first (see module docstring)."""
     h, w = image.shape
     factor = max(1, round(min(h, w) / 240))
-    small = smooth(image.reduced(factor), 1.0)
+    reduced = image.reduced(factor)
     polarity = _polarity(target)
+    for sigma, fit_sides in _CUTS:
+        found = _cut_quads(reduced, factor, polarity, sigma, fit_sides, levels, min_side_px)
+        # The same region cut at several levels gives near-copies of one quad: the best
+        # supported copy stands for them (the first level to cut it out may have cut it badly).
+        supports = _side_supports(gradients, found, polarity)
+        scored = [Quad(quad, float(z)) for quad, z in zip(found, supports, strict=True)]
+        scored.sort(key=lambda q: -q.support)
+        quads: list[Quad] = []
+        for quad in scored:
+            scale = np.linalg.norm(quad.corners_uv - quad.corners_uv.mean(axis=0), axis=1).mean()
+            if quad.support >= min_support and all(
+                _quad_distance(quad.corners_uv, other.corners_uv) > 0.15 * scale for other in quads
+            ):
+                quads.append(quad)
+        if quads:
+            return quads[:max_quads]
+    return []
+
+
+def _cut_quads(
+    reduced: np.ndarray,
+    factor: int,
+    polarity: float,
+    sigma: float,
+    fit_sides: bool,
+    levels: int,
+    min_side_px: float,
+) -> list[np.ndarray]:
+    """Quads (4,2 image px) of the regions of the ``reduced`` image (by ``factor``), smoothed by
+    ``sigma``, that are brighter (``polarity`` +1) or darker than all around them at one of
+    ``levels`` grey levels, and whose shape is a plausible panel's."""
+    small = smooth(reduced, sigma)
     # Levels spread over the image's whole range: the panel is brighter (or darker) than all
     # around it at some level between its grey and its surroundings', wherever those lie — a
     # range taken from the brighter part of the image would miss a dark panel when the black
@@ -499,10 +541,12 @@ def find_panel_quads(
         small, low, high = 1.0 - small, 1.0 - high, 1.0 - low
     min_area = (min_side_px / factor) ** 2
     max_area = 0.6 * small.size
+    # A side fit needs every boundary pixel; the plain cut only the hull's corners.
+    chain = cv2.CHAIN_APPROX_NONE if fit_sides else cv2.CHAIN_APPROX_SIMPLE
     found: list[np.ndarray] = []
     for level in np.linspace(low, high, levels + 2)[1:-1]:
         binary = (small > level).astype(np.uint8)
-        contours, _ = cv2.findContours(binary, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+        contours, _ = cv2.findContours(binary, cv2.RETR_LIST, chain)
         for contour in contours:
             area = cv2.contourArea(contour)
             if not min_area <= area <= max_area:
@@ -514,30 +558,55 @@ def find_panel_quads(
             approx = cv2.approxPolyDP(hull, 0.08 * cv2.arcLength(hull, True), True)
             if len(approx) != 4 or not cv2.isContourConvex(approx):
                 continue
-            quad = approx.reshape(4, 2).astype(float)
             # A disc also reduces to four points; a square's region fills its quad.
             if abs(cv2.contourArea(approx) / area - 1.0) > 0.12:
                 continue
+            quad = approx.reshape(4, 2).astype(float)
+            if fit_sides:
+                quad = _fit_sides(contour, quad)
             # Contour coordinates are pixel indices of the reduced image; map pixel centres.
             quad = (quad + 0.5) * factor - 0.5
             sides = np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)
             if sides.min() < min_side_px or sides.max() > 4.0 * sides.min():
                 continue
             found.append(quad)
-    # The same region cut at several levels gives near-copies of one quad: the best
-    # supported copy stands for them (the first level to cut it out may have cut it badly).
-    supports = _side_supports(gradients, found, polarity)
-    scored = [Quad(quad, float(z)) for quad, z in zip(found, supports, strict=True)]
-    scored.sort(key=lambda q: -q.support)
-    quads: list[Quad] = []
-    for quad in scored:
-        scale = np.linalg.norm(quad.corners_uv - quad.corners_uv.mean(axis=0), axis=1).mean()
-        if quad.support >= min_support and all(
-            _quad_distance(quad.corners_uv, other.corners_uv) > 0.15 * scale for other in quads
-        ):
-            quads.append(quad)
-    quads.sort(key=lambda q: -q.support)
-    return quads[:max_quads]
+    return found
+
+
+def _fit_sides(contour: np.ndarray, quad: np.ndarray) -> np.ndarray:
+    """The corners of a region's rough ``quad`` (4,2) as the intersections of lines fitted
+    (Huber) to the middle of the region's boundary along each side. The hull's extreme points
+    follow any noise spur or bite at a corner (a fastener there, a blob the threshold joined):
+    up to 16 px off on a dark panel under the reference noise; the sides, fitted through all
+    their boundary points, are not led by them. The rough quad where a side has too few points
+    or the fit moves a corner by more than 0.4 of the shortest side."""
+    points = contour.reshape(-1, 2).astype(float)
+    starts, ends = quad, np.roll(quad, -1, axis=0)
+    along = ends - starts
+    lengths = np.linalg.norm(along, axis=1)
+    t = np.einsum("nkd,kd->nk", points[:, None, :] - starts[None], along) / lengths**2
+    nearest = starts[None] + np.clip(t, 0.0, 1.0)[..., None] * along[None]
+    side = np.argmin(np.linalg.norm(points[:, None, :] - nearest, axis=2), axis=1)
+    lines = []
+    for i in range(4):
+        # The middle of each side: the corners are where spurs and bites sit.
+        mine = points[(side == i) & (t[:, i] > 0.15) & (t[:, i] < 0.85)]
+        if len(mine) < 5:
+            return quad
+        vx, vy, x0, y0 = cv2.fitLine(mine.astype(np.float32), cv2.DIST_HUBER, 0, 0.01, 0.01).ravel()
+        # The line as n·x = c.
+        normal = np.array([-vy, vx], dtype=float)
+        lines.append((normal, float(normal @ np.array([x0, y0]))))
+    corners = np.empty((4, 2))
+    for i in range(4):
+        (n1, c1), (n2, c2) = lines[i - 1], lines[i]
+        system = np.array([n1, n2])
+        if abs(np.linalg.det(system)) < 0.2:  # sides within ~12° of parallel
+            return quad
+        corners[i] = np.linalg.solve(system, [c1, c2])
+    if np.max(np.linalg.norm(corners - quad, axis=1)) > 0.4 * lengths.min():
+        return quad
+    return corners
 
 
 def _quad_distance(a: np.ndarray, b: np.ndarray) -> float:

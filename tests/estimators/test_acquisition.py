@@ -1,11 +1,13 @@
 import math
 
+import cv2
 import numpy as np
 import pytest
 
 from estimators.acquisition import (
     TILT_MARGIN,
     TurnChecker,
+    _fit_sides,
     _side_supports,
     coarse_gradients,
     find_panel_quads,
@@ -38,6 +40,25 @@ def test_find_panel_quads_finds_the_panel_among_other_squares(distance):
         for q in quads
     ]
     assert min(gaps) < 4.0
+
+
+@pytest.mark.parametrize("distance", [2.0, 1.2])
+def test_find_panel_quads_finds_a_faint_dark_panel_under_heavy_noise(distance):
+    """A dark panel (grey 0.04 on 0.17) whose contrast the sensor's clipping cuts by a third:
+    cut at the first smoothing its region is too ragged to reduce to a quad; the second cut,
+    smoother, with the quad's sides fitted to the region's boundary, finds it."""
+    mockup = "random:111"
+    f = rendered.frame(distance, noise="high", seed=0, mockup=mockup)
+    image = image_stack(f)
+    gradients = GradientImage.of(image.pixels, 2.0, image.noise_sigma)
+    target = rendered.target(mockup)
+    truth = f.info.project(f.truth.X_CT.apply(target.panel_corners_T))
+    side = np.linalg.norm(truth[1] - truth[0])
+    gaps = [
+        np.linalg.norm(q.corners_uv[:, None, :] - truth[None, :, :], axis=2).min(axis=0).max()
+        for q in find_panel_quads(image, gradients, target)
+    ]
+    assert gaps and min(gaps) < 0.2 * side
 
 
 def test_a_quads_side_support_is_its_weakest_sides_at_its_best_offset():
@@ -187,3 +208,24 @@ def test_judge_tilt_finds_a_wrong_tilt_by_the_ring_and_outline_and_passes_the_tr
         assert judged.X_CT is not None and judged.gain >= TILT_MARGIN, axis
         assert math.degrees(rotation_error_geodesic(judged.X_CT, X_true)) < 2.0, axis
         assert judge_tilt(support, image, X_off, TARGET, claiming(5.0)).X_CT is None, axis
+
+
+def test_a_rough_quads_corners_are_its_sides_fitted_not_its_hulls_extremes():
+    """A thresholded panel under heavy noise has spurs and bites at its corners (a joined
+    noise blob, a fastener); the hull's corners follow them, the sides fitted through the
+    middle of the boundary do not."""
+    square = np.array([[60.0, 40.0], [140.0, 40.0], [140.0, 120.0], [60.0, 120.0]])
+    binary = np.zeros((200, 220), np.uint8)
+    cv2.fillConvexPoly(binary, square.astype(np.int32), 1)
+    cv2.fillConvexPoly(binary, np.array([[130, 40], [140, 50], [158, 26]], np.int32), 1)  # spur
+    cv2.circle(binary, (60, 120), 9, 0, -1)  # a bright fastener bitten out of a dark panel
+    contours, _ = cv2.findContours(binary, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    contour = max(contours, key=cv2.contourArea)
+    hull = cv2.convexHull(contour)
+    rough = cv2.approxPolyDP(hull, 0.08 * cv2.arcLength(hull, True), True).reshape(4, 2)
+
+    def worst_gap(quad):
+        return max(np.linalg.norm(quad - corner, axis=1).min() for corner in square)
+
+    assert worst_gap(rough) > 8.0
+    assert worst_gap(_fit_sides(contour, rough.astype(float))) < 1.5
