@@ -34,11 +34,10 @@ import numpy as np
 
 from estimators.acquisition import (
     TurnChecker,
-    coarse_gradients,
+    first_solved,
     judge_flip,
     judge_tilt,
     judge_turn,
-    pose_hypotheses,
     prior_tilt_fits_better,
     roll_free_measurement,
     turn_axis_circle,
@@ -46,7 +45,7 @@ from estimators.acquisition import (
 )
 from estimators.deadline import NO_TIME_FOR_SEARCH, search_allowed
 from estimators.frame import CameraInfo, Frame
-from estimators.geometry import Pose, rotation_error_geodesic
+from estimators.geometry import Pose
 from estimators.imaging import (
     GradientImage,
     ImageStack,
@@ -239,25 +238,17 @@ class CornerEstimator:
 
     # --- acquisition ------------------------------------------------------------------------
     def _acquire(self, image: ImageStack, gradients: GradientImage) -> _Solution:
-        coarse = coarse_gradients(image)
-        hypotheses = pose_hypotheses(
-            image, gradients, coarse, self.camera, self.target, self.support, self.turns
+        solution, reason = first_solved(
+            image,
+            gradients,
+            self.camera,
+            self.target,
+            self.support,
+            self.turns,
+            lambda X_CT: self._solve(image, gradients, X_CT, tracking=False),
+            self.options.max_hypotheses,
         )
-        if not hypotheses:
-            return self._failure("no panel-like quadrilateral in the image")
-        failures = []
-        tried: list[Pose] = []
-        for hypothesis in hypotheses:
-            if len(tried) >= self.options.max_hypotheses:
-                break
-            if any(rotation_error_geodesic(hypothesis.X_CT, X) < 0.05 for X in tried):
-                continue
-            tried.append(hypothesis.X_CT)
-            solution = self._solve(image, gradients, hypothesis.X_CT, tracking=False)
-            if not solution.reason:
-                return solution
-            failures.append(solution.reason)
-        return self._failure(f"{len(tried)} hypotheses rejected: {failures[0]}")
+        return solution if solution is not None else self._failure(reason)
 
     # --- the pipeline from a pose guess -----------------------------------------------------
     def _failure(self, reason: str, candidates: np.ndarray | None = None) -> _Solution:

@@ -4,13 +4,18 @@ import cv2
 import numpy as np
 import pytest
 
+from estimators import acquisition
 from estimators.acquisition import (
+    CUTS,
     TILT_MARGIN,
+    Hypothesis,
+    Quad,
     TurnChecker,
     _fit_sides,
     _side_supports,
     coarse_gradients,
     find_panel_quads,
+    first_solved,
     judge_tilt,
     judge_turn,
     pose_hypotheses,
@@ -20,7 +25,7 @@ from estimators.acquisition import (
 )
 from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GradientImage, image_stack
-from estimators.model_support import ModelSupport
+from estimators.model_support import ModelSupport, Support
 from estimators.planar_pose import project_ideal
 from tests.estimators import rendered
 
@@ -229,3 +234,62 @@ def test_a_rough_quads_corners_are_its_sides_fitted_not_its_hulls_extremes():
 
     assert worst_gap(rough) > 8.0
     assert worst_gap(_fit_sides(contour, rough.astype(float))) < 1.5
+
+
+class _Solved:
+    def __init__(self, X_CT, reason=""):
+        self.X_CT, self.reason = X_CT, reason
+
+
+class _Image:
+    def gradients(self, sigma):
+        return None
+
+
+def _hypothesis(quad, angle_deg):
+    X_CT = Pose.from_rotvec(np.array([0.0, 0.0, math.radians(angle_deg)]), np.array([0, 0, 2.0]))
+    return Hypothesis(X_CT, Support({}, math.nan), Quad(np.asarray(quad, float), 5.0))
+
+
+def test_acquisition_looks_at_the_next_cut_only_for_quads_the_first_did_not_solve(monkeypatch):
+    """The second cut is searched only when nothing the first found was accepted, and a quad
+    found again a pixel apart is not solved again (a second chance for the same faint panel to
+    pass at a wrong tilt): the face the first cut missed is solved instead."""
+    panel = [[300, 200], [380, 200], [380, 280], [300, 280]]
+    panel_again = [[381, 201], [380, 281], [301, 279], [300, 200]]  # another start corner
+    face = [[160, 60], [480, 60], [480, 420], [160, 420]]
+    by_cut = {
+        CUTS[0]: [_hypothesis(panel, 0.0)],
+        CUTS[1]: [_hypothesis(panel_again, 10.0), _hypothesis(face, 20.0)],
+    }
+    cuts_asked = []
+
+    def hypotheses(*args, cuts):
+        cuts_asked.append(cuts)
+        return by_cut[cuts[0]]
+
+    monkeypatch.setattr(acquisition, "pose_hypotheses", hypotheses)
+    solved = []
+
+    def solve(accepting):
+        def attempt(X_CT):
+            solved.append(X_CT)
+            return _Solved(X_CT, "" if any(X_CT is X for X in accepting) else "too faint")
+
+        return attempt
+
+    def search(accepting):
+        solved.clear()
+        cuts_asked.clear()
+        return first_solved(_Image(), None, None, TARGET, None, None, solve(accepting), 3)
+
+    first, again, face_pose = by_cut[CUTS[0]][0].X_CT, *(h.X_CT for h in by_cut[CUTS[1]])
+    solution, reason = search([first])
+    assert solution.X_CT is first and reason == "" and cuts_asked == [(CUTS[0],)]
+    solution, reason = search([again, face_pose])
+    assert solution.X_CT is face_pose and solved == [first, face_pose]
+    assert cuts_asked == [(CUTS[0],), (CUTS[1],)]
+    solution, reason = search([])
+    assert solution is None and reason == "2 hypotheses rejected: too faint"
+    by_cut[CUTS[0]], by_cut[CUTS[1]] = [], []
+    assert search([]) == (None, "no panel-like quadrilateral in the image")
