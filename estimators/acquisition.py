@@ -480,8 +480,9 @@ def _side_supports(
     return z.max(axis=2).min(axis=1)
 
 
-#: How the reduced image is cut, in turn until one yields the panel: (smoothing, px of the
-#: reduced image; whether each quad's sides are fitted to its region's boundary). The second
+#: How the reduced image is cut, in turn until one yields the panel (``first_solved``):
+#: (smoothing, px of the reduced image; whether each quad's sides are fitted to its region's
+#: boundary). The second
 #: is for a faint panel under heavy noise — a dark one loses a third of its contrast where the
 #: sensor clips — whose region at the first smoothing is too ragged to reduce to a quad (or
 #: only other squares, the face, are found), and at the second still has spurs and bites at
@@ -498,31 +499,26 @@ def find_panel_quads(
     min_side_px: float = 10.0,
     min_support: float = 2.5,
     max_quads: int = 6,
-    cuts: tuple[tuple[float, bool], ...] = CUTS,
+    cut: tuple[float, bool] = CUTS[0],
 ) -> list[Quad]:
-    """Candidate panel quadrilaterals, best supported first (see module docstring), of the
-    first of ``cuts`` that finds any."""
+    """Candidate panel quadrilaterals of one of ``CUTS``, best supported first (see module
+    docstring)."""
     h, w = image.shape
     factor = max(1, round(min(h, w) / 240))
-    reduced = image.reduced(factor)
     polarity = _polarity(target)
-    for sigma, fit_sides in cuts:
-        found = _cut_quads(reduced, factor, polarity, sigma, fit_sides, levels, min_side_px)
-        # The same region cut at several levels gives near-copies of one quad: the best
-        # supported copy stands for them (the first level to cut it out may have cut it badly).
-        supports = _side_supports(gradients, found, polarity)
-        scored = [Quad(quad, float(z)) for quad, z in zip(found, supports, strict=True)]
-        scored.sort(key=lambda q: -q.support)
-        quads: list[Quad] = []
-        for quad in scored:
-            scale = np.linalg.norm(quad.corners_uv - quad.corners_uv.mean(axis=0), axis=1).mean()
-            if quad.support >= min_support and all(
-                _quad_distance(quad.corners_uv, other.corners_uv) > 0.15 * scale for other in quads
-            ):
-                quads.append(quad)
-        if quads:
-            return quads[:max_quads]
-    return []
+    found = _cut_quads(image.reduced(factor), factor, polarity, *cut, levels, min_side_px)
+    # The same region cut at several levels gives near-copies of one quad: the best supported
+    # copy stands for them (the first level to cut it out may have cut it badly).
+    supports = _side_supports(gradients, found, polarity)
+    scored = [Quad(quad, float(z)) for quad, z in zip(found, supports, strict=True)]
+    scored.sort(key=lambda q: -q.support)
+    quads: list[Quad] = []
+    for quad in scored:
+        if quad.support >= min_support and not any(
+            _same_quad(quad.corners_uv, other.corners_uv) for other in quads
+        ):
+            quads.append(quad)
+    return quads[:max_quads]
 
 
 def _cut_quads(
@@ -729,7 +725,7 @@ def pose_hypotheses(
     *,
     max_quads: int = 3,
     strip_px: float = 6.0,
-    cuts: tuple[tuple[float, bool], ...] = CUTS,
+    cut: tuple[float, bool] = CUTS[0],
 ) -> list[Hypothesis]:
     """One pose hypothesis per panel quad, best supported first.
 
@@ -747,7 +743,7 @@ def pose_hypotheses(
     if target.outline_corners_T is not None:
         squares.append((target.outline_corners_T, 1.0))
     hypotheses = []
-    for quad in find_panel_quads(image, gradients, target, max_quads=max_quads, cuts=cuts):
+    for quad in find_panel_quads(image, gradients, target, max_quads=max_quads, cut=cut):
         refined: dict[float, np.ndarray | None] = {}
         for square_T, polarity in squares:
             if polarity not in refined:
@@ -795,7 +791,7 @@ def first_solved(
     seen: list[np.ndarray] = []
     for cut in CUTS:
         hypotheses = pose_hypotheses(
-            image, gradients, coarse, camera, target, support, turns, cuts=(cut,)
+            image, gradients, coarse, camera, target, support, turns, cut=cut
         )
         new = [h for h in hypotheses if not any(_same_quad(h.quad.corners_uv, q) for q in seen)]
         seen += [h.quad.corners_uv for h in hypotheses]
