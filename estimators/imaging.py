@@ -23,8 +23,15 @@ from estimators.frame import Frame, frame_problem
 
 #: Smallest image side an estimator will look at (px).
 MIN_IMAGE_SIDE_PX = 24
-#: The least noise σ an image is taken to have (half an 8-bit step).
-QUANTISATION_NOISE = 0.5 / 255.0
+#: The least noise σ a frame is judged to have (intensity on [0, 1]). The estimators weigh
+#: what they see in z units against margins set under the reference study's noise (σ 0.22 and
+#: 0.32); the model — planes, circles and discs — leaves 0.01–0.02 of residual in its own fits
+#: on a noise-free rendering, and more where it leaves parts out (a box's sides, a ring's
+#: walls, shading). Against a camera's own noise (the sensor model's: 0.0065) those errors
+#: become hundreds of z units and decide a pose's tilt and quarter turn; against this floor
+#: they stay a few, and whatever the study's noise lets the systems see stays seen.
+#: Likelihoods of clipped pixels use the noise as measured (``ImageStack.clip_sigma``).
+NOISE_FLOOR = 0.05
 #: A region of a gradient field this large (fraction of the image) has the whole image filtered.
 WHOLE_FIELD_FRACTION = 0.5
 #: Below this spread of intensities (on [0, 1]) there is nothing to see.
@@ -50,11 +57,18 @@ class GradientImage:
 
     @staticmethod
     def from_smoothed(smoothed: np.ndarray, sigma_px: float, noise_sigma: float) -> GradientImage:
+        residual, gradient = GradientImage.noise_after(sigma_px, noise_sigma)
+        return GradientImage(smoothed, residual, gradient, sigma_px)
+
+    @staticmethod
+    def noise_after(sigma_px: float, noise_sigma: float) -> tuple[float, float]:
+        """Deviations of white noise ``noise_sigma`` left in an image smoothed by ``sigma_px``
+        and in its derivative along one direction."""
         # White noise through a 2-D Gaussian of σ_b keeps σ / (2√π σ_b) of its deviation; its
         # derivative along one direction has deviation σ_s / (√2 σ_b). The floor keeps
         # noise-free images from dividing by zero.
         residual = noise_sigma / (2.0 * math.sqrt(math.pi) * sigma_px) + 0.002
-        return GradientImage(smoothed, residual, residual / (math.sqrt(2.0) * sigma_px), sigma_px)
+        return residual, residual / (math.sqrt(2.0) * sigma_px)
 
     def sample(self, uv: np.ndarray) -> np.ndarray:
         """Bilinear samples of the smoothed image at pixel positions (N,2)."""
@@ -159,7 +173,8 @@ class ImageStack:
     smoothed images and gradients the estimators ask of it, each computed once.
 
     ``noise_sigma`` is the standard deviation of the pixel noise as the pixels show it (same
-    units; what edge strengths and smoothing are judged against), ``clip_sigma`` that of the
+    units; what edge strengths and smoothing are judged against; never below ``NOISE_FLOOR``),
+    ``clip_sigma`` that of the
     noise before the sensor clipped it (for likelihoods of clipped pixels); both from
     ``noise_levels``. Two gradient views share the smoothing: ``gradients`` (the whole smoothed
     image, derivatives sampled along given directions — model-contour support and edge
@@ -289,9 +304,7 @@ def _prepare(frame: Frame) -> ImageStack | str:
         level = "black" if high < 0.1 else "saturated" if low > 0.9 else "uniform"
         return f"image has no contrast ({level}: 1–99 % intensities {low:.2f}–{high:.2f})"
     shown, sigma = noise_levels(pixels)
-    # An 8-bit image is never cleaner than its quantisation: the floor keeps edge SNRs of a
-    # noise-free rendering finite.
-    shown = max(shown, QUANTISATION_NOISE)
+    shown = max(shown, NOISE_FLOOR)
     if _only_noise(pixels, shown):
         return "image holds nothing but noise (blank)"
     return ImageStack(pixels, shown, sigma)

@@ -72,3 +72,26 @@ def test_corners_on_held_out_mockups_at_2_m_report_no_wrong_lock(mockup, distanc
         if r.status != "lost" and is_wrong_lock(r.error, distance, ambiguous=r.ambiguous)
     ]
     assert wrong == []
+
+
+@pytest.mark.parametrize(
+    "system, mockup, distance",
+    [
+        # Noise-free frames: each was a confident wrong lock, a quarter turn (lines, 90°) or two
+        # (lines and corners, 180°) off, while the support of the model's contours measured
+        # how uniform the gradients along them were, not how well they sat on edges.
+        ("lines", "random:104", 1.2),
+        ("lines", "random:112", 2.0),
+        ("corners", "random:100", 2.0),
+    ],
+)
+def test_clean_frames_of_held_out_mockups_report_no_wrong_lock(system, mockup, distance):
+    spec = replace(HELD_OUT, systems=(system,), noises=("none",))
+    rows = run_case_group(spec, distance, "none", mockup)
+    assert len(rows) == 4
+    wrong = [
+        (r.mode, r.index, r.error.position_m, r.error.attitude_rad)
+        for r in rows
+        if r.status != "lost" and is_wrong_lock(r.error, distance, ambiguous=r.ambiguous)
+    ]
+    assert wrong == []
