@@ -482,11 +482,10 @@ def _side_supports(
 
 #: How the reduced image is cut, in turn until one yields the panel (``first_solved``):
 #: (smoothing, px of the reduced image; whether each quad's sides are fitted to its region's
-#: boundary). The second
-#: is for a faint panel under heavy noise — a dark one loses a third of its contrast where the
-#: sensor clips — whose region at the first smoothing is too ragged to reduce to a quad (or
-#: only other squares, the face, are found), and at the second still has spurs and bites at
-#: its corners.
+#: boundary). The second is for a faint panel under heavy noise — a dark one loses a third of
+#: its contrast where the sensor clips — whose region at the first smoothing is too ragged to
+#: reduce to a quad (or only other squares, the face, are found), and at the second still has
+#: spurs and bites at its corners.
 CUTS = ((1.0, False), (2.0, True))
 
 

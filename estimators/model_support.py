@@ -268,11 +268,11 @@ class ModelSupport:
         safe = np.maximum(counts, 1)
         # The spread of |g·t| is never taken below what noise of ``NOISE_FLOOR`` would give it
         # (the spread of |N(0, s)| is √(1 − 2/π) s; under the reference study's noise it is a
-        # third of what the noise gives, and does not bind). On a clean frame (a camera's shot and read noise is a
-        # thirty-fifth of the study's low noise) the spread along a contour lying on an edge
-        # is near zero, and the ratio then ranks poses by how uniform their along-contour
-        # gradients are, not by how well they sit on the edges: a pose tilted 8° outscored the
-        # truth by 490 z units, and the quarter-turn check chose a wrong turn.
+        # third of what the noise gives, and does not bind). On a clean frame (a camera's shot
+        # and read noise is a thirty-fifth of the study's low noise) the spread along a contour
+        # lying on an edge is near zero, and the ratio then ranks poses by how uniform their
+        # along-contour gradients are, not by how well they sit on the edges: a pose tilted 8°
+        # outscored the truth by 490 z units, and the quarter-turn check chose a wrong turn.
         spread_floor = (
             HALF_NORMAL_SPREAD * GradientImage.noise_after(gradients.sigma_px, NOISE_FLOOR)[1]
         )
@@ -284,7 +284,7 @@ class ModelSupport:
             along_sq = np.bincount(group, along * along, minlength=groups)
             along_sum = np.bincount(group, along, minlength=groups)
             spread = np.sqrt(np.maximum(along_sq / safe - (along_sum / safe) ** 2, 0))
-            spread = np.maximum(spread, spread_floor) + 1e-12
+            spread = np.maximum(spread, spread_floor)  # positive: noise_after floors it
             best = np.maximum(best, (diff_sum / safe) / (spread * np.sqrt(2.0 / independent)))
         seen = counts >= _MIN_SAMPLES
         z[seen] = best[seen]
