@@ -94,7 +94,9 @@ class SimulationConfig(Strict):
     #: Estimators: corners, lines, ellipses (or a "module:factory" path for experiments).
     systems: list[str] = Field(default_factory=lambda: ["corners", "lines", "ellipses"])
     noise: NoiseConfig = NoiseConfig(preset="low")
-    render: RenderConfig = RenderConfig()
+    #: Anti-aliased (``supersample: auto``) wherever the noise is too small to hide a
+    #: point-sampled image's staircase edges (``RenderConfig.for_noise``).
+    render: RenderConfig = RenderConfig(supersample="auto")
     #: How the loop's time passes: ``sim`` steps the world as fast as the machine allows and
     #: charges vision its modelled time (deterministic: CI, campaigns, the demo); ``wall`` runs
     #: the simulated world in real time in processes of its own, reached only through the device

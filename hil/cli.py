@@ -926,7 +926,7 @@ def approach(
     log_path = log_dir / f"approach_{sim.noise.preset}_seed{seed}_{stamp}.mcap"
     out.print(
         f"{sim.devices.kind} approach: systems {', '.join(sim.systems)}, noise {sim.noise.preset}, "
-        f"seed {seed}, clock {sim.clock}"
+        f"supersample {sim.render.for_noise(sim.noise).supersample}, seed {seed}, clock {sim.clock}"
     )
     with StopSignals() as signals:
         try:

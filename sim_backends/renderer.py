@@ -96,8 +96,13 @@ class _RenderPlan:
         return K
 
 
-def plan_render(info: CameraInfo, supersample: int) -> _RenderPlan:
+def plan_render(info: CameraInfo, supersample: int | str) -> _RenderPlan:
     """Choose the pinhole render covering ``info``'s (possibly distorted) field of view."""
+    if not isinstance(supersample, int):
+        raise ValueError(
+            f"render.supersample {supersample!r}: resolve it for the noise first "
+            "(RenderConfig.for_noise)"
+        )
     if not info.has_distortion:
         return _RenderPlan(supersample, info.width, info.height, info.K.copy(), None, None)
     W, H = info.width, info.height

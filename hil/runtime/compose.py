@@ -195,7 +195,7 @@ class Trial:
                 self.mockup,
                 self.camera,
                 noise=config.noise,
-                render=config.render,
+                render=config.render.for_noise(config.noise),
                 seed=self.seed,
                 **rig_options(config, start),
             )

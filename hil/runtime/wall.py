@@ -468,7 +468,7 @@ def start_render_camera(
             trial.mockup,
             trial.camera,
             config.noise,
-            config.render,
+            config.render.for_noise(config.noise),
             config.camera_timing,
             trial.seed,
             requests_in,

@@ -214,6 +214,22 @@ def test_mockup_refuses_overlapping_fasteners_and_a_panel_off_the_ring(tmp_path)
         load_mockup(_write(tmp_path, "name: m\ncentre_panel: {center: [0.1, 0.0]}\n" + BOLTS))
 
 
+def test_a_simulated_trial_renders_anti_aliased_frames_under_small_noise():
+    """``supersample: auto`` (the embedded default): 4 where the noise is too small to hide a
+    point-sampled image's staircase edges, 1 under the study's noise; a number is kept."""
+    from configuration.render import NoiseConfig, RenderConfig
+    from configuration.simulation import with_overrides
+
+    sim = load_simulation("sim")
+    assert sim.render.supersample == "auto"
+    for preset, expected in (("low", 1), ("high", 1), ("sensor", 4), ("none", 4)):
+        resolved = with_overrides(sim, noise={"preset": preset})
+        assert resolved.render.for_noise(resolved.noise).supersample == expected, preset
+    small = NoiseConfig(preset="low", variance=0.001)
+    assert RenderConfig(supersample="auto").for_noise(small).supersample == 4
+    assert RenderConfig(supersample=2).for_noise(NoiseConfig(preset="sensor")).supersample == 2
+
+
 def test_a_named_light_for_a_closed_loop_approach():
     """``satgrasp approach --light``: a random mock-up gets its own random light (the one the
     matrix and the open-loop path render it under), any other mock-up the seed's."""
