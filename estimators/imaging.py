@@ -30,7 +30,8 @@ MIN_IMAGE_SIDE_PX = 24
 #: walls, shading). Against a camera's own noise (the sensor model's: 0.0065) those errors
 #: become hundreds of z units and decide a pose's tilt and quarter turn; against this floor
 #: they stay a few, and whatever the study's noise lets the systems see stays seen.
-#: Likelihoods of clipped pixels use the noise as measured (``ImageStack.clip_sigma``).
+#: Below it the fits take least squares instead of the likelihood of clipped noise
+#: (``ImageStack.clip_sigma``).
 NOISE_FLOOR = 0.05
 #: A region of a gradient field this large (fraction of the image) has the whole image filtered.
 WHOLE_FIELD_FRACTION = 0.5
@@ -175,7 +176,7 @@ class ImageStack:
     ``noise_sigma`` is the standard deviation of the pixel noise as the pixels show it (same
     units; what edge strengths and smoothing are judged against; never below ``NOISE_FLOOR``),
     ``clip_sigma`` that of the noise before the sensor clipped it (for likelihoods of clipped
-    pixels); both from ``noise_levels``. Two gradient views share the smoothing: ``gradients``
+    pixels; 0, least squares, below ``NOISE_FLOOR``); both from ``noise_levels``. Two gradient views share the smoothing: ``gradients``
     (the whole smoothed image, derivatives sampled along given directions — model-contour
     support and edge profiles) and ``gradient_field`` (Sobel components over a region — searches
     along curve normals). The caches are guarded by a lock: systems on threads may share a
@@ -307,7 +308,15 @@ def _prepare(frame: Frame) -> ImageStack | str:
     shown = max(shown, NOISE_FLOOR)
     if _only_noise(pixels, shown):
         return "image holds nothing but noise (blank)"
-    return ImageStack(pixels, shown, sigma)
+    # The likelihood of clipped noise takes one σ for every pixel, and matters where a level
+    # lies within a few σ of black or white. Under the study's noise that is a dark panel or
+    # hole; under a camera's own, only the black background — where a sensor's noise is its
+    # read noise, far below the σ of the grey surfaces, so a pixel at 0 is black, not noise
+    # clipped. Read as clipped noise it drew the face's outline outward (line system 3 mm
+    # short in range at 3 m under the sensor's noise), and the disc fits' prior on a bolt
+    # head's wall, weighed against that small σ, let the walls pull the discs inward (corner
+    # system 1.2 mm long); least squares, as on a noise-free frame, has neither.
+    return ImageStack(pixels, shown, sigma if sigma >= NOISE_FLOOR else 0.0)
 
 
 def _only_noise(pixels: np.ndarray, noise_sigma: float) -> bool:

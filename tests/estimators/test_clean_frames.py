@@ -61,3 +61,22 @@ def test_the_simulators_clean_frames_are_tracked_off_the_optical_axis(system):
         f = rendered.frame(distance, offset, noise="sensor", supersample=supersample)
         m = build_estimator(system, target, f.info).estimate(f, f.truth.X_CT)
         assert m.status == "tracking", f"{distance} m: {m.reason}"
+
+
+@pytest.mark.parametrize(("system", "bound_m"), [("corners", 0.0006), ("lines", 0.0005)])
+def test_a_cameras_own_noise_leaves_no_range_bias(system, bound_m):
+    """At 3 m under the sensor's noise, tracked from the truth: the mean range error over three
+    poses stays within a fraction of a millimetre. Fitted as clipped noise of one σ, the black
+    background's pixels drew the face's outline outward (lines −3 mm) and the bolt heads' walls
+    drew the discs inward (corners +1.2 mm), where noise-free frames gave −0.03…+0.06 and
+    −0.4…−0.3 mm."""
+    target = rendered.target()
+    errors = []
+    for offset in OFFSETS:
+        f = rendered.frame(3.0, offset, noise="sensor", supersample=4)
+        m = build_estimator(system, target, f.info).estimate(f, f.truth.X_CT)
+        assert m.status == "tracking", f"{offset}: {m.reason}"
+        errors.append(float(m.X_CT.p[2] - f.truth.X_CT.p[2]))
+    assert abs(float(np.mean(errors))) <= bound_m, (
+        f"range errors {np.round(np.array(errors) * 1000, 2)} mm"
+    )
