@@ -63,9 +63,15 @@ class RenderConfig(Strict):
     #: the same image (configured or OBJ mock-ups under light without either), else pybullet.
     engine: Literal["auto", "pybullet", "raster"] = "auto"
     lighting: Lighting = Lighting()
-    #: Anti-aliasing: each pixel the mean of supersample² samples. ``auto``: 4 under noise
-    #: below ``ALIASING_HIDDEN_VARIANCE`` (``sensor``, ``none``), else 1 (``for_noise``).
+    #: Anti-aliasing: each pixel the mean of supersample² samples. ``auto``: 4 (and 4
+    #: ``passes``) under noise below ``ALIASING_HIDDEN_VARIANCE`` (``sensor``, ``none``), else 1
+    #: (``for_noise``).
     supersample: Annotated[int, Field(ge=1, le=4)] | Literal["auto"] = 1
+    #: Renders averaged per frame, their samples shifted along the diagonal by 1/passes of a
+    #: sample: an edge along the pixel rows or columns (a camera square on to the panel) is
+    #: placed to 1/(supersample·passes) px instead of 1/supersample, at passes × the cost.
+    #: ``supersample: auto`` sets 4 where it sets 4 × 4 samples.
+    passes: Annotated[int, Field(ge=1, le=4)] = 1
     near_m: PositiveM = 0.05
     far_m: PositiveM = 30.0
 
@@ -74,4 +80,6 @@ class RenderConfig(Strict):
         if self.supersample != "auto":
             return self
         hidden = noise.preset != "sensor" and noise.gaussian_variance >= ALIASING_HIDDEN_VARIANCE
-        return self.model_copy(update={"supersample": 1 if hidden else 4})
+        if hidden:
+            return self.model_copy(update={"supersample": 1})
+        return self.model_copy(update={"supersample": 4, "passes": 4})

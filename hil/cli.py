@@ -924,9 +924,11 @@ def approach(
     _output_dir(log_dir, "--log-dir")
     stamp = time.strftime("%Y%m%d-%H%M%S")
     log_path = log_dir / f"approach_{sim.noise.preset}_seed{seed}_{stamp}.mcap"
+    render = sim.render.for_noise(sim.noise)
     out.print(
         f"{sim.devices.kind} approach: systems {', '.join(sim.systems)}, noise {sim.noise.preset}, "
-        f"supersample {sim.render.for_noise(sim.noise).supersample}, seed {seed}, clock {sim.clock}"
+        f"supersample {render.supersample} in {render.passes} pass(es), seed {seed}, "
+        f"clock {sim.clock}"
     )
     with StopSignals() as signals:
         try:

@@ -80,6 +80,7 @@ class _RenderPlan:
     K_pinhole: np.ndarray
     map_x: np.ndarray | None  # remap from the pinhole image to the distorted output
     map_y: np.ndarray | None
+    passes: int = 1
 
     @property
     def render_size(self) -> tuple[int, int]:
@@ -95,8 +96,23 @@ class _RenderPlan:
         K[1, 2] += (s - 1) / 2.0
         return K
 
+    @property
+    def K_passes(self) -> list[np.ndarray]:
+        """``K_render`` of each pass: the samples shifted along the diagonal by fractions of a
+        sample, centred on no shift. A regular grid of s × s samples puts an edge that runs
+        along the pixel rows or columns only to 1/s px, the same in every row (a camera
+        square on to a panel); n passes put it to 1/(s·n) px."""
+        Ks = []
+        for k in range(self.passes):
+            K = self.K_render
+            shift = (k - (self.passes - 1) / 2.0) / self.passes
+            K[0, 2] += shift
+            K[1, 2] += shift
+            Ks.append(K)
+        return Ks
 
-def plan_render(info: CameraInfo, supersample: int | str) -> _RenderPlan:
+
+def plan_render(info: CameraInfo, supersample: int | str, passes: int = 1) -> _RenderPlan:
     """Choose the pinhole render covering ``info``'s (possibly distorted) field of view."""
     if not isinstance(supersample, int):
         raise ValueError(
@@ -104,7 +120,7 @@ def plan_render(info: CameraInfo, supersample: int | str) -> _RenderPlan:
             "(RenderConfig.for_noise)"
         )
     if not info.has_distortion:
-        return _RenderPlan(supersample, info.width, info.height, info.K.copy(), None, None)
+        return _RenderPlan(supersample, info.width, info.height, info.K.copy(), None, None, passes)
     W, H = info.width, info.height
     # Undistorted positions of every output pixel (done once per camera).
     u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
@@ -120,7 +136,7 @@ def plan_render(info: CameraInfo, supersample: int | str) -> _RenderPlan:
     K_pinhole = np.array([[fx, skew, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     map_x = (fx * xy[:, 0] + skew * xy[:, 1] + cx).reshape(H, W).astype(np.float32)
     map_y = (fy * xy[:, 1] + cy).reshape(H, W).astype(np.float32)
-    return _RenderPlan(supersample, width, height, K_pinhole, map_x, map_y)
+    return _RenderPlan(supersample, width, height, K_pinhole, map_x, map_y, passes)
 
 
 class PybulletRenderer:
@@ -130,11 +146,12 @@ class PybulletRenderer:
         self.scene = scene
         self.info = info
         self.config = config or RenderConfig()
-        self._plan = plan_render(info, self.config.supersample)
+        self._plan = plan_render(info, self.config.supersample, self.config.passes)
         w, h = self._plan.render_size
-        self._projection = pybullet_projection(
-            self._plan.K_render, w, h, self.config.near_m, self.config.far_m
-        )
+        self._projections = [
+            pybullet_projection(K, w, h, self.config.near_m, self.config.far_m)
+            for K in self._plan.K_passes
+        ]
 
     def render(self, X_WC: Pose, *, lighting: Lighting | None = None) -> Rendering:
         """Noise-free image of the scene from camera pose ``X_WC``."""
@@ -142,26 +159,31 @@ class PybulletRenderer:
         w, h = self._plan.render_size
         sun_W = self.scene.X_WT.R @ np.asarray(lighting.sun_direction_T, dtype=float)
         sun_W /= np.linalg.norm(sun_W)
-        _, _, rgba, depth_buffer, _ = pybullet.getCameraImage(
-            w,
-            h,
-            viewMatrix=pybullet_view(X_WC),
-            projectionMatrix=self._projection,
-            renderer=pybullet.ER_TINY_RENDERER,
-            flags=pybullet.ER_NO_SEGMENTATION_MASK,
-            lightDirection=sun_W.tolist(),
-            lightColor=[1.0, 1.0, 1.0],
-            lightAmbientCoeff=lighting.ambient,
-            lightDiffuseCoeff=lighting.diffuse,
-            lightSpecularCoeff=lighting.specular,
-            shadow=int(lighting.shadows),
-            physicsClientId=self.scene.client,
-        )
-        rgb = np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)[:, :, :3]
-        depth_buffer = np.asarray(depth_buffer, dtype=np.float32).reshape(h, w)
         near, far = self.config.near_m, self.config.far_m
-        depth = (far * near / (far - (far - near) * depth_buffer)).astype(np.float32)
-        depth[depth_buffer >= 1.0 - 1e-7] = np.inf  # nothing hit
+
+        def draw(projection: list[float]) -> tuple[np.ndarray, np.ndarray]:
+            _, _, rgba, depth_buffer, _ = pybullet.getCameraImage(
+                w,
+                h,
+                viewMatrix=pybullet_view(X_WC),
+                projectionMatrix=projection,
+                renderer=pybullet.ER_TINY_RENDERER,
+                flags=pybullet.ER_NO_SEGMENTATION_MASK,
+                lightDirection=sun_W.tolist(),
+                lightColor=[1.0, 1.0, 1.0],
+                lightAmbientCoeff=lighting.ambient,
+                lightDiffuseCoeff=lighting.diffuse,
+                lightSpecularCoeff=lighting.specular,
+                shadow=int(lighting.shadows),
+                physicsClientId=self.scene.client,
+            )
+            rgb = np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)[:, :, :3]
+            depth_buffer = np.asarray(depth_buffer, dtype=np.float32).reshape(h, w)
+            depth = (far * near / (far - (far - near) * depth_buffer)).astype(np.float32)
+            depth[depth_buffer >= 1.0 - 1e-7] = np.inf  # nothing hit
+            return rgb, depth
+
+        rgb, depth = _merge_passes([draw(p) for p in self._projections])
         return _develop(self._plan, self.info, rgb, depth, X_WC, self.scene.X_WT)
 
 
@@ -179,7 +201,7 @@ class RasterRenderer:
         self.info = info
         self.config = config or RenderConfig()
         self._check(self.config.lighting)
-        self._plan = plan_render(info, self.config.supersample)
+        self._plan = plan_render(info, self.config.supersample, self.config.passes)
         compile_kernel()  # now, not at the first frame (a cold numba cache takes seconds)
 
     @staticmethod
@@ -206,22 +228,27 @@ class RasterRenderer:
         X_CT = X_WC.inverse() @ self.scene.X_WT
         sun_T = np.asarray(lighting.sun_direction_T, dtype=float)
         w, h = self._plan.render_size
-        rgb = np.zeros((h, w, 3), dtype=np.uint8)
-        depth = np.full((h, w), np.inf, dtype=np.float32)
-        rasterize(
-            mesh.vertices_T @ X_CT.R.T + X_CT.p,
-            mesh.normals_T @ X_CT.R.T,
-            mesh.triangles,
-            mesh.colors_8bit,
-            self._plan.K_render,
-            self.config.near_m,
-            X_CT.R @ (sun_T / np.linalg.norm(sun_T)),
-            lighting.ambient,
-            lighting.diffuse,
-            rgb,
-            depth,
-        )
-        depth[depth > self.config.far_m] = np.inf  # beyond the far plane, as pybullet clips
+
+        def draw(K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            rgb = np.zeros((h, w, 3), dtype=np.uint8)
+            depth = np.full((h, w), np.inf, dtype=np.float32)
+            rasterize(
+                mesh.vertices_T @ X_CT.R.T + X_CT.p,
+                mesh.normals_T @ X_CT.R.T,
+                mesh.triangles,
+                mesh.colors_8bit,
+                K,
+                self.config.near_m,
+                X_CT.R @ (sun_T / np.linalg.norm(sun_T)),
+                lighting.ambient,
+                lighting.diffuse,
+                rgb,
+                depth,
+            )
+            depth[depth > self.config.far_m] = np.inf  # beyond the far plane, as pybullet clips
+            return rgb, depth
+
+        rgb, depth = _merge_passes([draw(K) for K in self._plan.K_passes])
         return _develop(self._plan, self.info, rgb, depth, X_WC, self.scene.X_WT)
 
 
@@ -243,6 +270,23 @@ def make_renderer(
     return PybulletRenderer(scene, info, config)
 
 
+def _merge_passes(
+    passes: list[tuple[np.ndarray, np.ndarray]],
+) -> tuple[np.ndarray, np.ndarray]:
+    """One render from its passes' 8-bit RGB and depth: the mean colour, each pass black where
+    it hit nothing, and the nearest depth (inf only where no pass hit anything)."""
+    if len(passes) == 1:
+        return passes[0]
+    total = np.zeros(passes[0][0].shape, dtype=np.float32)
+    nearest = np.full(passes[0][1].shape, np.inf, dtype=np.float32)
+    for rgb, depth in passes:
+        hit = (depth < np.inf).view(np.uint8)
+        cv2.accumulate(rgb, total, mask=hit)
+        np.minimum(nearest, depth, out=nearest)
+    total *= 1.0 / len(passes)
+    return total, nearest
+
+
 def _develop(
     plan: _RenderPlan,
     info: CameraInfo,
@@ -251,8 +295,9 @@ def _develop(
     X_WC: Pose,
     X_WT: Pose,
 ) -> Rendering:
-    """From a renderer's 8-bit RGB and metric depth (inf where nothing was hit) to the camera's
-    image: its channels, anti-aliased by averaging supersamples, distorted as its lens does."""
+    """From a renderer's RGB (0–255, 8-bit or the mean of passes) and metric depth (inf where
+    nothing was hit) to the camera's image: its channels, anti-aliased by averaging
+    supersamples, distorted as its lens does."""
     background = np.isinf(depth)
     if info.channels == 1:
         image = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)

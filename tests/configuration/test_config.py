@@ -215,16 +215,23 @@ def test_mockup_refuses_overlapping_fasteners_and_a_panel_off_the_ring(tmp_path)
 
 
 def test_a_simulated_trial_renders_anti_aliased_frames_under_small_noise():
-    """``supersample: auto`` (the embedded default): 4 where the noise is too small to hide a
-    point-sampled image's staircase edges, 1 under the study's noise; a number is kept."""
+    """``supersample: auto`` (the embedded default): 4 × 4 samples in 4 passes where the noise
+    is too small to hide a point-sampled image's staircase edges, 1 under the study's noise; a
+    number is kept."""
     from configuration.render import NoiseConfig, RenderConfig
     from configuration.simulation import with_overrides
 
     sim = load_simulation("sim")
     assert sim.render.supersample == "auto"
-    for preset, expected in (("low", 1), ("high", 1), ("sensor", 4), ("none", 4)):
+    for preset, expected in (
+        ("low", (1, 1)),
+        ("high", (1, 1)),
+        ("sensor", (4, 4)),
+        ("none", (4, 4)),
+    ):
         resolved = with_overrides(sim, noise={"preset": preset})
-        assert resolved.render.for_noise(resolved.noise).supersample == expected, preset
+        render = resolved.render.for_noise(resolved.noise)
+        assert (render.supersample, render.passes) == expected, preset
     small = NoiseConfig(preset="low", variance=0.001)
     assert RenderConfig(supersample="auto").for_noise(small).supersample == 4
     assert RenderConfig(supersample=2).for_noise(NoiseConfig(preset="sensor")).supersample == 2
