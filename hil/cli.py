@@ -388,6 +388,16 @@ def matrix(
             "pose, snap to whole pixels (docs/reference_study.md).",
         ),
     ] = 4,
+    passes: Annotated[
+        int,
+        typer.Option(
+            min=1,
+            max=4,
+            help="Renders averaged per frame, their samples shifted by 1/passes of a sample: "
+            "square-on edges, which the sample grid places to 1/supersample px, go to "
+            "1/(supersample·passes) px, at passes × the render time.",
+        ),
+    ] = 1,
     acquisition: Annotated[
         bool, typer.Option(help="Also estimate every frame without a prior (acquisition rate).")
     ] = False,
@@ -423,6 +433,7 @@ def matrix(
             frames=frames,
             seed=seed,
             supersample=supersample,
+            passes=passes,
             acquisition=acquisition,
             camera=camera,
             mockup=names[0],

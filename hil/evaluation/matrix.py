@@ -60,7 +60,8 @@ class MatrixSpec:
     estimates every frame without a prior (rows of mode "acquisition"); ``blank_frames``
     replaces those frame indices by blank frames (a forced loss, to measure re-acquisition).
     ``mockups`` (names, e.g. ``random:3``), when given, replaces ``mockup``: every case runs on
-    each; ``lighting``: ``default``, ``harsh`` or ``random`` (a random light per mock-up)."""
+    each; ``lighting``: ``default``, ``harsh`` or ``random`` (a random light per mock-up);
+    ``supersample`` and ``passes``: the render's anti-aliasing (``RenderConfig``)."""
 
     systems: tuple[str, ...]
     distances_m: tuple[float, ...] = REFERENCE_DISTANCES_M
@@ -71,6 +72,7 @@ class MatrixSpec:
     camera: str = "reference"
     mockup: str = "default"
     supersample: int = 1
+    passes: int = 1
     estimator_options: dict = field(default_factory=dict)
     acquisition: bool = False
     blank_frames: tuple[int, ...] = ()
@@ -139,7 +141,9 @@ def run_case_group(
     maneuver_index = spec.maneuvers.index(maneuver_name)
     light_seed = seed_of(mockup_name) if is_random_name(mockup_name) else mockup_index
     render_config = RenderConfig(
-        supersample=spec.supersample, lighting=named_lighting(spec.lighting, light_seed)
+        supersample=spec.supersample,
+        passes=spec.passes,
+        lighting=named_lighting(spec.lighting, light_seed),
     )
     with MockupScene(mockup) as scene:
         renderer = make_renderer(scene, camera, render_config)

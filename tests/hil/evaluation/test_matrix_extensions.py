@@ -8,6 +8,7 @@ from hil.evaluation.matrix import (
     bias_table,
     markdown_table,
     mockup_table,
+    run_case_group,
     run_matrix,
     summarize,
 )
@@ -87,3 +88,26 @@ def test_matrix_runs_several_mockups_under_a_light_and_tables_their_bias():
     assert f"| random:3 | {ORACLE} | 2/2 | – | 0 (0) |" in per_mockup
     with pytest.raises(ValueError, match="light must be one of"):
         run_matrix(MatrixSpec(systems=(ORACLE,), lighting="dusk", frames=2))
+
+
+def test_matrix_renders_with_the_passes_it_is_given(monkeypatch):
+    """``--passes`` reaches the renderer (square-on edges to 1/(supersample·passes) px), and a
+    campaign of the matrix carries it as a setting."""
+    import hil.evaluation.matrix as matrix
+    from hil.analysis.campaigns.matrix_runs import matrix_campaign
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def renderer(scene, camera, config):
+        seen.append((config.supersample, config.passes))
+        raise Stop
+
+    monkeypatch.setattr(matrix, "make_renderer", renderer)
+    spec = MatrixSpec(systems=("lines",), distances_m=(2.0,), supersample=4, passes=3)
+    with pytest.raises(Stop):
+        run_case_group(spec, 2.0, spec.maneuvers[0])
+    assert seen == [(4, 3)]
+    assert matrix_campaign(spec).parts[0].settings["passes"] == 3
