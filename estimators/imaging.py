@@ -176,11 +176,11 @@ class ImageStack:
     ``noise_sigma`` is the standard deviation of the pixel noise as the pixels show it (same
     units; what edge strengths and smoothing are judged against; never below ``NOISE_FLOOR``),
     ``clip_sigma`` that of the noise before the sensor clipped it (for likelihoods of clipped
-    pixels; 0, least squares, below ``NOISE_FLOOR``); both from ``noise_levels``. Two gradient views share the smoothing: ``gradients``
-    (the whole smoothed image, derivatives sampled along given directions — model-contour
-    support and edge profiles) and ``gradient_field`` (Sobel components over a region — searches
-    along curve normals). The caches are guarded by a lock: systems on threads may share a
-    stack.
+    pixels; 0, least squares, below ``NOISE_FLOOR``); both from ``noise_levels``. Two gradient
+    views share the smoothing: ``gradients`` (the whole smoothed image, derivatives sampled
+    along given directions — model-contour support and edge profiles) and ``gradient_field``
+    (Sobel components over a region — searches along curve normals). The caches are guarded by
+    a lock: systems on threads may share a stack.
     """
 
     pixels: np.ndarray

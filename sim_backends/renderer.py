@@ -160,16 +160,17 @@ class PybulletRenderer:
         sun_W = self.scene.X_WT.R @ np.asarray(lighting.sun_direction_T, dtype=float)
         sun_W /= np.linalg.norm(sun_W)
         near, far = self.config.near_m, self.config.far_m
+        view, light = pybullet_view(X_WC), sun_W.tolist()
 
         def draw(projection: list[float]) -> tuple[np.ndarray, np.ndarray]:
             _, _, rgba, depth_buffer, _ = pybullet.getCameraImage(
                 w,
                 h,
-                viewMatrix=pybullet_view(X_WC),
+                viewMatrix=view,
                 projectionMatrix=projection,
                 renderer=pybullet.ER_TINY_RENDERER,
                 flags=pybullet.ER_NO_SEGMENTATION_MASK,
-                lightDirection=sun_W.tolist(),
+                lightDirection=light,
                 lightColor=[1.0, 1.0, 1.0],
                 lightAmbientCoeff=lighting.ambient,
                 lightDiffuseCoeff=lighting.diffuse,
@@ -202,6 +203,7 @@ class RasterRenderer:
         self.config = config or RenderConfig()
         self._check(self.config.lighting)
         self._plan = plan_render(info, self.config.supersample, self.config.passes)
+        self._K_passes = self._plan.K_passes
         compile_kernel()  # now, not at the first frame (a cold numba cache takes seconds)
 
     @staticmethod
@@ -228,18 +230,21 @@ class RasterRenderer:
         X_CT = X_WC.inverse() @ self.scene.X_WT
         sun_T = np.asarray(lighting.sun_direction_T, dtype=float)
         w, h = self._plan.render_size
+        vertices_C = mesh.vertices_T @ X_CT.R.T + X_CT.p
+        normals_C = mesh.normals_T @ X_CT.R.T
+        sun_C = X_CT.R @ (sun_T / np.linalg.norm(sun_T))
 
         def draw(K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             rgb = np.zeros((h, w, 3), dtype=np.uint8)
             depth = np.full((h, w), np.inf, dtype=np.float32)
             rasterize(
-                mesh.vertices_T @ X_CT.R.T + X_CT.p,
-                mesh.normals_T @ X_CT.R.T,
+                vertices_C,
+                normals_C,
                 mesh.triangles,
                 mesh.colors_8bit,
                 K,
                 self.config.near_m,
-                X_CT.R @ (sun_T / np.linalg.norm(sun_T)),
+                sun_C,
                 lighting.ambient,
                 lighting.diffuse,
                 rgb,
@@ -248,7 +253,7 @@ class RasterRenderer:
             depth[depth > self.config.far_m] = np.inf  # beyond the far plane, as pybullet clips
             return rgb, depth
 
-        rgb, depth = _merge_passes([draw(K) for K in self._plan.K_passes])
+        rgb, depth = _merge_passes([draw(K) for K in self._K_passes])
         return _develop(self._plan, self.info, rgb, depth, X_WC, self.scene.X_WT)
 
 
