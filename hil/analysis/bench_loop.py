@@ -202,6 +202,19 @@ def approach_frames(
     return out
 
 
+def arm_state(frame: Frame, stamp: float) -> StateSample:
+    """The state a rig reports while its camera takes ``frame``: the arm at the camera's pose
+    (``pipeline_timing``'s rig has base, flange and camera frames all one), the track at 0.
+
+    The arm's motion is measured on a rig, so fusion predicts each frame's pose from it; a
+    bench that held the arm still while its frames moved would hand every system a prior
+    lagging the motion by several frames, and time a harder search than a rig ever asks
+    for."""
+    if frame.truth is None:
+        raise ValueError("arm_state needs a rendered frame (with its ground truth)")
+    return StateSample(stamp, frame.truth.X_WC, stamp, 0.0)
+
+
 def pipeline_timing(
     mode: str,
     frames: Sequence[Frame],
@@ -213,8 +226,9 @@ def pipeline_timing(
     progress: Callable[[str], None] | None = None,
 ) -> PipelineTiming:
     """A camera delivering ``frames`` (cycled) at ``fps`` for ``seconds`` into a
-    ``VisionPipeline`` on the wall clock: each system takes the newest frame whenever it is free.
-    ``serial``: the systems one after the other in this process; ``concurrent``: a process each.
+    ``VisionPipeline`` on the wall clock, the arm reporting each frame's camera pose
+    (``arm_state``): each system takes the newest frame whenever it is free. ``serial``: the
+    systems one after the other in this process; ``concurrent``: a process each.
     """
     target = load_mockup(mockup).target_model()
     info = frames[0].info
@@ -225,7 +239,8 @@ def pipeline_timing(
         workers = InlineWorkers(estimators, None)
     else:
         raise ValueError(f"mode must be serial or concurrent; got {mode!r}")
-    # The camera stands still relative to the carriage: X_CM = identity, so X_MT = X_CT.
+    # Base, flange and camera frames are one, the carriage is at the world's origin with the
+    # target: X_WC = X_BE, so the arm's state is the camera's pose (``arm_state``).
     geometry = RigGeometry(
         Pose.identity(), Pose.identity(), np.array([1.0, 0.0, 0.0]), Pose.identity(), 1.0
     )
@@ -241,10 +256,12 @@ def pipeline_timing(
         t0 = time.monotonic()
         pipeline.begin(t0)
         seq, next_frame = 0, t0
+        source = frames[0]
         while (now := time.monotonic()) < t0 + seconds:
-            pipeline.publish_state(StateSample(now, Pose.identity(), now, 0.0))
             if now >= next_frame:
                 source = frames[seq % len(frames)]
+            pipeline.publish_state(arm_state(source, now))
+            if now >= next_frame:
                 frame = Frame(source.image, now, info, seq, source.truth, arrival_stamp=now)
                 pipeline.on_frame(frame, now)
                 seq += 1
