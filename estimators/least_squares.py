@@ -66,12 +66,12 @@ def robust_sigma(residuals: np.ndarray, floor: float = 0.05) -> float:
     r = np.asarray(residuals, dtype=float)
     if len(r) == 0:
         return 1.0
-    return float(max(1.4826 * _median(np.abs(r - _median(r))), floor))
+    return float(max(1.4826 * median(np.abs(r - median(r))), floor))
 
 
-def _median(values: np.ndarray) -> float:
-    """``np.median`` of a 1-D array by partial sorting (np.median's overhead dominates the
-    short arrays of a fit)."""
+def median(values: np.ndarray) -> float:
+    """``np.median`` of a non-empty 1-D array by partial sorting (np.median's overhead
+    dominates the short arrays of a fit)."""
     n = len(values)
     half = n // 2
     if n % 2:

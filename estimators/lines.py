@@ -606,11 +606,16 @@ class LineEstimator:
             ok = np.ones(len(coords), bool)
             if not len(coords) or not len(uv):
                 return ok
-            lo, hi = coords.min(axis=0), coords.max(axis=0)
+            # (column by column: a reduction along the first axis of an (N, 2) array is an
+            # order of magnitude slower)
+            u, v = coords[:, 0], coords[:, 1]
+            lo, hi = np.array([u.min(), v.min()]), np.array([u.max(), v.max()])
             near = np.all((uv + radius[:, None] >= lo) & (uv - radius[:, None] <= hi), axis=1)
-            for centre, r in zip(uv[near], radius[near], strict=True):
-                ok &= np.hypot(coords[:, 0] - centre[0], coords[:, 1] - centre[1]) > r
-            return ok
+            if not near.any():
+                return ok
+            centres, r = uv[near], radius[near]
+            gap = np.hypot(u[:, None] - centres[:, 0], v[:, None] - centres[:, 1])
+            return np.all(gap > r, axis=1)
 
         return keep
 

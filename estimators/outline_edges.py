@@ -27,6 +27,7 @@ import numpy as np
 from estimators.edge_fit import coarse_edge_offsets
 from estimators.frame import CameraInfo
 from estimators.geometry import Pose
+from estimators.least_squares import median
 from estimators.panel_edges import (
     EdgeStrips,
     FittedEdge,
@@ -122,17 +123,27 @@ def _coarse_offsets(
     w = coarse.strength[strong] ** 2
     # Tukey-like reweighting: pieces on something else must not pull the line.
     fit = np.ones(len(x), bool)
-    coefficients = np.array([float(np.median(y)), 0.0])
+    coefficients = np.array([median(y), 0.0])
     for _ in range(5):
         if fit.sum() < 2:
             return None
         if fit.sum() == 2 or np.ptp(x[fit]) == 0:
             coefficients = np.array([float(np.average(y[fit], weights=w[fit])), 0.0])
         else:
-            coefficients = np.polyfit(x[fit], y[fit], 1, w=np.sqrt(w[fit]))[::-1]
+            coefficients = _weighted_line(x[fit], y[fit], w[fit])
         residual = y - coefficients[0] - coefficients[1] * x
-        fit = np.abs(residual) <= max(1.5, 2.5 * 1.4826 * float(np.median(np.abs(residual))))
+        fit = np.abs(residual) <= max(1.5, 2.5 * 1.4826 * median(np.abs(residual)))
     return coefficients[0] + coefficients[1] * np.arange(len(strips.centers_uv), dtype=float)
+
+
+def _weighted_line(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """[intercept, slope] of the line minimising Σ w (y − intercept − slope·x)², by the normal
+    equations about the weighted centroid (x must not be constant)."""
+    total = w.sum()
+    x_mean, y_mean = (w @ x) / total, (w @ y) / total
+    dx = x - x_mean
+    slope = (w * dx) @ (y - y_mean) / ((w * dx) @ dx)
+    return np.array([y_mean - slope * x_mean, slope])
 
 
 def fit_outline_edges(
