@@ -268,9 +268,10 @@ def project(points_C: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None)
     if dist is not None and np.size(dist) > 0:
         xy = distort_normalized(xy, dist)
     K = np.asarray(K, dtype=float)
-    u = K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2]
-    v = K[1, 1] * xy[:, 1] + K[1, 2]
-    return np.column_stack([u, v])
+    uv = np.empty((len(xy), 2))
+    uv[:, 0] = K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2]
+    uv[:, 1] = K[1, 1] * xy[:, 1] + K[1, 2]
+    return uv
 
 
 def project_from(
