@@ -445,24 +445,49 @@ def _strip_lattice(pixels, centers, normals, half_length, reach, keep):
     a pixel twice or skip one, which an average does not mind): values, offsets across the
     edge (d, from the pixel's centre) and strip index, flat."""
     h, w = pixels.shape
-    along = np.arange(-math.floor(half_length), math.floor(half_length) + 1, dtype=float)
-    across = np.arange(-reach, reach + 1, dtype=float)
-    a, c = (grid.ravel() for grid in np.meshgrid(along, across))
-    tangents = np.column_stack([-normals[:, 1], normals[:, 0]])
-    points = (
-        centers[:, None, :]
-        + a[None, :, None] * tangents[:, None, :]
-        + c[None, :, None] * normals[:, None, :]
-    )
-    u = np.rint(points[..., 0]).ravel()
-    v = np.rint(points[..., 1]).ravel()
-    strip = np.repeat(np.arange(len(centers)), len(a))
-    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-    if keep is not None and inside.any():
-        inside[inside] = keep(np.column_stack([u[inside], v[inside]]))
-    u, v, strip = u[inside], v[inside], strip[inside]
-    d = (u - centers[strip, 0]) * normals[strip, 0] + (v - centers[strip, 1]) * normals[strip, 1]
-    return pixels[v.astype(int), u.astype(int)].astype(float), d, strip
+    centers = np.ascontiguousarray(centers, dtype=float)
+    normals = np.ascontiguousarray(normals, dtype=float)
+    u, v, strip = _lattice_kernel(centers, normals, math.floor(half_length), int(reach), h, w)
+    if keep is not None and len(u):
+        kept = keep(np.column_stack([u, v]))
+        u, v, strip = u[kept], v[kept], strip[kept]
+    return _lattice_samples(pixels, centers, normals, u, v, strip)
+
+
+@numba.njit(cache=True)
+def _lattice_kernel(centers, normals, half_length, reach, h, w):
+    """In-image lattice points (u, v, strip), rounded to pixels: strip by strip, across the
+    edge from −``reach`` to ``reach``, along it from −``half_length`` to ``half_length``."""
+    total = len(centers) * (2 * reach + 1) * (2 * half_length + 1)
+    u_out, v_out = np.empty(total), np.empty(total)
+    strip_out = np.empty(total, np.int64)
+    m = 0
+    for k in range(len(centers)):
+        cx, cy = centers[k, 0], centers[k, 1]
+        nx, ny = normals[k, 0], normals[k, 1]
+        tx, ty = -ny, nx
+        for i in range(2 * reach + 1):
+            c = float(i - reach)
+            for j in range(2 * half_length + 1):
+                a = float(j - half_length)
+                u = np.rint(cx + a * tx + c * nx)
+                v = np.rint(cy + a * ty + c * ny)
+                if u >= 0 and u <= w - 1 and v >= 0 and v <= h - 1:
+                    u_out[m], v_out[m], strip_out[m] = u, v, k
+                    m += 1
+    return u_out[:m], v_out[:m], strip_out[:m]
+
+
+@numba.njit(cache=True)
+def _lattice_samples(pixels, centers, normals, u, v, strip):
+    """Grey level, offset across the edge from the strip's centre (d) and strip of each
+    lattice point."""
+    values, d = np.empty(len(u)), np.empty(len(u))
+    for m in range(len(u)):
+        k = strip[m]
+        d[m] = (u[m] - centers[k, 0]) * normals[k, 0] + (v[m] - centers[k, 1]) * normals[k, 1]
+        values[m] = pixels[int(v[m]), int(u[m])]
+    return values, d, strip
 
 
 @dataclass(frozen=True, slots=True, eq=False)
