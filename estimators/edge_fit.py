@@ -73,9 +73,12 @@ def _profile_at(d: float, delta: float, wall: float, s: float):
     Φ((d − δ)/s), outside 1 − Φ((d − δ + w)/s) and the wall between them; and their
     derivatives in δ (3). Levels · basis = intensity."""
     z1 = (d - delta) / s
-    z2 = (d - delta + wall) / s
-    f1, f2 = normal_cdf(z1), normal_cdf(z2)
-    p1, p2 = normal_pdf(z1) / s, normal_pdf(z2) / s
+    f1, p1 = normal_cdf(z1), normal_pdf(z1) / s
+    if wall == 0.0:  # no wall: the outside starts where the inside ends
+        f2, p2 = f1, p1
+    else:
+        z2 = (d - delta + wall) / s
+        f2, p2 = normal_cdf(z2), normal_pdf(z2) / s
     return f1, 1.0 - f2, f2 - f1, -p1, p2, p1 - p2
 
 
