@@ -146,9 +146,10 @@ def fit_discs(
 
 
 @numba.njit(cache=True)
-def _disc_model(u, v, owner, A_inv, scale, rad_px, window, e_m, e_m2, c, s):
+def _disc_model(u, v, owner, A_inv, scale, rad_px, window, e_m, e_m2, c, s, window_only=False):
     """Per pixel: top-disc and stadium coverages, their slopes, ∂ρ/∂c of each (= scale · A⁻ᵀ ŵ)
-    and the window mask (1 inside the disc's window, else 0), discs at centres ``c``."""
+    and the window mask (1 inside the disc's window, else 0), discs at centres ``c``.
+    ``window_only``: pixels outside the window get zeros (for callers that skip them)."""
     m = len(u)
     top, stadium, slope_t, slope_s = np.empty(m), np.empty(m), np.empty(m), np.empty(m)
     gx, gy, hx, hy, mask = np.empty(m), np.empty(m), np.empty(m), np.empty(m), np.empty(m)
@@ -160,6 +161,10 @@ def _disc_model(u, v, owner, A_inv, scale, rad_px, window, e_m, e_m2, c, s):
         wx = a11 * du + a12 * dv  # metres in the disc plane
         wy = a21 * du + a22 * dv
         d = math.sqrt(wx * wx + wy * wy)
+        if window_only and not d < window[o]:
+            top[p] = stadium[p] = slope_t[p] = slope_s[p] = 0.0
+            gx[p] = gy[p] = hx[p] = hy[p] = mask[p] = 0.0
+            continue
         z = (rad_px[o] - d * scale[o]) / s
         inv_d = scale[o] / max(d, 1e-12)
         gx[p] = (a11 * wx + a21 * wy) * inv_d
@@ -237,8 +242,9 @@ def _fit_discs_kernel(values, geometry, e_m, e_m2, c, n, noise_sigma, schedule):
     hxx, hxy, hyy, gxr, gyr = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     for s, count in schedule:
         for _ in range(count):
+            # (the loops below skip pixels outside the window: their model is not needed)
             top, stadium, slope_t, slope_s, gx, gy, hx, hy, mask = _disc_model(
-                u, v, owner, A_inv, scale, rad_px, window, e_m, e_m2, c, s
+                u, v, owner, A_inv, scale, rad_px, window, e_m, e_m2, c, s, True
             )
             levels = _disc_levels(
                 values, owner, n, top, stadium, mask, levels, use_start, noise_sigma
