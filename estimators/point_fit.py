@@ -467,11 +467,13 @@ def _wedge_model(x, y, owner, side, params, s):
     m = len(x)
     inside = np.empty(m)
     g = np.empty((m, 4))
+    # The edges' directions, once per wedge (not per pixel).
+    cos1, sin1 = np.cos(params[:, 2]), np.sin(params[:, 2])
+    cos2, sin2 = np.cos(params[:, 3]), np.sin(params[:, 3])
     for p in range(m):
         o = owner[p]
         dx, dy = x[p] - params[o, 0], y[p] - params[o, 1]
-        c1, s1 = math.cos(params[o, 2]), math.sin(params[o, 2])
-        c2, s2 = math.cos(params[o, 3]), math.sin(params[o, 3])
+        c1, s1, c2, s2 = cos1[o], sin1[o], cos2[o], sin2[o]
         # Normals: edge 1 turned +90° and edge 2 turned −90°, times side, point inside.
         n1x, n1y = -s1 * side[p], c1 * side[p]
         n2x, n2y = s2 * side[p], -c2 * side[p]
