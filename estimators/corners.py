@@ -53,6 +53,7 @@ from estimators.imaging import (
     smooth,
     smoothing_sigma_px,
 )
+from estimators.least_squares import median
 from estimators.measurement import Measurement
 from estimators.model_support import ModelSupport, Support
 from estimators.model_view import head_extrusion, local_affine, plane_coordinates
@@ -297,7 +298,7 @@ class CornerEstimator:
         (centre minus ring mean). Large features are searched on a half-size image (same
         response, a quarter of the cost)."""
         disc_r = radius_px[visible & self.layout.is_disc]
-        typical_r = float(np.median(disc_r)) if len(disc_r) else 2.0
+        typical_r = median(disc_r) if len(disc_r) else 2.0
         sigma = max(smoothing_sigma_px(image.noise_sigma), 0.5 * typical_r)
         points = uv[visible]
         h, w = image.shape
@@ -487,7 +488,7 @@ class CornerEstimator:
         z_panel = self._z_panel
         disc_xy = self.layout.points_T[self.layout.is_disc, :2]
         disc_r = self.layout.radius_m[self.layout.is_disc]
-        depth = np.median(X_CT.apply(corners_T)[:, 2])
+        depth = median(X_CT.apply(corners_T)[:, 2])
         margin_m = 2.5 * depth / self.camera.K[0, 0]  # 2.5 px at the panel
         ring_limit = self._ring_inner - margin_m
 
@@ -556,7 +557,7 @@ class CornerEstimator:
             X, chi2 = refine_pose_robust(obs_all, X_start, K)
         except (ValueError, np.linalg.LinAlgError):
             return None
-        keep = chi2 <= 16.0 * float(np.clip(np.median(chi2) / 1.386, 1.0, 4.0))
+        keep = chi2 <= 16.0 * float(np.clip(median(chi2) / 1.386, 1.0, 4.0))
         choice = None
         for _ in range(3):
             if not self._enough(index[keep]):
@@ -574,7 +575,7 @@ class CornerEstimator:
             X = choice.fit.X_CT
             _, r_w, _ = obs_all.linearize(X, K)
             chi2 = np.sum(r_w.reshape(-1, 2) ** 2, axis=1)
-            new_keep = chi2 <= 16.0 * float(np.clip(np.median(chi2[keep]) / 1.386, 1.0, 4.0))
+            new_keep = chi2 <= 16.0 * float(np.clip(median(chi2[keep]) / 1.386, 1.0, 4.0))
             if np.array_equal(new_keep, keep):
                 break
             keep = new_keep

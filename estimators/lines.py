@@ -56,6 +56,7 @@ from estimators.imaging import (
     smooth,
     smoothing_sigma_px,
 )
+from estimators.least_squares import median
 from estimators.measurement import Measurement
 from estimators.model_support import ModelSupport, Support
 from estimators.model_view import plane_coordinates
@@ -399,7 +400,7 @@ class LineEstimator:
     def _keep_mask(self, X_CT: Pose):
         """Pixels to use for edge fits: not on a disc (bolt head near the panel) and inside the
         ring's inner rim, judged on the panel plane under ``X_CT``."""
-        depth = float(np.median(X_CT.apply(self.target.panel_corners_T)[:, 2]))
+        depth = median(X_CT.apply(self.target.panel_corners_T)[:, 2])
         margin_m = 1.5 * depth / self.camera.K[0, 0]
         ring_limit = self._ring_inner - margin_m
         disc_xy, disc_r = self._disc_xy, self._disc_r
@@ -433,7 +434,7 @@ class LineEstimator:
         if strips is None:
             return self._failure("the panel is not fully in view at the prior")
         corners_uv = self.camera.project(X0.apply(self.target.panel_corners_T))
-        depth = float(np.median(X0.apply(self.target.panel_corners_T)[:, 2]))
+        depth = median(X0.apply(self.target.panel_corners_T)[:, 2])
         gate_px = float(np.clip(options.distance_gate_m * self.camera.K[0, 0] / depth, 4.0, 40.0))
         segments = self._segments(image, corners_uv, gate_px + 6.0)
         labeled = self._label(segments, corners_uv, gradients, gate_px)
@@ -584,7 +585,7 @@ class LineEstimator:
         # (tests/hil/evaluation/test_documented_accuracy.py).
         typical = np.full(len(ends), np.inf)
         for e in np.unique(index):
-            typical[e] = float(np.median(sigma[index == e]))
+            typical[e] = median(sigma[index == e])
         offset = np.hypot(
             options.edge_offset_sigma_px,
             options.edge_offset_noise_ratio * np.where(np.isfinite(typical), typical, 0.0),

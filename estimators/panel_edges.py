@@ -18,6 +18,7 @@ import numpy as np
 from estimators.edge_fit import EdgePoints, Line2D, fit_edge_points, fit_line_robust, intersect
 from estimators.frame import CameraInfo
 from estimators.geometry import Pose
+from estimators.least_squares import median
 from estimators.planar_pose import EdgeObservations, ideal_pixel_jacobians, ideal_pixels
 from estimators.target import TargetModel
 
@@ -172,14 +173,15 @@ def strips_along_edge(
     count = int(np.clip(round(span_px / strip_px), 3, 60 if max_strips is None else max_strips))
     t = np.interp(np.linspace(0.0, span_px, count), arc, dense)[:, None]
     points = a + t * (b - a)
-    uv = camera.project(X_CT.apply(points))
+    points_C = X_CT.apply(points)
+    uv = camera.project(points_C)
     ahead = camera.project(X_CT.apply(a + (t + 1e-3) * (b - a)))
     tangent = ahead - uv
     tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
     normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
     toward = np.asarray(inside_T, dtype=float) - points
     toward /= np.maximum(np.linalg.norm(toward, axis=1, keepdims=True), 1e-12)
-    step_m = 1e-3 * float(np.median(X_CT.apply(points)[:, 2]))
+    step_m = 1e-3 * median(points_C[:, 2])
     inward = camera.project(X_CT.apply(points + step_m * toward)) - uv
     if np.mean(np.sum(inward * normal, axis=1)) < 0:
         normal = -normal
