@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from estimators.clipped_noise import clipped_likelihood_terms, clipped_moments
-from estimators.edge_fit import fit_edge_points, fit_line_robust
+from estimators.edge_fit import coarse_edge_offsets, fit_edge_points, fit_line_robust
 from estimators.point_fit import fit_corners, fit_discs
 
 
@@ -30,6 +30,7 @@ def compile_kernels() -> None:
     normals = np.tile([-1.0, 0.0], (8, 1))
     for sigma in (0.0, 0.05):
         fit_edge_points(pixels, centers, normals, 3.0, 3.0, search_px=2.0, noise_sigma=sigma)
+    coarse_edge_offsets(pixels, centers, normals, 3.0, 4.0)
     fit_line_robust(centers + np.random.default_rng(0).normal(0, 0.1, centers.shape), np.ones(8))
     A = (np.eye(2) * 1000.0)[None]  # 1 mm per px, one disc
     fit_discs(
