@@ -31,9 +31,11 @@ scales their information so that they and the points are weighted by what they r
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from estimators.circle_pose import CirclePose
@@ -140,7 +142,7 @@ class ConicObservations:
     edge_sets: tuple[EdgeSet, ...]
     K: np.ndarray
     _x: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
-    _xx: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
+    _ends: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
     _slices: tuple[slice, ...] = field(default=(), repr=False)
     _K_inv_T2: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
     _model: tuple = field(default=(), repr=False)
@@ -162,10 +164,10 @@ class ConicObservations:
         x = np.column_stack([uv, np.ones(len(uv))]) @ K_inv.T  # rays K⁻¹·h (N,3)
         ends = np.cumsum([0] + [len(s.uv) for s in sets])
         object.__setattr__(self, "edge_sets", sets)
-        object.__setattr__(self, "_x", x)
-        object.__setattr__(self, "_xx", (x[:, :, None] * x[:, None, :]).reshape(-1, 9))
+        object.__setattr__(self, "_x", np.ascontiguousarray(x))
+        object.__setattr__(self, "_ends", np.asarray(ends, dtype=np.int64))
         object.__setattr__(self, "_slices", tuple(map(slice, ends[:-1], ends[1:])))
-        object.__setattr__(self, "_K_inv_T2", K_inv.T[:2])
+        object.__setattr__(self, "_K_inv_T2", np.ascontiguousarray(K_inv.T[:2]))
 
     @property
     def sizes(self) -> tuple[int, ...]:
@@ -202,34 +204,18 @@ class ConicObservations:
     def _split(self, values: np.ndarray) -> list[np.ndarray]:
         return [values[rows] for rows in self._slices]
 
-    @staticmethod
-    def cones(centers: np.ndarray, normals: np.ndarray, radii: np.ndarray) -> np.ndarray:
-        """Cones A (S,3,3) of the circles (centres (S,3), unit normals (S,3), radii (S,))."""
-        s = np.einsum("si,si->s", normals, centers)
-        a = np.einsum("si,si->s", centers, centers) - radii**2
-        M = (0.5 * a[:, None] * normals - s[:, None] * centers)[:, :, None] * normals[:, None, :]
-        return M + np.swapaxes(M, -1, -2) + (s**2)[:, None, None] * np.eye(3)
-
-    def _sampson(self, A: np.ndarray):
-        """f = xᵀAx (N,), (Qh)₁,₂ = (K⁻ᵀAx)₁,₂ (N,2) and g (N,) of each point against its
-        own circle's cone A (S,3,3)."""
-        B = self._K_inv_T2 @ A  # (S,2,3)
-        f = np.empty(len(self._x))
-        Qh = np.empty((len(self._x), 2))
-        for k, rows in enumerate(self._slices):
-            f[rows] = self._xx[rows] @ A[k].reshape(9)
-            Qh[rows] = self._x[rows] @ B[k].T
-        g = np.maximum(2.0 * np.hypot(Qh[:, 0], Qh[:, 1]), 1e-300)
-        return f, Qh, g
-
     def residuals(
         self, centers: np.ndarray, normals: np.ndarray, radii: np.ndarray
     ) -> list[np.ndarray]:
         """Sampson distances (px) of each set's points to its circle's image conic."""
         if not self.edge_sets:
             return []
-        f, _, g = self._sampson(self.cones(centers, normals, radii))
-        return self._split(f / g)
+        none = np.zeros((0, len(radii), 3))
+        r, _ = _sampson_distances(
+            self._x, self._ends, self._K_inv_T2, *_as_float(centers, normals, radii),
+            none, none, np.zeros((0, len(radii))),
+        )  # fmt: skip
+        return self._split(r)
 
     def linearize(
         self,
@@ -245,30 +231,88 @@ class ConicObservations:
         P = d_radii.shape[0]
         if not self.edge_sets:
             return [], np.zeros((0, P))
-        c, n, rho = centers, normals, radii
-        a = np.einsum("si,si->s", c, c) - rho**2
-        s = np.einsum("si,si->s", n, c)
-        da = 2.0 * np.einsum("psi,si->ps", d_centers, c) - 2.0 * rho * d_radii
-        ds = np.einsum("psi,si->ps", d_normals, c) + np.einsum("si,psi->ps", n, d_centers)
-        M = (a[:, None] * d_normals - s[:, None] * d_centers - ds[..., None] * c)[..., :, None] * n[
-            :, None, :
-        ] - (s[:, None] * c)[:, :, None] * d_normals[..., None, :]
-        dA = (
-            M
-            + np.swapaxes(M, -1, -2)
-            + da[..., None, None] * (n[:, :, None] * n[:, None, :])
-            + (2.0 * s * ds)[..., None, None] * np.eye(3)
-        )
-        f, Qh, g = self._sampson(self.cones(c, n, rho))
-        dB = self._K_inv_T2 @ dA  # (P,S,2,3)
-        df = np.empty((len(self._x), P))  # xᵀA'x
-        dQh = np.empty((len(self._x), P, 2))  # (K⁻ᵀA'x)₁,₂
-        for k, rows in enumerate(self._slices):
-            df[rows] = self._xx[rows] @ dA[:, k].reshape(P, 9).T
-            dQh[rows] = (self._x[rows] @ dB[:, k].reshape(2 * P, 3).T).reshape(-1, P, 2)
-        dg = 4.0 * (Qh[:, 0:1] * dQh[:, :, 0] + Qh[:, 1:2] * dQh[:, :, 1]) / g[:, None]
-        J = df / g[:, None] - (f / g**2)[:, None] * dg
-        return self._split(f / g), J
+        r, J = _sampson_distances(
+            self._x, self._ends, self._K_inv_T2, *_as_float(centers, normals, radii),
+            *_as_float(d_centers, d_normals, d_radii),
+        )  # fmt: skip
+        return self._split(r), J
+
+
+def _as_float(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    return tuple(np.ascontiguousarray(a, dtype=float) for a in arrays)
+
+
+@numba.njit(cache=True)
+def _sampson_distances(x, ends, K_inv_T2, c, n, rho, d_centers, d_normals, d_radii):
+    """Sampson distances r = f/g (N,) of rays ``x`` (N,3; set k is rows ``ends[k]`` to
+    ``ends[k + 1]``) to the cones of circles (centres ``c``, normals ``n``, radii ``rho``)
+    and their Jacobian (N,P) from the circles' derivatives (P,S,3), (P,S,3), (P,S) — the
+    formulas of the class docstring, compiled: as NumPy they were dozens of calls on (P,S,3,3)
+    arrays for every linearisation of every fit."""
+    P = d_radii.shape[0]
+    N = len(x)
+    r = np.empty(N)
+    J = np.empty((N, P))
+    A = np.empty((3, 3))
+    B = np.empty((2, 3))
+    M = np.empty((3, 3))
+    dA = np.empty((P, 3, 3))
+    dB = np.empty((P, 2, 3))
+    for k in range(len(rho)):
+        a = c[k, 0] * c[k, 0] + c[k, 1] * c[k, 1] + c[k, 2] * c[k, 2] - rho[k] * rho[k]
+        s = n[k, 0] * c[k, 0] + n[k, 1] * c[k, 1] + n[k, 2] * c[k, 2]
+        # The cone A = M + Mᵀ + s²·I with M = (a/2·n − s·c)·nᵀ.
+        for i in range(3):
+            for j in range(3):
+                M[i, j] = (0.5 * a * n[k, i] - s * c[k, i]) * n[k, j]
+        for i in range(3):
+            for j in range(3):
+                A[i, j] = M[i, j] + M[j, i] + (s * s if i == j else 0.0)
+        for i in range(2):
+            for j in range(3):
+                B[i, j] = (
+                    K_inv_T2[i, 0] * A[0, j] + K_inv_T2[i, 1] * A[1, j] + K_inv_T2[i, 2] * A[2, j]
+                )
+        for p in range(P):
+            dc, dn = d_centers[p, k], d_normals[p, k]
+            da = (
+                2.0 * (dc[0] * c[k, 0] + dc[1] * c[k, 1] + dc[2] * c[k, 2])
+                - 2.0 * rho[k] * d_radii[p, k]
+            )
+            ds = dn[0] * c[k, 0] + dn[1] * c[k, 1] + dn[2] * c[k, 2]
+            ds += n[k, 0] * dc[0] + n[k, 1] * dc[1] + n[k, 2] * dc[2]
+            for i in range(3):
+                for j in range(3):
+                    M[i, j] = (a * dn[i] - s * dc[i] - ds * c[k, i]) * n[k, j] - s * c[k, i] * dn[j]
+            for i in range(3):
+                for j in range(3):
+                    dA[p, i, j] = M[i, j] + M[j, i] + da * n[k, i] * n[k, j]
+                dA[p, i, i] += 2.0 * s * ds
+            for i in range(2):
+                for j in range(3):
+                    dB[p, i, j] = (
+                        K_inv_T2[i, 0] * dA[p, 0, j]
+                        + K_inv_T2[i, 1] * dA[p, 1, j]
+                        + K_inv_T2[i, 2] * dA[p, 2, j]
+                    )
+        for m in range(ends[k], ends[k + 1]):
+            x0, x1, x2 = x[m, 0], x[m, 1], x[m, 2]
+            f = 0.0
+            for i in range(3):
+                f += x[m, i] * (A[i, 0] * x0 + A[i, 1] * x1 + A[i, 2] * x2)
+            q0 = B[0, 0] * x0 + B[0, 1] * x1 + B[0, 2] * x2
+            q1 = B[1, 0] * x0 + B[1, 1] * x1 + B[1, 2] * x2
+            g = max(2.0 * math.hypot(q0, q1), 1e-300)
+            r[m] = f / g
+            for p in range(P):
+                df = 0.0
+                for i in range(3):
+                    df += x[m, i] * (dA[p, i, 0] * x0 + dA[p, i, 1] * x1 + dA[p, i, 2] * x2)
+                dq0 = dB[p, 0, 0] * x0 + dB[p, 0, 1] * x1 + dB[p, 0, 2] * x2
+                dq1 = dB[p, 1, 0] * x0 + dB[p, 1, 1] * x1 + dB[p, 1, 2] * x2
+                dg = 4.0 * (q0 * dq0 + q1 * dq1) / g
+                J[m, p] = df / g - f / (g * g) * dg
+    return r, J
 
 
 # --- the 5-DOF circle ------------------------------------------------------------------------

@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from estimators.circle_fit import ConicObservations, EdgeSet
 from estimators.clipped_noise import clipped_likelihood_terms, clipped_moments
 from estimators.edge_fit import coarse_edge_offsets, fit_edge_points, fit_line_robust
 from estimators.point_fit import fit_corners, fit_discs
+from estimators.target import Circle3D
 
 
 def compile_kernels() -> None:
@@ -42,6 +44,18 @@ def compile_kernels() -> None:
         np.array([[[0.0, 1.0], [0.0, -1.0]]]),
         np.array([6.0]),
         noise_sigma=0.05,
+    )
+    ring = Circle3D("ring", np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.1)
+    angles = np.linspace(0.0, 2.0 * np.pi, 12, endpoint=False)
+    edges = EdgeSet(ring, np.column_stack([32 + 20 * np.cos(angles), 32 + 20 * np.sin(angles)]))
+    conics = ConicObservations((edges,), np.array([[200.0, 0, 32], [0, 200.0, 32], [0, 0, 1]]))
+    centre, normal, radius = (
+        np.array([[0.0, 0.0, 1.0]]),
+        np.array([[0.0, 0.0, 1.0]]),
+        np.array([0.1]),
+    )
+    conics.linearize(
+        centre, normal, radius, np.ones((6, 1, 3)), np.ones((6, 1, 3)), np.ones((6, 1))
     )
 
 

@@ -1,8 +1,9 @@
-from estimators import clipped_noise, edge_fit, point_fit
+from estimators import circle_fit, clipped_noise, edge_fit, point_fit
 from estimators.warmup import compile_kernels
 
 #: The compiled functions NumPy code calls (the others are compiled into these).
 ENTRY_POINTS = [
+    circle_fit._sampson_distances,
     clipped_noise._terms_array,
     clipped_noise._moments_array,
     edge_fit._band_kernel,
