@@ -535,40 +535,76 @@ def coarse_edge_offsets(
     if len(values) < 12:
         return None
     pieces = max(1, round(k / piece_strips))
-    piece = np.minimum((strip * pieces) // k, pieces - 1)
-    bins = 2 * reach + 1
-    cell = piece * bins + np.clip(np.rint(d).astype(int) + reach, 0, bins - 1)
-    total = np.bincount(cell, values, minlength=pieces * bins).reshape(pieces, bins)
-    count = np.bincount(cell, minlength=pieces * bins).reshape(pieces, bins).astype(float)
-    square = np.bincount(cell, values * values, minlength=pieces * bins).reshape(pieces, bins)
-    # Window sums by cumulative sums: inside = bins o+1..o+side, outside = o−side..o−1.
-    zero = np.zeros((pieces, 1))
-    total_c = np.concatenate([zero, np.cumsum(total, axis=1)], axis=1)
-    count_c = np.concatenate([zero, np.cumsum(count, axis=1)], axis=1)
-    limit = math.floor(search_px)
-    candidates = np.arange(-limit, limit + 1)
-    o = candidates + reach  # bin index of the candidate
-    in_sum = total_c[:, o + side_px + 1] - total_c[:, o + 1]
-    in_n = count_c[:, o + side_px + 1] - count_c[:, o + 1]
-    out_sum = total_c[:, o] - total_c[:, o - side_px]
-    out_n = count_c[:, o] - count_c[:, o - side_px]
-    usable = (in_n >= 3) & (out_n >= 3)
-    step = np.where(usable, in_sum / np.maximum(in_n, 1) - out_sum / np.maximum(out_n, 1), 0.0)
-    # Noise of the pixels around the piece's best step (its spread, edges included: a
-    # conservative z).
-    n_all = count.sum(axis=1)
-    mean_all = total.sum(axis=1) / np.maximum(n_all, 1)
-    spread = np.sqrt(np.maximum(square.sum(axis=1) / np.maximum(n_all, 1) - mean_all**2, 1e-12))
-    noise = spread[:, None] * np.sqrt(1.0 / np.maximum(in_n, 1) + 1.0 / np.maximum(out_n, 1))
-    z = step / noise
-    polarity = 1.0 if np.sum(np.max(z, axis=1)) >= np.sum(np.max(-z, axis=1)) else -1.0
-    signed = np.where(usable, polarity * z, -np.inf)
-    best = np.argmax(signed, axis=1)
-    rows = np.arange(pieces)
-    place = np.bincount(piece, strip, minlength=pieces) / np.maximum(
-        np.bincount(piece, minlength=pieces), 1
+    place, offset, strength, polarity = _coarse_steps(
+        values, d, strip, k, pieces, reach, side_px, math.floor(search_px)
     )
-    return CoarseOffsets(place, candidates[best].astype(float), signed[rows, best], polarity)
+    return CoarseOffsets(place, offset, strength, polarity)
+
+
+@numba.njit(cache=True)
+def _coarse_steps(values, d, strip, k, pieces, reach, side_px, limit):
+    """``coarse_edge_offsets``' profiles and steps, compiled (as NumPy, a few dozen calls on
+    arrays of a few hundred bins per edge): each piece's mean strip index, its best step's
+    offset (whole pixels within ±``limit``) and z, and the polarity they share."""
+    bins = 2 * reach + 1
+    total = np.zeros((pieces, bins))
+    count = np.zeros((pieces, bins))
+    square = np.zeros((pieces, bins))
+    strip_sum = np.zeros(pieces)
+    strip_count = np.zeros(pieces)
+    for m in range(len(values)):
+        piece = min((strip[m] * pieces) // k, pieces - 1)
+        cell = min(max(int(np.rint(d[m])) + reach, 0), bins - 1)
+        total[piece, cell] += values[m]
+        count[piece, cell] += 1.0
+        square[piece, cell] += values[m] * values[m]
+        strip_sum[piece] += strip[m]
+        strip_count[piece] += 1.0
+    candidates = 2 * limit + 1
+    z = np.zeros((pieces, candidates))
+    usable = np.zeros((pieces, candidates), np.bool_)
+    total_c = np.zeros(bins + 1)
+    count_c = np.zeros(bins + 1)
+    for q in range(pieces):
+        # Window sums by cumulative sums: inside = bins o+1..o+side, outside = o−side..o−1.
+        n_all = mean_all = mean_square = 0.0
+        for b in range(bins):
+            total_c[b + 1] = total_c[b] + total[q, b]
+            count_c[b + 1] = count_c[b] + count[q, b]
+            n_all += count[q, b]
+            mean_all += total[q, b]
+            mean_square += square[q, b]
+        mean_all /= max(n_all, 1.0)
+        mean_square /= max(n_all, 1.0)
+        # Noise of the pixels around the piece's best step (its spread, edges included: a
+        # conservative z).
+        spread = math.sqrt(max(mean_square - mean_all * mean_all, 1e-12))
+        for i in range(candidates):
+            o = i - limit + reach  # bin index of the candidate
+            in_sum = total_c[o + side_px + 1] - total_c[o + 1]
+            in_n = count_c[o + side_px + 1] - count_c[o + 1]
+            out_sum = total_c[o] - total_c[o - side_px]
+            out_n = count_c[o] - count_c[o - side_px]
+            usable[q, i] = in_n >= 3 and out_n >= 3
+            step = in_sum / max(in_n, 1.0) - out_sum / max(out_n, 1.0) if usable[q, i] else 0.0
+            noise = spread * math.sqrt(1.0 / max(in_n, 1.0) + 1.0 / max(out_n, 1.0))
+            z[q, i] = step / noise
+    rise = fall = 0.0
+    for q in range(pieces):
+        rise += z[q].max()
+        fall += (-z[q]).max()
+    polarity = 1.0 if rise >= fall else -1.0
+    place, offset, strength = np.empty(pieces), np.empty(pieces), np.empty(pieces)
+    for q in range(pieces):
+        best, best_z = 0, -np.inf
+        for i in range(candidates):
+            signed = polarity * z[q, i] if usable[q, i] else -np.inf
+            if signed > best_z:
+                best, best_z = i, signed
+        place[q] = strip_sum[q] / max(strip_count[q], 1.0)
+        offset[q] = float(best - limit)
+        strength[q] = best_z
+    return place, offset, strength, polarity
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -7,6 +7,7 @@ ENTRY_POINTS = [
     clipped_noise._terms_array,
     clipped_noise._moments_array,
     edge_fit._band_kernel,
+    edge_fit._coarse_steps,
     edge_fit._lattice_kernel,
     edge_fit._lattice_samples,
     edge_fit._fit_offsets,
