@@ -300,11 +300,12 @@ def _prepare(frame: Frame) -> ImageStack | str:
         if pixels.ndim == 3:
             pixels = cv2.cvtColor(pixels, cv2.COLOR_BGR2GRAY)
         pixels = np.clip(pixels, 0.0, 1.0)
-    low, high = np.percentile(cv2.blur(pixels, (5, 5))[::4, ::4], [1.0, 99.0])
+    local_mean = cv2.blur(pixels, (5, 5))
+    low, high = np.percentile(local_mean[::4, ::4], [1.0, 99.0])
     if high - low < MIN_INTENSITY_SPREAD:
         level = "black" if high < 0.1 else "saturated" if low > 0.9 else "uniform"
         return f"image has no contrast ({level}: 1–99 % intensities {low:.2f}–{high:.2f})"
-    shown, sigma = noise_levels(pixels)
+    shown, sigma = noise_levels(pixels, local_mean)
     shown = max(shown, NOISE_FLOOR)
     if _only_noise(pixels, shown):
         return "image holds nothing but noise (blank)"
@@ -335,7 +336,7 @@ def estimate_noise_sigma(pixels: np.ndarray) -> float:
     return noise_levels(pixels)[1]
 
 
-def noise_levels(pixels: np.ndarray) -> tuple[float, float]:
+def noise_levels(pixels: np.ndarray, local_mean: np.ndarray | None = None) -> tuple[float, float]:
     """Standard deviation of the additive white noise of an image as its pixels show it, and
     before the sensor clipped it, from its Laplacian.
 
@@ -346,14 +347,17 @@ def noise_levels(pixels: np.ndarray) -> tuple[float, float]:
     mean of |N(0, s)| below its 90th percentile is 0.8238 of the full mean, which the estimate
     divides out. Clipping still hides some of the noise of the pixels kept (at σ = 0.32, 12 %
     of a 0.37 grey is clipped): the noise σ is the one whose clipped variance, averaged over
-    those pixels' levels (``clipped_moments``), gives what was measured.
+    those pixels' levels (``clipped_moments``), gives what was measured. ``local_mean``: the
+    5×5 box mean of ``pixels`` (``cv2.blur``), when the caller has it already.
     """
     mask = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], dtype=np.float32)
     if min(pixels.shape[:2]) < 6:
         return 0.0, 0.0
     # Every third pixel each way is plenty for a global statistic.
     response = np.abs(cv2.filter2D(pixels, cv2.CV_32F, mask))[1:-1:3, 1:-1:3]
-    level = cv2.blur(pixels, (5, 5))[1:-1:3, 1:-1:3]
+    if local_mean is None:
+        local_mean = cv2.blur(pixels, (5, 5))
+    level = local_mean[1:-1:3, 1:-1:3]
     chosen = (level > 0.2) & (level < 0.8)
     if chosen.sum() < 100:
         chosen = np.ones_like(chosen)
