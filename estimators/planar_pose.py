@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 import cv2
+import numba
 import numpy as np
 
 from estimators.geometry import Pose, as_points, nearest_rotation, rotation_error_geodesic
@@ -102,6 +103,43 @@ def projection_jacobian(X_CT: Pose, points_T: np.ndarray, K: np.ndarray):
     dP[:, 2, 0], dP[:, 2, 1] = q[:, 1], -q[:, 0]
     dP[:, :, 3:] = np.eye(3)
     return uv, dUV_dP @ dP, z
+
+
+@numba.njit(cache=True)
+def _whitened_reprojection(R, p, points_T, K, L, uv_measured):
+    """``PointObservations.linearize`` compiled: ``projection_jacobian``'s pixels and Jacobian
+    for each point, less the measured pixels, whitened by its L (2×2) — the corner system
+    linearises a few dozen points some twenty times a frame, where NumPy's calls on (N,2,6)
+    arrays cost more than their arithmetic."""
+    n = len(points_T)
+    r, r_w, J_w = np.empty(2 * n), np.empty(2 * n), np.empty((2 * n, 6))
+    fx, skew, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    J = np.empty((2, 6))
+    for i in range(n):
+        q = np.empty(3)
+        for a in range(3):
+            q[a] = R[a, 0] * points_T[i, 0] + R[a, 1] * points_T[i, 1] + R[a, 2] * points_T[i, 2]
+        x, y, z = q[0] + p[0], q[1] + p[1], q[2] + p[2]
+        z = z if z > 1e-9 else np.nan
+        # ∂(u, v)/∂P, and ∂P/∂[δθ, δp] = [−[q]ₓ, I]
+        du0, du1, du2 = fx / z, skew / z, -(fx * x + skew * y) / (z * z)
+        dv1, dv2 = fy / z, -fy * y / (z * z)
+        J[0, 0] = du1 * -q[2] + du2 * q[1]
+        J[0, 1] = du0 * q[2] + du2 * -q[0]
+        J[0, 2] = du0 * -q[1] + du1 * q[0]
+        J[0, 3], J[0, 4], J[0, 5] = du0, du1, du2
+        J[1, 0] = dv1 * -q[2] + dv2 * q[1]
+        J[1, 1] = dv2 * -q[0]
+        J[1, 2] = dv1 * q[0]
+        J[1, 3], J[1, 4], J[1, 5] = 0.0, dv1, dv2
+        ru = (fx * x + skew * y) / z + cx - uv_measured[i, 0]
+        rv = fy * y / z + cy - uv_measured[i, 1]
+        r[2 * i], r[2 * i + 1] = ru, rv
+        for a in range(2):
+            r_w[2 * i + a] = L[i, a, 0] * ru + L[i, a, 1] * rv
+            for c in range(6):
+                J_w[2 * i + a, c] = L[i, a, 0] * J[0, c] + L[i, a, 1] * J[1, c]
+    return r, r_w, J_w
 
 
 # --- observations ----------------------------------------------------------------------------
@@ -177,12 +215,14 @@ class PointObservations:
 
     def linearize(self, X_CT: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(residuals in px (2N,), whitened residuals (2N,), whitened Jacobian (2N,6))."""
-        uv, J, _ = projection_jacobian(X_CT, self.points_T, K)
-        r = uv - self.uv
-        L = self._whitening
-        r_w = np.einsum("nij,nj->ni", L, r).reshape(-1)
-        J_w = np.einsum("nij,njk->nik", L, J).reshape(-1, 6)
-        return r.reshape(-1), r_w, J_w
+        return _whitened_reprojection(
+            np.asarray(X_CT.R, dtype=float),
+            np.asarray(X_CT.p, dtype=float),
+            self.points_T,
+            np.asarray(K, dtype=float),
+            self._whitening,
+            self.uv,
+        )
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -15,6 +15,8 @@ import numpy as np
 from estimators.circle_fit import ConicObservations, EdgeSet
 from estimators.clipped_noise import clipped_likelihood_terms, clipped_moments
 from estimators.edge_fit import coarse_edge_offsets, fit_edge_points, fit_line_robust
+from estimators.geometry import Pose
+from estimators.planar_pose import PointObservations
 from estimators.point_fit import fit_corners, fit_discs
 from estimators.target import Circle3D
 
@@ -57,6 +59,8 @@ def compile_kernels() -> None:
     conics.linearize(
         centre, normal, radius, np.ones((6, 1, 3)), np.ones((6, 1, 3)), np.ones((6, 1))
     )
+    points = PointObservations(np.eye(3), np.ones((3, 2)), np.tile(np.eye(2), (3, 1, 1)))
+    points.linearize(Pose(np.eye(3), np.array([0.0, 0.0, 1.0])), conics.K)
 
 
 if __name__ == "__main__":  # `python -m estimators.warmup` (make does it after installing)

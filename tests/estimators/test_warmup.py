@@ -1,4 +1,4 @@
-from estimators import circle_fit, clipped_noise, edge_fit, point_fit
+from estimators import circle_fit, clipped_noise, edge_fit, planar_pose, point_fit
 from estimators.warmup import compile_kernels
 
 #: The compiled functions NumPy code calls (the others are compiled into these).
@@ -12,6 +12,7 @@ ENTRY_POINTS = [
     edge_fit._lattice_samples,
     edge_fit._fit_offsets,
     edge_fit._robust_line,
+    planar_pose._whitened_reprojection,
     point_fit._disc_model,
     point_fit._fit_discs_kernel,
     point_fit._wedge_model,
