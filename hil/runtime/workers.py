@@ -150,7 +150,20 @@ class InlineWorkers:
 
 # --- one process per system ------------------------------------------------------------------
 
-_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+#: The environment a worker starts with (read when numpy and the C library load).
+#: One core per worker: the workers are the parallelism, and threaded BLAS on the small
+#: matrices of a pose fit only makes them contend. And glibc's allocator keeps freed memory for
+#: reuse: by default it maps every array over its adaptive threshold afresh and returns freed
+#: heap memory to the system, so each frame's megabyte-sized images were written to new pages,
+#: each page a fault (the line system took 20.3 ms a frame on frames unpickled as a worker
+#: receives them, 18.7 ms with these settings; either setting alone does not do it).
+WORKER_ENVIRONMENT = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "MALLOC_MMAP_THRESHOLD_": str(32 << 20),
+    "MALLOC_TRIM_THRESHOLD_": str(512 << 20),
+}
 
 
 def _worker_main(
@@ -200,10 +213,8 @@ class ProcessWorkers:
         self._busy: dict[str, VisionJob] = {}
         try:
             readies = {}
-            # One core per worker: the workers are the parallelism, and threaded BLAS on the
-            # small matrices of a pose fit only makes them contend (read when numpy loads).
-            saved = {name: os.environ.get(name) for name in _THREAD_VARIABLES}
-            os.environ.update(dict.fromkeys(_THREAD_VARIABLES, "1"))
+            saved = {name: os.environ.get(name) for name in WORKER_ENVIRONMENT}
+            os.environ.update(WORKER_ENVIRONMENT)
             for system in systems:
                 ours, theirs = context.Pipe()
                 ready_ours, ready_theirs = context.Pipe(duplex=False)
