@@ -210,10 +210,10 @@ class ConicObservations:
         """Sampson distances (px) of each set's points to its circle's image conic."""
         if not self.edge_sets:
             return []
-        none = np.zeros((0, len(radii), 3))
+        no_parameters = np.zeros((0, len(radii), 3))  # distances only, no Jacobian
         r, _ = _sampson_distances(
             self._x, self._ends, self._K_inv_T2, *_as_float(centers, normals, radii),
-            none, none, np.zeros((0, len(radii))),
+            no_parameters, no_parameters, np.zeros((0, len(radii))),
         )  # fmt: skip
         return self._split(r)
 

@@ -567,15 +567,15 @@ def _coarse_steps(values, d, strip, k, pieces, reach, side_px, limit):
     count_c = np.zeros(bins + 1)
     for q in range(pieces):
         # Window sums by cumulative sums: inside = bins o+1..o+side, outside = o−side..o−1.
-        n_all = mean_all = mean_square = 0.0
+        n_all = sum_all = sum_square = 0.0
         for b in range(bins):
             total_c[b + 1] = total_c[b] + total[q, b]
             count_c[b + 1] = count_c[b] + count[q, b]
             n_all += count[q, b]
-            mean_all += total[q, b]
-            mean_square += square[q, b]
-        mean_all /= max(n_all, 1.0)
-        mean_square /= max(n_all, 1.0)
+            sum_all += total[q, b]
+            sum_square += square[q, b]
+        mean_all = sum_all / max(n_all, 1.0)
+        mean_square = sum_square / max(n_all, 1.0)
         # Noise of the pixels around the piece's best step (its spread, edges included: a
         # conservative z).
         spread = math.sqrt(max(mean_square - mean_all * mean_all, 1e-12))
