@@ -114,9 +114,8 @@ def _whitened_reprojection(R, p, points_T, K, L, uv_measured):
     n = len(points_T)
     r, r_w, J_w = np.empty(2 * n), np.empty(2 * n), np.empty((2 * n, 6))
     fx, skew, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
-    J = np.empty((2, 6))
+    J, q = np.empty((2, 6)), np.empty(3)
     for i in range(n):
-        q = np.empty(3)
         for a in range(3):
             q[a] = R[a, 0] * points_T[i, 0] + R[a, 1] * points_T[i, 1] + R[a, 2] * points_T[i, 2]
         x, y, z = q[0] + p[0], q[1] + p[1], q[2] + p[2]
