@@ -238,22 +238,22 @@ def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     d = np.zeros(14)
     coeffs = check_distortion(dist)
     d[: coeffs.size] = coeffs
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4, tau_x, tau_y = d
-    x, y = xy[:, 0], xy[:, 1]
-    r2 = x * x + y * y
-    r4 = r2 * r2
-    r6 = r4 * r2
-    radial = (1 + k1 * r2 + k2 * r4 + k3 * r6) / (1 + k4 * r2 + k5 * r4 + k6 * r6)
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + s1 * r2 + s2 * r4
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + s3 * r2 + s4 * r4
+    # Compiled, and imported here: a process that never distorts a point (the control loop)
+    # does not load numba.
+    from estimators.lens_distortion import distort
+
+    distorted = distort(np.ascontiguousarray(xy), d)
+    tau_x, tau_y = d[12], d[13]
     if tau_x != 0.0 or tau_y != 0.0:
+        xd, yd = distorted[:, 0], distorted[:, 1]
         M = sensor_tilt_matrix(tau_x, tau_y)
         w = M[2, 0] * xd + M[2, 1] * yd + M[2, 2]
         xd, yd = (
             (M[0, 0] * xd + M[0, 1] * yd + M[0, 2]) / w,
             (M[1, 0] * xd + M[1, 1] * yd + M[1, 2]) / w,
         )
-    return np.column_stack([xd, yd])
+        return np.column_stack([xd, yd])
+    return distorted
 
 
 def project(points_C: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None) -> np.ndarray:

@@ -15,7 +15,7 @@ import numpy as np
 from estimators.circle_fit import ConicObservations, EdgeSet
 from estimators.clipped_noise import clipped_likelihood_terms, clipped_moments
 from estimators.edge_fit import coarse_edge_offsets, fit_edge_points, fit_line_robust
-from estimators.geometry import Pose
+from estimators.geometry import Pose, distort_normalized
 from estimators.planar_pose import PointObservations
 from estimators.point_fit import fit_corners, fit_discs
 from estimators.target import Circle3D
@@ -30,6 +30,7 @@ def compile_kernels() -> None:
     pixels[:, 40:] = 0.7
     clipped_likelihood_terms(np.array([0.0, 0.5, 1.0]), np.array([0.1, 0.5, 0.9]), 0.1)
     clipped_moments(np.array([0.1, 0.5]), 0.1)
+    distort_normalized(np.array([[0.1, -0.2]]), np.array([0.1, -0.05, 0.001, 0.002, 0.01]))
     centers = np.column_stack([np.full(8, 40.0), np.linspace(10.0, 54.0, 8)])
     normals = np.tile([-1.0, 0.0], (8, 1))
     for sigma in (0.0, 0.05):

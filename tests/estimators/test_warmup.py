@@ -1,4 +1,11 @@
-from estimators import circle_fit, clipped_noise, edge_fit, planar_pose, point_fit
+from estimators import (
+    circle_fit,
+    clipped_noise,
+    edge_fit,
+    lens_distortion,
+    planar_pose,
+    point_fit,
+)
 from estimators.warmup import compile_kernels
 
 #: The compiled functions NumPy code calls (the others are compiled into these).
@@ -7,6 +14,7 @@ ENTRY_POINTS = [
     clipped_noise._terms_array,
     clipped_noise._moments_array,
     edge_fit._band_kernel,
+    lens_distortion.distort,
     edge_fit._coarse_steps,
     edge_fit._lattice_kernel,
     edge_fit._lattice_samples,
