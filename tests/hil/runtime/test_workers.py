@@ -4,9 +4,11 @@ pipeline starts it."""
 from __future__ import annotations
 
 import os
+import pickle
 import time
 from pathlib import Path
 
+import hil.runtime.workers as workers_module
 from estimators.geometry import translation_error
 from hil.runtime.workers import WORKER_ENVIRONMENT, ProcessWorkers, VisionJob
 from tests.estimators import rendered
@@ -17,26 +19,35 @@ def _environment(pid: int) -> dict[str, str]:
     return dict(e.decode().split("=", 1) for e in entries if b"=" in e)
 
 
-def test_a_worker_runs_its_system_in_the_environment_it_was_given():
+def test_workers_run_their_systems_on_one_frame_pickled_once(monkeypatch):
     """Each worker estimates in a process of its own, with one BLAS thread and glibc's
     allocator told to keep freed memory (a frame's images otherwise land on new pages every
-    frame: 10 % of a system's time); the parent's environment is left as it was."""
+    frame: 10 % of a system's time); the parent's environment is left as it was. A frame for
+    several workers is pickled once (1.5 ms for a 1280×800 colour frame)."""
     frame = rendered.frame(1.2)
+    dumps, original = [], pickle.dumps
+    monkeypatch.setattr(
+        workers_module.pickle, "dumps", lambda *a, **k: dumps.append(1) or original(*a, **k)
+    )
     before = dict(os.environ)
-    workers = ProcessWorkers(("corners",), rendered.target(), frame.info)
+    systems = ("corners", "lines")
+    workers = ProcessWorkers(systems, rendered.target(), frame.info)
     try:
-        pid = workers._processes["corners"].pid
-        assert WORKER_ENVIRONMENT.items() <= _environment(pid).items()
+        for system in systems:
+            pid = workers._processes[system].pid
+            assert WORKER_ENVIRONMENT.items() <= _environment(pid).items()
         assert dict(os.environ) == before
-        workers.start(VisionJob("corners", frame, frame.truth.X_CT, time.monotonic()))
+        for system in systems:
+            workers.start(VisionJob(system, frame, frame.truth.X_CT, time.monotonic()))
         deadline = time.monotonic() + 60.0
         done = []
-        while not done and time.monotonic() < deadline:
-            done = workers.finished(time.monotonic())
+        while len(done) < len(systems) and time.monotonic() < deadline:
+            done += workers.finished(time.monotonic())
             time.sleep(0.01)
     finally:
         workers.close()
-    assert len(done) == 1 and done[0].error is None
-    measurement = done[0].measurement
-    assert measurement.valid
-    assert translation_error(measurement.X_CT, frame.truth.X_CT) < 0.005
+    assert len(dumps) == 1
+    assert sorted(r.job.system for r in done) == sorted(systems)
+    for result in done:
+        assert result.error is None and result.measurement.valid
+        assert translation_error(result.measurement.X_CT, frame.truth.X_CT) < 0.005
