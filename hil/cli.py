@@ -28,6 +28,7 @@ from hil import cli_campaigns
 from hil.cli_emulate import emulate_app
 from hil.cli_faults import faults_command
 from hil.cli_rig import check_rig
+from hil.runtime.processes import keep_freed_memory
 
 #: The option parser's error type (click's, vendored by recent typer releases).
 _ParserError = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
@@ -1205,6 +1206,7 @@ def demo(
 
 
 def main() -> None:
+    keep_freed_memory()  # the estimators' per-frame images on pages already mapped
     try:
         app()
     except ConfigError as exc:  # a configuration named deeper than a command's own checks

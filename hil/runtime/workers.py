@@ -30,7 +30,7 @@ from estimators.measurement import Estimator, Measurement
 from estimators.registry import build_estimator
 from estimators.target import TargetModel
 from estimators.warmup import compile_kernels
-from hil.runtime.processes import peak_rss_mib, stop_process
+from hil.runtime.processes import keep_freed_memory, peak_rss_mib, stop_process
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -151,20 +151,12 @@ class InlineWorkers:
 
 # --- one process per system ------------------------------------------------------------------
 
-#: The environment a worker starts with (read when numpy and the C library load).
-#: One core per worker: the workers are the parallelism, and threaded BLAS on the small
-#: matrices of a pose fit only makes them contend. And glibc's allocator keeps freed memory for
-#: reuse: by default it maps every array over its adaptive threshold afresh and returns freed
-#: heap memory to the system, so each frame's megabyte-sized images were written to new pages,
-#: each page a fault (the line system took 20.3 ms a frame on frames unpickled as a worker
-#: receives them, 18.7 ms with these settings; either setting alone does not do it).
-WORKER_ENVIRONMENT = {
-    "OMP_NUM_THREADS": "1",
-    "OPENBLAS_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-    "MALLOC_MMAP_THRESHOLD_": str(32 << 20),
-    "MALLOC_TRIM_THRESHOLD_": str(512 << 20),
-}
+#: The environment a worker starts with (read when numpy loads): one core per worker — the
+#: workers are the parallelism, and threaded BLAS on the small matrices of a pose fit only makes
+#: them contend.
+WORKER_ENVIRONMENT = dict.fromkeys(
+    ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"), "1"
+)
 
 
 def _worker_main(
@@ -173,6 +165,7 @@ def _worker_main(
     """A worker process: build the estimator once, then answer jobs until told to stop."""
     import cv2
 
+    keep_freed_memory()  # each frame's images on pages already mapped
     cv2.setNumThreads(1)  # one core per worker: the workers themselves are the parallelism
     try:
         estimator = build_estimator(system, target, info)

@@ -20,10 +20,9 @@ def _environment(pid: int) -> dict[str, str]:
 
 
 def test_workers_run_their_systems_on_one_frame_pickled_once(monkeypatch):
-    """Each worker estimates in a process of its own, with one BLAS thread and glibc's
-    allocator told to keep freed memory (a frame's images otherwise land on new pages every
-    frame: 10 % of a system's time); the parent's environment is left as it was. A frame for
-    several workers is pickled once (1.5 ms for a 1280×800 colour frame)."""
+    """Each worker estimates in a process of its own, with one BLAS thread; the parent's
+    environment is left as it was. A frame for several workers is pickled once (1.5 ms for a
+    1280×800 colour frame)."""
     frame = rendered.frame(1.2)
     dumps, original = [], pickle.dumps
     monkeypatch.setattr(
