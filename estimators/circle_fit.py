@@ -143,7 +143,6 @@ class ConicObservations:
     K: np.ndarray
     _x: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
     _ends: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
-    _slices: tuple[slice, ...] = field(default=(), repr=False)
     _K_inv_T2: np.ndarray = field(default=None, repr=False)  # type: ignore[assignment]
     _model: tuple = field(default=(), repr=False)
 
@@ -166,7 +165,6 @@ class ConicObservations:
         object.__setattr__(self, "edge_sets", sets)
         object.__setattr__(self, "_x", np.ascontiguousarray(x))
         object.__setattr__(self, "_ends", np.asarray(ends, dtype=np.int64))
-        object.__setattr__(self, "_slices", tuple(map(slice, ends[:-1], ends[1:])))
         object.__setattr__(self, "_K_inv_T2", np.ascontiguousarray(K_inv.T[:2]))
 
     @property
@@ -202,7 +200,7 @@ class ConicObservations:
         return d
 
     def _split(self, values: np.ndarray) -> list[np.ndarray]:
-        return [values[rows] for rows in self._slices]
+        return [values[a:b] for a, b in zip(self._ends[:-1], self._ends[1:], strict=True)]
 
     def residuals(
         self, centers: np.ndarray, normals: np.ndarray, radii: np.ndarray

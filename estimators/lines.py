@@ -604,16 +604,15 @@ class LineEstimator:
         radius = self._masked_radius[in_front] * self.camera.K[0, 0] / P[in_front, 2] + 2.0
 
         def keep(coords: np.ndarray) -> np.ndarray:
-            ok = np.ones(len(coords), bool)
             if not len(coords) or not len(uv):
-                return ok
+                return np.ones(len(coords), bool)
             # (column by column: a reduction along the first axis of an (N, 2) array is an
             # order of magnitude slower)
             u, v = coords[:, 0], coords[:, 1]
             lo, hi = np.array([u.min(), v.min()]), np.array([u.max(), v.max()])
             near = np.all((uv + radius[:, None] >= lo) & (uv - radius[:, None] <= hi), axis=1)
             if not near.any():
-                return ok
+                return np.ones(len(coords), bool)
             centres, r = uv[near], radius[near]
             gap = np.hypot(u[:, None] - centres[:, 0], v[:, None] - centres[:, 1])
             return np.all(gap > r, axis=1)

@@ -258,10 +258,11 @@ def pipeline_timing(
         seq, next_frame = 0, t0
         source = frames[0]
         while (now := time.monotonic()) < t0 + seconds:
-            if now >= next_frame:
+            due = now >= next_frame
+            if due:
                 source = frames[seq % len(frames)]
             pipeline.publish_state(arm_state(source, now))
-            if now >= next_frame:
+            if due:
                 frame = Frame(source.image, now, info, seq, source.truth, arrival_stamp=now)
                 pipeline.on_frame(frame, now)
                 seq += 1
