@@ -56,7 +56,12 @@ from estimators.imaging import (
 from estimators.least_squares import median
 from estimators.measurement import Measurement
 from estimators.model_support import ModelSupport, Support
-from estimators.model_view import head_extrusion, local_affine, plane_coordinates
+from estimators.model_view import (
+    head_extrusion,
+    local_affine,
+    outside_circles,
+    plane_coordinates,
+)
 from estimators.planar_pose import (
     POSE_METHODS,
     PointObservations,
@@ -492,16 +497,11 @@ class CornerEstimator:
         margin_m = 2.5 * depth / self.camera.K[0, 0]  # 2.5 px at the panel
         ring_limit = self._ring_inner - margin_m
 
+        clearance = disc_r + margin_m
+
         def keep(coords: np.ndarray) -> np.ndarray:
             xy = plane_coordinates(coords, X_CT, self.camera, z_panel)
-            ok = np.isfinite(xy[:, 0])
-            xy = np.nan_to_num(xy)
-            ok &= np.hypot(xy[:, 0], xy[:, 1]) < ring_limit
-            gap = np.hypot(
-                xy[:, None, 0] - disc_xy[None, :, 0], xy[:, None, 1] - disc_xy[None, :, 1]
-            )
-            ok &= np.all(gap > disc_r + margin_m, axis=1)
-            return ok
+            return outside_circles(xy, disc_xy, clearance, within=ring_limit)
 
         directions, windows = np.array(directions), np.array(windows)
         fits = fit_corners(

@@ -59,7 +59,7 @@ from estimators.imaging import (
 from estimators.least_squares import median
 from estimators.measurement import Measurement
 from estimators.model_support import ModelSupport, Support
-from estimators.model_view import plane_coordinates
+from estimators.model_view import outside_circles, plane_coordinates
 from estimators.outline_edges import (
     OutlineEdges,
     fit_outline_edges,
@@ -405,17 +405,11 @@ class LineEstimator:
         ring_limit = self._ring_inner - margin_m
         disc_xy, disc_r = self._disc_xy, self._disc_r
 
+        clearance = disc_r + margin_m
+
         def keep(coords: np.ndarray) -> np.ndarray:
             xy = plane_coordinates(coords, X_CT, self.camera, self._z_panel)
-            ok = np.isfinite(xy[:, 0])
-            xy = np.nan_to_num(xy)
-            ok &= np.hypot(xy[:, 0], xy[:, 1]) < ring_limit
-            if len(disc_xy):
-                gap = np.hypot(
-                    xy[:, None, 0] - disc_xy[None, :, 0], xy[:, None, 1] - disc_xy[None, :, 1]
-                )
-                ok &= np.all(gap > disc_r + margin_m, axis=1)
-            return ok
+            return outside_circles(xy, disc_xy, clearance, within=ring_limit)
 
         return keep
 
@@ -604,18 +598,14 @@ class LineEstimator:
         radius = self._masked_radius[in_front] * self.camera.K[0, 0] / P[in_front, 2] + 2.0
 
         def keep(coords: np.ndarray) -> np.ndarray:
-            if not len(coords) or not len(uv):
-                return np.ones(len(coords), bool)
-            # (column by column: a reduction along the first axis of an (N, 2) array is an
-            # order of magnitude slower)
+            if not len(coords):
+                return np.ones(0, bool)
+            # Only the circles that reach the pixels' bounding box (column by column: a
+            # reduction along the first axis of an (N, 2) array is an order of magnitude slower).
             u, v = coords[:, 0], coords[:, 1]
             lo, hi = np.array([u.min(), v.min()]), np.array([u.max(), v.max()])
             near = np.all((uv + radius[:, None] >= lo) & (uv - radius[:, None] <= hi), axis=1)
-            if not near.any():
-                return np.ones(len(coords), bool)
-            centres, r = uv[near], radius[near]
-            gap = np.hypot(u[:, None] - centres[:, 0], v[:, None] - centres[:, 1])
-            return np.all(gap > r, axis=1)
+            return outside_circles(coords, uv[near], radius[near])
 
         return keep
 

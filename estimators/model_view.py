@@ -4,6 +4,9 @@ image pixels mapped back onto them. Used to shape fitting windows and to mask ot
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 
 from estimators.frame import CameraInfo
@@ -37,6 +40,36 @@ def plane_coordinates(uv: np.ndarray, X_CT: Pose, camera: CameraInfo, z_T: float
         s = (z_T - o[2]) / d[:, 2]
     s = np.where(s > 0, s, np.nan)
     return o[:2] + s[:, None] * d[:, :2]
+
+
+def outside_circles(
+    points: np.ndarray, centres: np.ndarray, radii: np.ndarray, *, within: float = math.inf
+) -> np.ndarray:
+    """Which points (N,2) lie farther than ``radii`` (M,) from every centre (M,2), and closer
+    than ``within`` to the origin (False for a non-finite point) — the pixels an edge or corner
+    fit may use: clear of the fasteners, inside the ring. Compiled: it runs on every pixel of
+    every band (N × M distances as NumPy temporaries cost the line system a millisecond a
+    frame)."""
+    return _outside_circles(
+        np.ascontiguousarray(points, dtype=float),
+        np.ascontiguousarray(centres, dtype=float).reshape(-1, 2),
+        np.ascontiguousarray(radii, dtype=float).reshape(-1),
+        float(within),
+    )
+
+
+@numba.njit(cache=True)
+def _outside_circles(points, centres, radii, within):
+    keep = np.empty(len(points), np.bool_)
+    for i in range(len(points)):
+        x, y = points[i, 0], points[i, 1]
+        ok = math.isfinite(x) and math.hypot(x, y) < within
+        j = 0
+        while ok and j < len(centres):
+            ok = math.hypot(x - centres[j, 0], y - centres[j, 1]) > radii[j]
+            j += 1
+        keep[i] = ok
+    return keep
 
 
 def head_extrusion(

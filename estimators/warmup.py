@@ -16,6 +16,7 @@ from estimators.circle_fit import ConicObservations, EdgeSet
 from estimators.clipped_noise import clipped_likelihood_terms, clipped_moments
 from estimators.edge_fit import coarse_edge_offsets, fit_edge_points, fit_line_robust
 from estimators.geometry import Pose, distort_normalized
+from estimators.model_view import outside_circles
 from estimators.planar_pose import PointObservations
 from estimators.point_fit import fit_corners, fit_discs
 from estimators.target import Circle3D
@@ -60,6 +61,7 @@ def compile_kernels() -> None:
     conics.linearize(
         centre, normal, radius, np.ones((6, 1, 3)), np.ones((6, 1, 3)), np.ones((6, 1))
     )
+    outside_circles(np.ones((2, 2)), np.zeros((1, 2)), np.ones(1), within=2.0)
     points = PointObservations(np.eye(3), np.ones((3, 2)), np.tile(np.eye(2), (3, 1, 1)))
     points.linearize(Pose(np.eye(3), np.array([0.0, 0.0, 1.0])), conics.K)
 

@@ -3,6 +3,7 @@ from estimators import (
     clipped_noise,
     edge_fit,
     lens_distortion,
+    model_view,
     planar_pose,
     point_fit,
 )
@@ -15,6 +16,7 @@ ENTRY_POINTS = [
     clipped_noise._moments_array,
     edge_fit._band_kernel,
     lens_distortion.distort,
+    model_view._outside_circles,
     edge_fit._coarse_steps,
     edge_fit._lattice_kernel,
     edge_fit._lattice_samples,
