@@ -15,7 +15,9 @@ import numpy as np
 from estimators.circle_fit import ConicObservations, EdgeSet
 from estimators.clipped_noise import clipped_likelihood_terms, clipped_moments
 from estimators.edge_fit import coarse_edge_offsets, fit_edge_points, fit_line_robust
+from estimators.edge_search import search_edges
 from estimators.geometry import Pose, distort_normalized
+from estimators.imaging import smoothed_gradient
 from estimators.model_view import outside_circles
 from estimators.planar_pose import PointObservations
 from estimators.point_fit import fit_corners, fit_discs
@@ -37,6 +39,9 @@ def compile_kernels() -> None:
     for sigma in (0.0, 0.05):
         fit_edge_points(pixels, centers, normals, 3.0, 3.0, search_px=2.0, noise_sigma=sigma)
     coarse_edge_offsets(pixels, centers, normals, 3.0, 4.0)
+    field = smoothed_gradient(pixels, 1.0, 0.05)
+    for prior_sigma_px in (None, 1.0):
+        search_edges(field, centers, -normals, 1, 4.0, prior_sigma_px=prior_sigma_px)
     fit_line_robust(centers + np.random.default_rng(0).normal(0, 0.1, centers.shape), np.ones(8))
     A = (np.eye(2) * 1000.0)[None]  # 1 mm per px, one disc
     fit_discs(

@@ -33,6 +33,23 @@ def test_search_edges_locates_a_step_to_subpixel(edge_x):
     assert not search_edges(field, points - [6.0, 0.0], normals, +1, 3.0).found.any()
 
 
+def test_search_edges_rejects_searches_off_the_field_and_gradients_across_the_normal():
+    image = step_image(70.0)
+    field = smoothed_gradient(image, 1.0, 0.01)
+    # Rows 0..1 search past the field's left border; the others lie inside it.
+    points = np.array([[2.0, 60.0], [1.0, 61.0], [68.0, 62.0], [68.0, 63.0]])
+    normals = np.tile([-1.0, 0.0], (4, 1))
+    hits = search_edges(field, points, normals, -1, 5.0)
+    assert hits.found.tolist() == [False, False, True, True]
+    assert np.isnan(hits.uv[:2]).all() and np.isnan(hits.offset_px[:2]).all()
+    assert (hits.snr[:2] == 0).all() and (hits.snr[2:] > 3).all()
+    # Along a normal 60° off the gradient the edge is not this curve's (max 50°); 40° is.
+    for angle_deg, expected in ((60.0, False), (40.0, True)):
+        a = np.radians(angle_deg)
+        tilted = search_edges(field, points[2:], np.tile([np.cos(a), np.sin(a)], (2, 1)), +1, 8.0)
+        assert tilted.found.tolist() == [expected, expected]
+
+
 def test_search_edges_prefers_the_edge_nearest_the_prediction():
     """Two edges of the same polarity in the window; the weaker one at the prediction wins
     when a prior width is given (a strong neighbour, like a bolt hole, must not)."""
