@@ -235,25 +235,21 @@ def sensor_tilt_matrix(tau_x: float, tau_y: float) -> np.ndarray:
 def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """Apply OpenCV lens distortion to normalized image coordinates (N,2) → (N,2)."""
     xy = as_points(xy, 2, "xy")
-    d = np.zeros(14)
-    coeffs = check_distortion(dist)
-    d[: coeffs.size] = coeffs
     # Compiled, and imported here: a process that never distorts a point (the control loop)
     # does not load numba.
     from estimators.lens_distortion import distort
 
-    distorted = distort(np.ascontiguousarray(xy), d)
-    tau_x, tau_y = d[12], d[13]
-    if tau_x != 0.0 or tau_y != 0.0:
-        xd, yd = distorted[:, 0], distorted[:, 1]
-        M = sensor_tilt_matrix(tau_x, tau_y)
-        w = M[2, 0] * xd + M[2, 1] * yd + M[2, 2]
-        xd, yd = (
-            (M[0, 0] * xd + M[0, 1] * yd + M[0, 2]) / w,
-            (M[1, 0] * xd + M[1, 1] * yd + M[1, 2]) / w,
-        )
-        return np.column_stack([xd, yd])
-    return distorted
+    return distort(np.ascontiguousarray(xy), *_lens_terms(dist))
+
+
+def _lens_terms(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The distortion coefficients padded to 14, the tilted sensor's projection (identity
+    without a tilt) and whether there is one — the compiled lens model's arguments."""
+    d = np.zeros(14)
+    coeffs = check_distortion(dist)
+    d[: coeffs.size] = coeffs
+    tilted = bool(d[12] != 0.0 or d[13] != 0.0)
+    return d, sensor_tilt_matrix(d[12], d[13]) if tilted else np.eye(3), tilted
 
 
 def project(points_C: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None) -> np.ndarray:
@@ -295,25 +291,17 @@ def undistort_pixels(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> 
     dist = check_distortion(dist)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
     xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, dist, criteria=criteria).reshape(-1, 2)
-    # OpenCV's fixed-point iteration can stall short of the tolerance for strong distortion;
-    # two Newton steps on distort(xy) = xy_d make the inverse exact to ~1e-12.
     xy_d = np.column_stack(
         [
             (uv[:, 0] - K[0, 2] - K[0, 1] * (uv[:, 1] - K[1, 2]) / K[1, 1]) / K[0, 0],
             (uv[:, 1] - K[1, 2]) / K[1, 1],
         ]
     )
-    step_x = np.array([1e-7, 0.0])
-    step_y = np.array([0.0, 1e-7])
-    for _ in range(2):
-        f = distort_normalized(xy, dist) - xy_d
-        jx = (distort_normalized(xy + step_x, dist) - distort_normalized(xy - step_x, dist)) / 2e-7
-        jy = (distort_normalized(xy + step_y, dist) - distort_normalized(xy - step_y, dist)) / 2e-7
-        det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
-        dx = (jy[:, 1] * f[:, 0] - jy[:, 0] * f[:, 1]) / det
-        dy = (-jx[:, 1] * f[:, 0] + jx[:, 0] * f[:, 1]) / det
-        xy = xy - np.column_stack([dx, dy])
-    return xy
+    # OpenCV's fixed-point iteration can stall short of the tolerance for strong distortion;
+    # two Newton steps on distort(xy) = xy_d make the inverse exact to ~1e-12.
+    from estimators.lens_distortion import refine_undistorted
+
+    return refine_undistorted(np.ascontiguousarray(xy, dtype=float), xy_d, *_lens_terms(dist), 2)
 
 
 def field_radius(K: np.ndarray, dist: np.ndarray | None, width: int, height: int) -> float:

@@ -17,6 +17,7 @@ ENTRY_POINTS = [
     clipped_noise._moments_array,
     edge_fit._band_kernel,
     lens_distortion.distort,
+    lens_distortion.refine_undistorted,
     model_view._outside_circles,
     edge_fit._coarse_steps,
     edge_fit._lattice_kernel,
