@@ -80,3 +80,41 @@ def test_a_cameras_own_noise_leaves_no_range_bias(system, bound_m):
     assert abs(float(np.mean(errors))) <= bound_m, (
         f"range errors {np.round(np.array(errors) * 1000, 2)} mm"
     )
+
+
+def _near_truth(distance: float, count: int):
+    """``count`` generic poses about the nominal one at ``distance`` (a few cm, a few degrees)
+    with priors a few millimetres and a fraction of a degree off, as tracking gives them."""
+    from estimators.geometry import Pose
+
+    rng = np.random.default_rng(int(distance * 10))
+    scale = np.array([0.01 * distance] * 3 + [0.06, 0.06, 0.1])
+    for _ in range(count):
+        offset = tuple(rng.uniform(-1, 1, 6) * scale)
+        wobble = Pose.from_rotvec(rng.normal(0, 0.003, 3), rng.normal(0, 0.003, 3))
+        yield offset, wobble
+
+
+@pytest.mark.parametrize("distance", [1.2, 0.5])
+def test_the_corner_systems_covariance_owns_its_model_error_close_up(distance):
+    """Close up the disc fits' own σ falls to a few thousandths of a pixel while the disc and
+    wedge models stay a few hundredths off a real head's image: without a floor for that, the
+    pose's NEES under the sensor's noise was 44–46 (six degrees of freedom: 6 is honest) and a
+    noise-free frame at 0.5 m was refused for "features disagree with the model". With it
+    every frame is tracked and the NEES is 12–18: still above honest (model errors common to
+    all features, such as the corner system's range bias, are no floor's to absorb; issue
+    13), but no longer seven times it."""
+    from hil.evaluation.errors import measurement_error
+
+    target = rendered.target()
+    estimator = None
+    nees = []
+    for k, (offset, wobble) in enumerate(_near_truth(distance, 8)):
+        for noise in ("none", "sensor"):
+            f = rendered.frame(distance, offset, noise=noise, seed=k, supersample=4)
+            estimator = estimator or build_estimator("corners", target, f.info)
+            m = estimator.estimate(f, wobble @ f.truth.X_CT)
+            assert m.status == "tracking", f"{noise} {offset}: {m.reason}"
+            if noise == "sensor":
+                nees.append(measurement_error(m, f.truth.X_CT, target).nees_pose)
+    assert np.mean(nees) < 4 * 6, f"NEES {np.round(nees, 1)}"
