@@ -157,6 +157,9 @@ class _Image:
     camera: CameraInfo
     fine_sigma: float
     scale: float = 1.0  # smoothing of every stage, relative to the settings' (low contrast: > 1)
+    # Samples of a projected circle by (pose, circle, spacing, margin): the ring's polarity
+    # probes and the search after them sample the same curve up to three times a stage.
+    samples: dict = field(default_factory=dict, repr=False)
 
     @property
     def gray(self) -> np.ndarray:
@@ -946,16 +949,21 @@ class EllipseEstimator:
     ) -> CircleEdges | None:
         """Edges of one model circle near its projection with ``X_CT``; ``probe`` searches
         only every fourth sample (a quick look)."""
-        samples = sample_projected_circle(
-            X_CT.apply(circle.center_T),
-            X_CT.R @ circle.normal_T,
-            circle.radius,
-            self.camera,
-            spacing_px=self.settings.sample_spacing_px * max(1.0, sigma),
-            margin_px=half_width + 2.0,
-            field_radius_xy=self._field_radius,
-            max_samples=self.settings.max_samples_per_circle,
-        )
+        spacing_px = self.settings.sample_spacing_px * max(1.0, sigma)
+        key = (X_CT.R.tobytes(), X_CT.p.tobytes(), circle.center_T.tobytes())
+        key += (circle.normal_T.tobytes(), circle.radius, spacing_px, half_width)
+        if key not in image.samples:
+            image.samples[key] = sample_projected_circle(
+                X_CT.apply(circle.center_T),
+                X_CT.R @ circle.normal_T,
+                circle.radius,
+                self.camera,
+                spacing_px=spacing_px,
+                margin_px=half_width + 2.0,
+                field_radius_xy=self._field_radius,
+                max_samples=self.settings.max_samples_per_circle,
+            )
+        samples = image.samples[key]
         if samples is None or len(samples.uv) < 8:
             return None
         if probe:
