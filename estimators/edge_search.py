@@ -132,6 +132,7 @@ def _strongest_peaks(
         for j in range(count):
             if px[i, j] < 0 or py[i, j] < 0 or px[i, j] > w - 1 or py[i, j] > h - 1:
                 inside = False
+                break
         if not inside:
             continue
         best, top = 0, -np.inf
