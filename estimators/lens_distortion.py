@@ -55,6 +55,7 @@ def refine_undistorted(xy, xy_d, d, M, tilted, steps):
         for _ in range(steps):
             fx, fy = _distort_point(x, y, d, M, tilted)
             fx, fy = fx - xy_d[i, 0], fy - xy_d[i, 1]
+            # (± 0.0 on the other coordinate: the NumPy version's arithmetic, to the bit)
             px0, px1 = _distort_point(x + h, y + 0.0, d, M, tilted)
             mx0, mx1 = _distort_point(x - h, y - 0.0, d, M, tilted)
             py0, py1 = _distort_point(x + 0.0, y + h, d, M, tilted)
