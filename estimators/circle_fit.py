@@ -35,10 +35,10 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
 from estimators.circle_pose import CirclePose
+from estimators.compiled import compiled
 from estimators.conics import circle_plane_basis
 from estimators.geometry import Pose, as_points
 from estimators.least_squares import Huber, Solution, covariance, solve
@@ -240,7 +240,7 @@ def _as_float(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
     return tuple(np.ascontiguousarray(a, dtype=float) for a in arrays)
 
 
-@numba.njit(cache=True)
+@compiled
 def _sampson_distances(x, ends, K_inv_T2, c, n, rho, d_centers, d_normals, d_radii):
     """Sampson distances r = f/g (N,) of rays ``x`` (N,3; set k is rows ``ends[k]`` to
     ``ends[k + 1]``) to the cones of circles (centres ``c``, normals ``n``, radii ``rho``)

@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
+
+from estimators.compiled import compiled, compiled_inline
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 _INV_SQRT2 = 1.0 / math.sqrt(2.0)
@@ -22,19 +23,19 @@ _INV_SQRT2 = 1.0 / math.sqrt(2.0)
 CLIP_TOLERANCE = 0.5 / 255.0
 
 
-@numba.njit(cache=True, inline="always")
+@compiled_inline
 def normal_cdf(z: float) -> float:
     """Φ(z), the standard normal distribution function."""
     return 0.5 * math.erfc(-z * _INV_SQRT2)
 
 
-@numba.njit(cache=True, inline="always")
+@compiled_inline
 def normal_pdf(z: float) -> float:
     """φ(z), the standard normal density."""
     return math.exp(-0.5 * z * z) / _SQRT_2PI
 
 
-@numba.njit(cache=True)
+@compiled
 def clipped_terms(value: float, intensity: float, sigma: float) -> tuple[float, float]:
     """Score ∂ℓ/∂I and information −∂²ℓ/∂I² of one pixel's log-likelihood ℓ given its
     intensity I (see ``clipped_likelihood_terms``)."""
@@ -52,7 +53,7 @@ def clipped_terms(value: float, intensity: float, sigma: float) -> tuple[float, 
     return sign * ratio / sigma, ratio * (ratio + a) / (sigma * sigma)
 
 
-@numba.njit(cache=True)
+@compiled
 def clipped_moment(intensity: float, sigma: float) -> tuple[float, float, float]:
     """Mean, variance and ∂mean/∂I of clip(I + n, 0, 1) for one intensity I (see
     ``clipped_moments``)."""
@@ -73,7 +74,7 @@ def clipped_moment(intensity: float, sigma: float) -> tuple[float, float, float]
     return mean, max(second - mean * mean, 0.0), inside
 
 
-@numba.njit(cache=True)
+@compiled
 def _terms_array(values, intensity, sigma):
     score = np.empty(len(values))
     info = np.empty(len(values))
@@ -82,7 +83,7 @@ def _terms_array(values, intensity, sigma):
     return score, info
 
 
-@numba.njit(cache=True)
+@compiled
 def _moments_array(intensity, sigma):
     n = len(intensity)
     mean, variance, inside = np.empty(n), np.empty(n), np.empty(n)

@@ -29,10 +29,10 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from estimators.clipped_noise import clipped_moment, clipped_terms, normal_cdf, normal_pdf
+from estimators.compiled import compiled, compiled_inline
 from estimators.point_fit import EDGE_WIDTH_PX
 from estimators.small_linalg import solve_small
 
@@ -66,7 +66,7 @@ def _no_points(k: int) -> EdgePoints:
     )
 
 
-@numba.njit(cache=True, inline="always")
+@compiled_inline
 def _profile_at(d: float, delta: float, wall: float, s: float):
     """Basis (3) of a step edge at ``delta`` with a wall ``wall`` px wide showing outside it
     (on the side the normals point away from), at offset ``d`` across the edge: inside
@@ -82,7 +82,7 @@ def _profile_at(d: float, delta: float, wall: float, s: float):
     return f1, 1.0 - f2, f2 - f1, -p1, p2, p1 - p2
 
 
-@numba.njit(cache=True)
+@compiled
 def _profile_levels(values, d, delta, wall, s, levels, sigma):
     """Grey levels (inside, outside, wall) of values ≈ basis · levels at edge offsets ``delta``
     (per pixel): linear least squares, or scoring steps on the clipped likelihood from
@@ -128,7 +128,7 @@ def _profile_levels(values, d, delta, wall, s, levels, sigma):
     return levels
 
 
-@numba.njit(cache=True)
+@compiled
 def _two_levels(s11, s12, s22, t1, t2, vv):
     """The least-squares grey levels a, b of v ≈ a·step + b·(1 − step) from the sums
     Σstep², Σstep·other, Σother², Σstep·v, Σother·v, and the cost Σ(v − a·step − b·other)²
@@ -143,7 +143,7 @@ def _two_levels(s11, s12, s22, t1, t2, vv):
     return cost, a, b
 
 
-@numba.njit(cache=True)
+@compiled
 def _step_cost(values, d, strip, base):
     """Least-squares cost of the best two-level step (blur 1.2 px) at offsets ``base[strip]``
     across the band, and its grey levels (cost inf when no step fits)."""
@@ -163,7 +163,7 @@ def _step_cost(values, d, strip, base):
     return _two_levels(s11, s12, s22, t1, t2, vv)
 
 
-@numba.njit(cache=True)
+@compiled
 def _tilted_start(values, d, strip, k, grid, max_slope):
     """The prediction's error as a line across the strips (offset of each strip's start,
     K,), when the prediction may be tilted against the edge by up to ``max_slope`` px per
@@ -206,7 +206,7 @@ def _tilted_start(values, d, strip, k, grid, max_slope):
     return intercept + slope * np.arange(k)
 
 
-@numba.njit(cache=True)
+@compiled
 def _fit_offsets(values, d, strip, k, grid, half_width, wall_of_strip, noise_sigma, max_slope):
     """Steps 1–3 of ``fit_edge_points`` on a band's pixels (see there): the strips' offsets,
     their standard deviations and usable flags, the grey levels, the contrast's standard
@@ -343,7 +343,7 @@ def _band_pixels(pixels, centers, normals, half_length, reach_across):
     return None if len(values) == 0 else (values, d, strip, coords)
 
 
-@numba.njit(cache=True)
+@compiled
 def _band_kernel(pixels, centers, normals, direction, spacing, half_length, reach_across):
     h, w = pixels.shape
     k = len(centers)
@@ -457,7 +457,7 @@ def _strip_lattice(pixels, centers, normals, half_length, reach, keep):
     return _lattice_samples(pixels, centers, normals, u, v, strip)
 
 
-@numba.njit(cache=True)
+@compiled
 def _lattice_kernel(centers, normals, half_length, reach, h, w):
     """In-image lattice points (u, v, strip), rounded to pixels: strip by strip, across the
     edge from −``reach`` to ``reach``, along it from −``half_length`` to ``half_length``."""
@@ -481,7 +481,7 @@ def _lattice_kernel(centers, normals, half_length, reach, h, w):
     return u_out[:m], v_out[:m], strip_out[:m]
 
 
-@numba.njit(cache=True)
+@compiled
 def _lattice_samples(pixels, centers, normals, u, v, strip):
     """Grey level, offset across the edge from the strip's centre (d) and strip of each
     lattice point."""
@@ -541,7 +541,7 @@ def coarse_edge_offsets(
     return CoarseOffsets(place, offset, strength, polarity)
 
 
-@numba.njit(cache=True)
+@compiled
 def _coarse_steps(values, d, strip, k, pieces, reach, side_px, limit):
     """``coarse_edge_offsets``' profiles and steps, compiled (as NumPy, a few dozen calls on
     arrays of a few hundred bins per edge): each piece's mean strip index, its best step's
@@ -626,7 +626,7 @@ class Line2D:
         return np.asarray(points, dtype=float) @ self.normal - self.offset
 
 
-@numba.njit(cache=True)
+@compiled
 def _weighted_tls(points: np.ndarray, weights: np.ndarray):
     """Weighted total least squares: the line through the weighted centroid along the major
     axis of the weighted scatter (closed form for 2×2: θ = ½·atan2(2sxy, sxx − syy))."""
@@ -642,7 +642,7 @@ def _weighted_tls(points: np.ndarray, weights: np.ndarray):
     return nx, ny, nx * cx + ny * cy, cx, cy
 
 
-@numba.njit(cache=True)
+@compiled
 def _robust_line(points, sigma, tukey_c, iterations):
     """``fit_line_robust``'s iterations: (normal x, normal y, offset, centroid x, centroid y,
     inlier flags); the flags all False when fewer than 3 points are inliers."""

@@ -13,9 +13,9 @@ import math
 from dataclasses import dataclass
 
 import cv2
-import numba
 import numpy as np
 
+from estimators.compiled import compiled
 from estimators.geometry import as_points
 from estimators.imaging import GradientField
 
@@ -100,7 +100,7 @@ def search_edges(
     return EdgeHits(uv, found, offset, snr)
 
 
-@numba.njit(cache=True)
+@compiled
 def _strongest_peaks(
     samples,
     normals,

@@ -1,16 +1,16 @@
 """OpenCV's lens distortion of normalized image coordinates, and its inverse's refinement,
 compiled (numba); the model and its public entry points are ``estimators.geometry``'s
-``distort_normalized`` and ``undistort_pixels``. NumPy's division semantics (``error_model``):
-a point where a rational model's denominator vanishes, far outside the calibrated field, comes
-out non-finite as it did in NumPy, instead of raising."""
+``distort_normalized`` and ``undistort_pixels``. A point where a rational model's denominator
+vanishes, far outside the calibrated field, comes out non-finite (``estimators.compiled``)."""
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from estimators.compiled import compiled, compiled_inline
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+
+@compiled_inline
 def _distort_point(x, y, d, M, tilted):
     """One point through the radial, tangential and thin-prism terms (coefficients ``d`` in
     OpenCV's order, padded to 14) and, when ``tilted``, the tilted sensor's projection M."""
@@ -31,7 +31,7 @@ def _distort_point(x, y, d, M, tilted):
     return xd, yd
 
 
-@numba.njit(cache=True, error_model="numpy")
+@compiled
 def distort(xy, d, M, tilted):
     """``geometry.distort_normalized`` point by point: at 1280×800 the line system distorts a
     hundred thousand points a frame, and as NumPy expressions their temporaries took 14 ms of
@@ -42,7 +42,7 @@ def distort(xy, d, M, tilted):
     return out
 
 
-@numba.njit(cache=True, error_model="numpy")
+@compiled
 def refine_undistorted(xy, xy_d, d, M, tilted, steps):
     """Newton steps on distort(xy) = ``xy_d`` from ``xy`` (N,2), each point on its own, the
     Jacobian by central differences of 1e-7: OpenCV's fixed-point inversion can stall short of

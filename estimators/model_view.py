@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from estimators.compiled import compiled
 from estimators.frame import CameraInfo
 from estimators.geometry import Pose, as_points, undistort_pixels
 
@@ -58,7 +58,7 @@ def outside_circles(
     )
 
 
-@numba.njit(cache=True)
+@compiled
 def _outside_circles(points, centres, radii, within):
     keep = np.empty(len(points), np.bool_)
     for i in range(len(points)):

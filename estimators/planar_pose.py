@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 import cv2
-import numba
 import numpy as np
 
+from estimators.compiled import compiled
 from estimators.geometry import Pose, as_points, nearest_rotation, rotation_error_geodesic
 from estimators.geometry import undistort_pixels as _undistort
 from estimators.least_squares import Cauchy, NoLoss, covariance, solve
@@ -105,7 +105,7 @@ def projection_jacobian(X_CT: Pose, points_T: np.ndarray, K: np.ndarray):
     return uv, dUV_dP @ dP, z
 
 
-@numba.njit(cache=True)
+@compiled
 def _whitened_reprojection(R, p, points_T, K, L, uv_measured):
     """``PointObservations.linearize`` compiled: ``projection_jacobian``'s pixels and Jacobian
     for each point, less the measured pixels, whitened by its L (2×2) — the corner system

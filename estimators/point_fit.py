@@ -32,7 +32,6 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
-import numba
 import numpy as np
 
 from estimators.clipped_noise import (
@@ -42,6 +41,7 @@ from estimators.clipped_noise import (
     normal_cdf,
     normal_pdf,
 )
+from estimators.compiled import compiled
 from estimators.small_linalg import solve_small
 
 EDGE_WIDTH_PX = 0.45
@@ -145,7 +145,7 @@ def fit_discs(
     return _converged(fits, last_step)
 
 
-@numba.njit(cache=True)
+@compiled
 def _disc_model(u, v, owner, A_inv, scale, rad_px, window, e_m, e_m2, c, s, window_only=False):
     """Per pixel: top-disc and stadium coverages, their slopes, ∂ρ/∂c of each (= scale · A⁻ᵀ ŵ)
     and the window mask (1 inside the disc's window, else 0), discs at centres ``c``.
@@ -184,7 +184,7 @@ def _disc_model(u, v, owner, A_inv, scale, rad_px, window, e_m, e_m2, c, s, wind
     return top, stadium, slope_t, slope_s, gx, gy, hx, hy, mask
 
 
-@numba.njit(cache=True)
+@compiled
 def _disc_levels(values, owner, n, top, stadium, mask, start, use_start, noise_sigma):
     """Grey levels (top a, surroundings b, wall c) of each disc by linear least squares — or,
     from ``start`` with a noise σ (``use_start``), a scoring step on the clipped likelihood.
@@ -230,7 +230,7 @@ def _disc_levels(values, owner, n, top, stadium, mask, start, use_start, noise_s
     return levels
 
 
-@numba.njit(cache=True)
+@compiled
 def _fit_discs_kernel(values, geometry, e_m, e_m2, c, n, noise_sigma, schedule):
     """Gauss–Newton (Fisher scoring with clipped noise) on the disc centres ``c`` with the grey
     levels refreshed before each step, edge width coarse to fine along ``schedule``; returns
@@ -460,7 +460,7 @@ def fit_corners(
     return _converged(fits, last_step)
 
 
-@numba.njit(cache=True)
+@compiled
 def _wedge_model(x, y, owner, side, params, s):
     """Per pixel: the wedge's coverage Φ(d₁/s)·Φ(d₂/s) and its derivatives (M,4) in the corner
     (u, v) and the two edge angles."""
@@ -490,7 +490,7 @@ def _wedge_model(x, y, owner, side, params, s):
     return inside, g
 
 
-@numba.njit(cache=True)
+@compiled
 def _wedge_levels(values, owner, n, inside, a0, b0, use_start, noise_sigma):
     """Grey levels (inside a, outside b) of each wedge by linear least squares, or a scoring
     step on the clipped likelihood from (``a0``, ``b0``) when ``use_start`` (noise σ given);
@@ -520,7 +520,7 @@ def _wedge_levels(values, owner, n, inside, a0, b0, use_start, noise_sigma):
     return a, b
 
 
-@numba.njit(cache=True)
+@compiled
 def _fit_wedges_kernel(values, x, y, owner, n, side, params, noise_sigma, schedule):
     """Gauss–Newton (Fisher scoring with clipped noise) on each wedge's corner and edge angles
     with its grey levels refreshed before each step, edge width coarse to fine along

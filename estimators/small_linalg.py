@@ -3,11 +3,12 @@ more than the arithmetic (and could not report a singular system without raising
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from estimators.compiled import compiled
 
-@numba.njit(cache=True)
+
+@compiled
 def solve_small(H: np.ndarray, g: np.ndarray) -> np.ndarray:
     """H⁻¹·g for a small square H by Gaussian elimination with partial pivoting (NaN if
     singular)."""

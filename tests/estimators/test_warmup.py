@@ -37,3 +37,25 @@ ENTRY_POINTS = [
 def test_warm_up_compiles_every_compiled_entry_point_of_the_estimators():
     compile_kernels()
     assert [k.py_func.__name__ for k in ENTRY_POINTS if not k.signatures] == []
+
+
+def test_every_compiled_kernel_of_the_estimators_divides_as_numpy_does():
+    """A kernel that raised ZeroDivisionError where the NumPy code it replaced gave inf or NaN
+    would turn a degenerate frame into an estimator fault, on which the supervisor stops the
+    approach (``estimators.compiled``)."""
+    import importlib
+    import pkgutil
+
+    from numba.core.registry import CPUDispatcher
+
+    import estimators
+
+    kernels = []
+    for module in pkgutil.iter_modules(estimators.__path__):
+        loaded = importlib.import_module(f"estimators.{module.name}")
+        kernels += [v for v in vars(loaded).values() if isinstance(v, CPUDispatcher)]
+    assert len({k.py_func for k in kernels}) >= 25
+    wrong = [
+        k.py_func.__qualname__ for k in kernels if k.targetoptions.get("error_model") != "numpy"
+    ]
+    assert wrong == []
