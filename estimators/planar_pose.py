@@ -83,61 +83,61 @@ def project_ideal(X_CT: Pose, points_T: np.ndarray, K: np.ndarray) -> np.ndarray
 
 
 def projection_jacobian(X_CT: Pose, points_T: np.ndarray, K: np.ndarray):
-    """Ideal pixels (N,2), their Jacobian (N,2,6) w.r.t. [δθ, δp], and the depths (N,)."""
-    q = points_T @ X_CT.R.T  # R·P_T (N,3)
-    P = q + X_CT.p
-    x, y, z = P[:, 0], P[:, 1], P[:, 2]
-    safe_z = np.where(z > 1e-9, z, np.nan)
-    fx, s, fy = K[0, 0], K[0, 1], K[1, 1]
-    uv = np.column_stack([(fx * x + s * y) / safe_z + K[0, 2], fy * y / safe_z + K[1, 2]])
-    dUV_dP = np.zeros((len(P), 2, 3))
-    dUV_dP[:, 0, 0] = fx / safe_z
-    dUV_dP[:, 0, 1] = s / safe_z
-    dUV_dP[:, 0, 2] = -(fx * x + s * y) / safe_z**2
-    dUV_dP[:, 1, 1] = fy / safe_z
-    dUV_dP[:, 1, 2] = -fy * y / safe_z**2
-    dP = np.zeros((len(P), 3, 6))
-    # −[q]ₓ
-    dP[:, 0, 1], dP[:, 0, 2] = q[:, 2], -q[:, 1]
-    dP[:, 1, 0], dP[:, 1, 2] = -q[:, 2], q[:, 0]
-    dP[:, 2, 0], dP[:, 2, 1] = q[:, 1], -q[:, 0]
-    dP[:, :, 3:] = np.eye(3)
-    return uv, dUV_dP @ dP, z
+    """Ideal pixels (N,2), their Jacobian (N,2,6) w.r.t. [δθ, δp], and the depths (N,); a
+    point at or behind the camera (depth ≤ 1e-9) gives NaN pixels and NaN in its Jacobian."""
+    return _projection(
+        np.asarray(X_CT.R, dtype=float),
+        np.asarray(X_CT.p, dtype=float),
+        np.ascontiguousarray(points_T, dtype=float).reshape(-1, 3),
+        np.asarray(K, dtype=float),
+    )
 
 
 @compiled
-def _whitened_reprojection(R, p, points_T, K, L, uv_measured):
-    """``PointObservations.linearize`` compiled: ``projection_jacobian``'s pixels and Jacobian
-    for each point, less the measured pixels, whitened by its L (2×2) — the corner system
-    linearises a few dozen points some twenty times a frame, where NumPy's calls on (N,2,6)
-    arrays cost more than their arithmetic."""
+def _projection(R, p, points_T, K):
+    """``projection_jacobian`` point by point: as NumPy, calls on (N,2,3) and (N,3,6) arrays
+    cost more than their arithmetic for the few dozen points of a fit."""
     n = len(points_T)
-    r, r_w, J_w = np.empty(2 * n), np.empty(2 * n), np.empty((2 * n, 6))
+    uv, J, depth = np.empty((n, 2)), np.empty((n, 2, 6)), np.empty(n)
     fx, skew, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
-    J, q = np.empty((2, 6)), np.empty(3)
+    q = np.empty(3)
     for i in range(n):
         for a in range(3):
             q[a] = R[a, 0] * points_T[i, 0] + R[a, 1] * points_T[i, 1] + R[a, 2] * points_T[i, 2]
         x, y, z = q[0] + p[0], q[1] + p[1], q[2] + p[2]
+        depth[i] = z
         z = z if z > 1e-9 else np.nan
+        uv[i, 0] = (fx * x + skew * y) / z + cx
+        uv[i, 1] = fy * y / z + cy
         # ∂(u, v)/∂P, and ∂P/∂[δθ, δp] = [−[q]ₓ, I]
         du0, du1, du2 = fx / z, skew / z, -(fx * x + skew * y) / (z * z)
         dv1, dv2 = fy / z, -fy * y / (z * z)
-        J[0, 0] = du1 * -q[2] + du2 * q[1]
-        J[0, 1] = du0 * q[2] + du2 * -q[0]
-        J[0, 2] = du0 * -q[1] + du1 * q[0]
-        J[0, 3], J[0, 4], J[0, 5] = du0, du1, du2
-        J[1, 0] = dv1 * -q[2] + dv2 * q[1]
-        J[1, 1] = dv2 * -q[0]
-        J[1, 2] = dv1 * q[0]
-        J[1, 3], J[1, 4], J[1, 5] = 0.0, dv1, dv2
-        ru = (fx * x + skew * y) / z + cx - uv_measured[i, 0]
-        rv = fy * y / z + cy - uv_measured[i, 1]
+        J[i, 0, 0] = du1 * -q[2] + du2 * q[1]
+        J[i, 0, 1] = du0 * q[2] + du2 * -q[0]
+        J[i, 0, 2] = du0 * -q[1] + du1 * q[0]
+        J[i, 0, 3], J[i, 0, 4], J[i, 0, 5] = du0, du1, du2
+        J[i, 1, 0] = dv1 * -q[2] + dv2 * q[1]
+        J[i, 1, 1] = dv2 * -q[0]
+        J[i, 1, 2] = dv1 * q[0]
+        J[i, 1, 3], J[i, 1, 4], J[i, 1, 5] = 0.0, dv1, dv2
+    return uv, J, depth
+
+
+@compiled
+def _whitened_reprojection(R, p, points_T, K, L, uv_measured):
+    """``PointObservations.linearize`` compiled: each point's reprojection error and its
+    Jacobian (``_projection``), whitened by its L (2×2) — the corner system linearises a few
+    dozen points some twenty times a frame."""
+    n = len(points_T)
+    uv, J, _ = _projection(R, p, points_T, K)
+    r, r_w, J_w = np.empty(2 * n), np.empty(2 * n), np.empty((2 * n, 6))
+    for i in range(n):
+        ru, rv = uv[i, 0] - uv_measured[i, 0], uv[i, 1] - uv_measured[i, 1]
         r[2 * i], r[2 * i + 1] = ru, rv
         for a in range(2):
             r_w[2 * i + a] = L[i, a, 0] * ru + L[i, a, 1] * rv
             for c in range(6):
-                J_w[2 * i + a, c] = L[i, a, 0] * J[0, c] + L[i, a, 1] * J[1, c]
+                J_w[2 * i + a, c] = L[i, a, 0] * J[i, 0, c] + L[i, a, 1] * J[i, 1, c]
     return r, r_w, J_w
 
 

@@ -222,3 +222,21 @@ def test_correlated_edge_whitening_is_generalised_least_squares():
         Sigma = np.diag(sigma[edge == e] ** 2) + A @ np.diag([offset[e] ** 2, turn[e] ** 2]) @ A.T
         expected += r_e @ np.linalg.solve(Sigma, r_e)
     assert whitened @ whitened == pytest.approx(expected, rel=1e-9)
+
+
+def test_projection_jacobian_matches_finite_differences_and_refuses_points_behind():
+    from estimators.planar_pose import projection_jacobian
+
+    uv, J, depth = projection_jacobian(X_TRUE, POINTS_T, K)
+    assert np.allclose(uv, project_ideal(X_TRUE, POINTS_T, K), atol=1e-9)
+    assert np.allclose(depth, X_TRUE.apply(POINTS_T)[:, 2])
+    numeric = np.zeros_like(J)
+    for j in range(6):
+        step = np.zeros(6)
+        step[j] = 1e-7
+        plus = projection_jacobian(retract(X_TRUE, step), POINTS_T, K)[0]
+        minus = projection_jacobian(retract(X_TRUE, -step), POINTS_T, K)[0]
+        numeric[:, :, j] = (plus - minus) / 2e-7
+    assert np.allclose(J, numeric, rtol=1e-5, atol=1e-4 * np.abs(J).max())
+    behind = projection_jacobian(Pose(np.eye(3), np.zeros(3)), np.array([[0.1, 0.2, -1.0]]), K)
+    assert np.isnan(behind[0]).all() and np.isnan(behind[1]).any() and behind[2][0] == -1.0

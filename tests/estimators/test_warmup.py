@@ -25,6 +25,7 @@ ENTRY_POINTS = [
     edge_fit._fit_offsets,
     edge_fit._robust_line,
     edge_search._strongest_peaks,
+    planar_pose._projection,
     planar_pose._whitened_reprojection,
     point_fit._disc_model,
     point_fit._fit_discs_kernel,
