@@ -84,8 +84,9 @@ class CornerOptions:
     target) it may have moved since the prior; in pixels it shrinks with distance;
     ``min_features``: features needed for a pose (the panel's four corners alone also do);
     ``max_reduced_chi2``: the largest χ²/dof of a valid fit (feature covariances come from
-    their own fits, so 1 is ideal); ``min_edge_support``: z-score the reprojected panel edges
-    (and, when in view, another model contour) must reach; ``pose_method``: ``gauss_newton`` or
+    their own fits, so 1 is ideal); ``min_edge_support``: mean z-score the reprojected panel
+    edges must reach (and, when in view, another model contour), ``min_panel_edge_support`` the
+    z-score each of them must (``Support.panel_unsupported``); ``pose_method``: ``gauss_newton`` or
     ``lhm``; ``feature_floor_px``: a floor under each feature's position σ (px, per image axis):
     the disc and wedge models depart from a real head's or corner's image by a few hundredths of
     a pixel (relief, rendering) even where the noise is nil — the pose fits' residuals are
@@ -97,6 +98,7 @@ class CornerOptions:
     min_features: int = 5
     max_reduced_chi2: float = 5.0
     min_edge_support: float = 3.0
+    min_panel_edge_support: float = 2.5
     min_disc_snr: float = 3.0
     pose_method: str = "gauss_newton"
     max_hypotheses: int = 3
@@ -772,10 +774,11 @@ class CornerEstimator:
             return f"only {len(features)} consistent features", False
         if fit.reduced_chi2 > options.max_reduced_chi2:
             return f"features disagree with the model (χ²/dof {fit.reduced_chi2:.1f})", False
-        panel = support.panel()
-        if len(panel) < 4 or min(panel) < options.min_edge_support:
-            weakest = min(panel) if panel else float("nan")
-            return f"a reprojected panel edge has no edge support (z {weakest:.1f})", False
+        unsupported = support.panel_unsupported(
+            options.min_edge_support, options.min_panel_edge_support
+        )
+        if unsupported:
+            return unsupported, False
         return support.confirmation(options.min_edge_support, tracking=tracking)
 
 

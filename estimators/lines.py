@@ -104,11 +104,12 @@ class LineOptions:
     edge in direction and (metres at the panel) in position; ``strip_px`` / ``band_px``: strip
     length along an edge and half width across it; ``min_contrast_snr``: how clearly an edge's
     two sides must differ; ``max_reduced_chi2``: the largest χ²/dof of the edge points' fit;
-    ``min_edge_support``: z-score every reprojected panel edge (and the strongest other model
-    contour in view) must reach; ``turn_margin``: by how much (z units) the model's asymmetric
-    parts must favour one quarter turn of the square panel (acquisition needs it; in tracking a
-    clearly better turn means a wrong lock), ``confirm_margin`` when it confirms the turn the
-    acquisition hypothesis already chose; ``pose_method``: ``gauss_newton`` or ``lhm``.
+    ``min_edge_support``: mean z-score the reprojected panel edges (and the strongest other
+    model contour in view) must reach, ``min_panel_edge_support`` the z-score each panel edge
+    must (``Support.panel_unsupported``); ``turn_margin``: by how much (z units) the model's
+    asymmetric parts must favour one quarter turn of the square panel (acquisition needs it; in
+    tracking a clearly better turn means a wrong lock), ``confirm_margin`` when it confirms the
+    turn the acquisition hypothesis already chose; ``pose_method``: ``gauss_newton`` or ``lhm``.
     """
 
     angle_gate_deg: float = 10.0
@@ -118,6 +119,7 @@ class LineOptions:
     min_contrast_snr: float = 3.5
     max_reduced_chi2: float = 5.0
     min_edge_support: float = 3.0
+    min_panel_edge_support: float = 2.5
     pose_method: str = "gauss_newton"
     max_hypotheses: int = 3
     turn_margin: float = 6.0
@@ -870,10 +872,11 @@ class LineEstimator:
         options = self.options
         if reduced_chi2 > options.max_reduced_chi2:
             return f"edge points disagree with the model (χ²/dof {reduced_chi2:.1f})", False
-        panel = support.panel()
-        if len(panel) < 4 or min(panel) < options.min_edge_support:
-            weakest = min(panel) if panel else float("nan")
-            return f"a reprojected panel edge has no edge support (z {weakest:.1f})", False
+        unsupported = support.panel_unsupported(
+            options.min_edge_support, options.min_panel_edge_support
+        )
+        if unsupported:
+            return unsupported, False
         return support.confirmation(options.min_edge_support, tracking=tracking)
 
 

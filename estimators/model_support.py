@@ -50,6 +50,23 @@ class Support:
     def others(self) -> dict[str, float]:
         return {n: z for n, z in self.contours.items() if not n.startswith("panel_edge")}
 
+    def panel_unsupported(self, min_mean: float, min_each: float) -> str:
+        """Why the reprojected panel does not stand out of the noise ('' if it does): all four
+        edges in view, their mean z-score at least ``min_mean`` and none below ``min_each``.
+        The mean weighs the four edges' evidence together; each edge's own floor keeps a quad
+        with one side on nothing from passing on the other three. A faint panel's weakest edge
+        reads below its mean by the noise alone: four edges each of expected z 4 (unit noise)
+        have even odds that one reads below 3, and one in four that one reads below 2.5."""
+        panel = self.panel()
+        if len(panel) < 4:
+            return f"only {len(panel)} reprojected panel edges in view"
+        if min(panel) < min_each:
+            return f"a reprojected panel edge has no edge support (z {min(panel):.1f})"
+        mean = sum(panel) / len(panel)
+        if mean < min_mean:
+            return f"the reprojected panel edges have too little edge support (mean z {mean:.1f})"
+        return ""
+
     def confirmation(self, min_edge_support: float, *, tracking: bool) -> tuple[str, bool]:
         """Whether another part of the mock-up (ring, its bore's foot, outline, thruster)
         confirms the panel: a quad taken for the panel at a wrong scale (the face's outline as
