@@ -405,7 +405,7 @@ def matrix(
 ) -> None:
     """Run the reference study's test matrix against simulator ground truth and print the
     per-case mean ± std of the errors beside the targets and the reference's numbers, the
-    estimators' biases and (with several mock-ups) a row per mock-up."""
+    estimators' biases, (with several mock-ups) a row per mock-up and why frames were lost."""
     from dataclasses import asdict
 
     from configuration.random_mockup import mockup_names
@@ -413,6 +413,7 @@ def matrix(
     from hil.evaluation.matrix import (
         MatrixSpec,
         bias_table,
+        loss_table,
         markdown_table,
         mockup_table,
         summarize,
@@ -459,6 +460,8 @@ def matrix(
     table = markdown_table(summarize(rows)) + "\n" + bias_table(rows)
     if len(names) > 1:
         table += "\n" + mockup_table(rows)
+    if any(r.status == "lost" and not r.blank for r in rows):
+        table += "\n" + loss_table(rows)
     out.print(table, markup=False, highlight=False, soft_wrap=True)
     if out_path is not None:
         with _writing(out_path, "--out"):

@@ -13,12 +13,13 @@ them apart and the estimators' mean offsets (their biases).
 
 Every frame is judged against ground truth: its errors, its NEES (is the covariance honest?),
 whether it is *correct* (within 3× the accuracy target of ``hil.evaluation.targets``) or a *wrong lock*
-(a valid pose with a gross error).
+(a valid pose with a gross error); ``loss_table`` counts the frames without one by why.
 """
 
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -531,6 +532,47 @@ def acquisition_table(summaries: Sequence[CaseSummary]) -> str:
             f"| {system} | {noise} | {distance:.1f} m | {valid}/{frames} ({100 * valid / frames:.1f} %) "
             f"| {correct_text} | {wrong} | {median:.1f} / {p95:.1f} |"
         )
+    return "\n".join(lines) + "\n"
+
+
+def loss_reason(reason: str) -> str:
+    """A lost frame's reason with its figures left out, so that frames lost for one reason
+    count together: the last failure (acquisition's, where tracking fell back to it), without
+    the count of hypotheses tried, every number a ``#`` and every list of numbers ``[#…]``."""
+    last = reason.split("; ")[-1]
+    last = re.sub(r"^\w+ failed \((.*)\)$", r"\1", last)
+    last = re.sub(r"^\d+ hypotheses rejected: ", "", last)
+    numbered = re.sub(r"-?\d+(\.\d+)?", "#", last)
+    return re.sub(r"\[#(, #)*\]", "[#…]", numbered)  # a list of any length
+
+
+def loss_table(results: Iterable[FrameResult], top: int = 8) -> str:
+    """Why frames were lost: per system and mode, the ``top`` most frequent reasons
+    (``loss_reason``) with their count per distance — where to look first when a system fails
+    to lock. Forced losses (blank frames) are left out."""
+    lost = [r for r in results if r.status == "lost" and not r.blank]
+    distances = sorted({r.distance_m for r in lost}, reverse=True)
+    counts: dict[tuple[str, str], dict[str, dict[float, int]]] = {}
+    for r in lost:
+        by_reason = counts.setdefault((r.system, r.mode), {})
+        per_distance = by_reason.setdefault(loss_reason(r.reason), {})
+        per_distance[r.distance_m] = per_distance.get(r.distance_m, 0) + 1
+    header = " | ".join(f"{d:g} m" for d in distances)
+    lines = [
+        f"| system | mode | why lost | {header} | all |",
+        "|---|---|---|" + "---|" * (len(distances) + 1),
+    ]
+    for (system, mode), by_reason in sorted(counts.items()):
+        ranked = sorted(by_reason.items(), key=lambda item: -sum(item[1].values()))
+        for reason, per_distance in ranked[:top]:
+            cells = " | ".join(str(per_distance.get(d, 0)) for d in distances)
+            lines.append(
+                f"| {system} | {mode} | {reason} | {cells} | {sum(per_distance.values())} |"
+            )
+        if len(ranked) > top:
+            rest = [sum(v.get(d, 0) for _, v in ranked[top:]) for d in distances]
+            cells = " | ".join(map(str, rest))
+            lines.append(f"| {system} | {mode} | (other reasons) | {cells} | {sum(rest)} |")
     return "\n".join(lines) + "\n"
 
 

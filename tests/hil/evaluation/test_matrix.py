@@ -1,4 +1,5 @@
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -7,7 +8,14 @@ from configuration.mockup import load_mockup
 from estimators.geometry import Pose
 from estimators.measurement import Measurement
 from hil.evaluation.errors import measurement_error, roll_error
-from hil.evaluation.matrix import MatrixSpec, markdown_table, run_matrix, summarize
+from hil.evaluation.matrix import (
+    MatrixSpec,
+    loss_reason,
+    loss_table,
+    markdown_table,
+    run_matrix,
+    summarize,
+)
 
 ORACLE = "tests.hil.fake_estimators:build_oracle"
 
@@ -57,15 +65,18 @@ def test_matrix_counts_losses_and_drops_the_prior_after_one():
     assert (s.lost, s.longest_loss, s.acquired_tries, s.acquired_ok) == (2, 1, 2, 2)
 
 
+#: Every frame lost: the estimator raises.
+RAISING = MatrixSpec(
+    systems=("tests.hil.fake_estimators:build_raising",),
+    distances_m=(3.0,),
+    maneuvers=("none",),
+    noises=("none",),
+    frames=2,
+)
+
+
 def test_matrix_turns_an_estimator_exception_into_a_lost_frame():
-    spec = MatrixSpec(
-        systems=("tests.hil.fake_estimators:build_raising",),
-        distances_m=(3.0,),
-        maneuvers=("none",),
-        noises=("none",),
-        frames=2,
-    )
-    rows = run_matrix(spec)
+    rows = run_matrix(RAISING)
     assert all(r.status == "lost" and "boom" in r.reason for r in rows)
 
 
@@ -108,3 +119,30 @@ def test_measurement_error_for_a_circle_pose_and_roll():
     assert e.normal_rad == pytest.approx(0.0, abs=1e-7)
     assert e.roll_rad == pytest.approx(math.radians(2), rel=1e-6)
     assert roll_error(X_true, X_est, np.array([1.0, 0.0, 0.0])) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_the_loss_table_counts_frames_lost_for_one_reason_together():
+    lost = run_matrix(RAISING)[0]
+    rows = [
+        replace(lost, distance_m=3.0, reason="acquisition failed (no panel-like quadrilateral)"),
+        replace(
+            lost,
+            distance_m=3.0,
+            reason="acquisition failed (2 hypotheses rejected: a panel edge has no support (z 2.4))",
+        ),
+        replace(
+            lost,
+            distance_m=0.5,
+            reason="tracking failed (too few); acquisition failed "
+            "(1 hypotheses rejected: a panel edge has no support (z -0.3))",
+        ),
+        replace(lost, distance_m=0.5, reason="forced", blank=True),
+    ]
+    assert loss_reason(rows[1].reason) == "a panel edge has no support (z #)"
+    assert loss_reason("acquisition failed (edge(s) [1, 3] not found)") == "edge(s) [#…] not found"
+    table = loss_table(rows).splitlines()
+    assert table[0] == "| system | mode | why lost | 3 m | 0.5 m | all |"
+    assert any(line.endswith("| a panel edge has no support (z #) | 1 | 1 | 2 |") for line in table)
+    assert any(line.endswith("| no panel-like quadrilateral | 1 | 0 | 1 |") for line in table)
+    assert not any("forced" in line for line in table)
+    assert len(table) == 4
