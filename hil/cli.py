@@ -460,8 +460,9 @@ def matrix(
     table = markdown_table(summarize(rows)) + "\n" + bias_table(rows)
     if len(names) > 1:
         table += "\n" + mockup_table(rows)
-    if any(r.status == "lost" and not r.blank for r in rows):
-        table += "\n" + loss_table(rows)
+    losses = loss_table(rows)
+    if losses:
+        table += "\n" + losses
     out.print(table, markup=False, highlight=False, soft_wrap=True)
     if out_path is not None:
         with _writing(out_path, "--out"):

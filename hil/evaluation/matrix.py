@@ -549,8 +549,10 @@ def loss_reason(reason: str) -> str:
 def loss_table(results: Iterable[FrameResult], top: int = 8) -> str:
     """Why frames were lost: per system and mode, the ``top`` most frequent reasons
     (``loss_reason``) with their count per distance — where to look first when a system fails
-    to lock. Forced losses (blank frames) are left out."""
+    to lock. Forced losses (blank frames) are left out; '' when no other frame was lost."""
     lost = [r for r in results if r.status == "lost" and not r.blank]
+    if not lost:
+        return ""
     distances = sorted({r.distance_m for r in lost}, reverse=True)
     counts: dict[tuple[str, str], dict[str, dict[float, int]]] = {}
     for r in lost:

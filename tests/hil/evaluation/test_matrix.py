@@ -146,3 +146,4 @@ def test_the_loss_table_counts_frames_lost_for_one_reason_together():
     assert any(line.endswith("| no panel-like quadrilateral | 1 | 0 | 1 |") for line in table)
     assert not any("forced" in line for line in table)
     assert len(table) == 4
+    assert loss_table(rows[3:]) == ""  # only a forced loss: nothing to explain
