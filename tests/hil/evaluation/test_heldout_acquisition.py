@@ -26,3 +26,19 @@ def test_a_faint_panel_is_acquired_on_its_four_edges_together(system, mockup, di
     acquired = [r for r in rows if r.mode == "acquisition" and r.status != "lost"]
     assert len(acquired) >= at_least, [r.reason for r in rows if r.status == "lost"]
     assert not any(is_wrong_lock(r.error, distance, ambiguous=r.ambiguous) for r in acquired)
+
+
+@pytest.mark.parametrize(
+    "mockup, distance, at_least",
+    [
+        # Close up a faint panel's corners are all there is, and a 12 px window saw them at
+        # contrast SNR 3.4-3.9 (1 and 2 of 4 frames acquired).
+        ("random:110", 0.5, 3),
+        ("random:114", 1.2, 3),
+    ],
+)
+def test_a_faint_panel_corner_is_looked_for_again_in_a_wider_window(mockup, distance, at_least):
+    rows = run_case_group(replace(HELD_OUT, systems=("corners",)), distance, "turn_y_10deg", mockup)
+    acquired = [r for r in rows if r.mode == "acquisition" and r.status != "lost"]
+    assert len(acquired) >= at_least, [r.reason for r in rows if r.status == "lost"]
+    assert not any(is_wrong_lock(r.error, distance, ambiguous=r.ambiguous) for r in acquired)
