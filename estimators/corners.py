@@ -63,12 +63,15 @@ from estimators.model_view import (
     plane_coordinates,
 )
 from estimators.planar_pose import (
+    MIN_SCALE2,
     POSE_METHODS,
     PointObservations,
     choose_pose,
     fit_from_starts,
     ippe_poses,
+    profile_widened,
     refine_pose_robust,
+    with_min_scale2,
 )
 from estimators.point_fit import PointFits, fit_corners, fit_discs
 from estimators.target import TargetModel
@@ -763,6 +766,13 @@ class CornerEstimator:
                 if retry:
                     return self._solve(image, gradients, tilt.X_CT, tracking=False, retry=False)
                 reason = f"a tilt of the pose fits the ring and outline better (by {tilt.gain:.0f})"
+        if not reason:
+            # The covariance reported (the judges above test against the fit's own, the
+            # stricter): its variance factor no lower than 1 (``MIN_SCALE2``), and widened where
+            # the tilt of a panel seen square-on from afar lies in a bent χ² valley that the
+            # covariance at the minimum understates several times (``profile_widened``).
+            observations = self._observations(index[keep], uv[keep], cov[keep])
+            fit = profile_widened([observations], with_min_scale2(fit, MIN_SCALE2), self.camera.K)
         return _Solution(
             fit.X_CT,
             fit.covariance,

@@ -76,6 +76,7 @@ from estimators.panel_edges import (
     strips_from_pose,
 )
 from estimators.planar_pose import (
+    MIN_SCALE2,
     POSE_METHODS,
     CorrelatedEdgeObservations,
     EdgeObservations,
@@ -91,9 +92,6 @@ from estimators.planar_pose import (
 from estimators.target import TargetModel
 
 SYSTEM = "lines"
-#: The variance factor never goes below 1: the points' σ come from their own fits and the
-#: edges' common errors are modelled, so a χ²/dof below 1 is luck, not precision.
-MIN_SCALE2 = 1.0
 
 
 @dataclass(frozen=True, slots=True)

@@ -15,10 +15,12 @@ from estimators.planar_pose import (
     ideal_pixels,
     ippe_poses,
     orthogonal_iteration,
+    profile_widened,
     project_ideal,
     refine_pose,
     refine_pose_robust,
     retract,
+    with_min_scale2,
 )
 from estimators.so3 import pose_error_C
 
@@ -67,6 +69,56 @@ def test_refine_pose_covariance_is_calibrated_by_monte_carlo():
     # Mean NEES of a 6-DOF estimate with an honest covariance is 6 (± ~0.35 for 300 trials).
     assert 5.0 < np.mean(nees) < 7.2
     assert np.all(np.abs(np.mean(errors, axis=0)) < 3 * np.std(errors, axis=0) / math.sqrt(300))
+
+
+def _nees(delta: np.ndarray, covariance: np.ndarray) -> float:
+    return float(delta @ np.linalg.solve(covariance, delta))
+
+
+def test_profile_widened_covers_the_tilt_of_a_panel_seen_square_on_from_afar():
+    # Four corners of a 0.3 m panel, square-on at 3 m, 1 px noise: the tilt's χ² valley is
+    # flat and bent, and the covariance at the minimum leaves over a quarter of the errors
+    # beyond its 99 % bound (χ²₆ 16.8); the profile-widened one holds them.
+    corners = TARGET.panel_corners_T
+    X_square_on = Pose.from_rpy(math.pi, 0.0, 0.0, np.array([0.0, 0.0, 3.0]))
+    uv = project_ideal(X_square_on, corners, K)
+    rng = np.random.default_rng(1)
+    raw, widened = [], []
+    for _ in range(150):
+        measured = uv + rng.normal(0.0, 1.0, uv.shape)
+        obs = PointObservations(corners, measured, _isotropic(4, 1.0))
+        fit = refine_pose([obs], X_square_on, K, min_scale2=1.0)
+        delta = pose_error_C(X_square_on, fit.X_CT)
+        raw.append(_nees(delta, fit.covariance))
+        widened.append(_nees(delta, profile_widened([obs], fit, K).covariance))
+    raw, widened = np.array(raw), np.array(widened)
+    assert np.mean(raw > 16.8) > 0.15
+    assert np.mean(widened > 16.8) <= 0.02
+    assert 3.0 < np.mean(widened) < 7.0
+
+
+def test_profile_widened_leaves_a_well_conditioned_covariance_as_it_is():
+    rng = np.random.default_rng(3)
+    sigma = 0.3
+    uv = project_ideal(X_TRUE, POINTS_T, K)
+    for _ in range(20):
+        measured = uv + rng.normal(0.0, sigma, uv.shape)
+        obs = PointObservations(POINTS_T, measured, _isotropic(len(uv), sigma))
+        fit = refine_pose([obs], X_TRUE, K)
+        covariance = profile_widened([obs], fit, K).covariance
+        ratio = np.sqrt(np.diag(covariance) / np.diag(fit.covariance))
+        assert np.all(ratio >= 1.0 - 1e-12)
+        assert np.all(ratio < 1.02)
+
+
+def test_with_min_scale2_widens_a_lucky_fit_and_leaves_the_others():
+    uv = project_ideal(X_TRUE, POINTS_T, K)
+    obs = PointObservations(POINTS_T, uv, _isotropic(len(uv), 0.5))
+    lucky = refine_pose([obs], X_TRUE, K)  # noise-free: χ²/dof ≈ 0
+    floored = with_min_scale2(lucky, 1.0)
+    assert floored.scale2 == 1.0
+    np.testing.assert_allclose(floored.covariance, lucky.unit_covariance, rtol=1e-9)
+    assert with_min_scale2(floored, 0.5) is floored
 
 
 def test_edge_observations_jacobian_matches_finite_differences():
