@@ -98,9 +98,10 @@ def test_clean_frames_of_held_out_mockups_report_no_wrong_lock(system, mockup, d
 
 
 def test_corners_report_a_tilt_from_few_features_at_3_m_with_its_uncertainty():
-    # random:119 square-on at 3 m: a faint panel and three ring holes. The tilt's χ² valley is
-    # flat and bent; a track 10° off in tilt claimed the covariance at its minimum, a few
-    # degrees (NEES 24-44). Run with the held-out matrix's three frames per case.
+    # random:119 square-on at 3 m: few features (a faint panel, its three fasteners, some
+    # of the ring's holes). The tilt's χ² valley is flat and bent; a track 10° off in tilt
+    # claimed the covariance at its minimum, a few degrees (NEES 24-44). Run with the
+    # held-out matrix's three frames per case.
     spec = replace(HELD_OUT, systems=("corners",), frames=3)
     rows = run_case_group(spec, 3.0, "none", "random:119")
     assert len(rows) == 12
