@@ -617,21 +617,13 @@ def profile_widened(
                 continue
             c = level
             while c <= reach * level:
-                start = retract_raw(fit.X_CT, sign * c * sigma * along)
+                start = retract(fit.X_CT, sign * c * sigma * along)
                 try:
-                    profile = solve(
-                        PoseProblem(observations, K),
-                        start,
-                        loss=NoLoss(),
-                        iterations=10,
-                        levenberg=True,
-                        basis=free,
-                    )
+                    profile = refine_pose(observations, start, K, max_iterations=10, free=free)
                 except (ValueError, np.linalg.LinAlgError):
                     break  # the model behind the camera: that side is closed
-                chi2 = sum(float(r @ r) for r in profile.residuals)
-                rise = max((chi2 - fit.chi2) / scale2, 1.0)
-                delta = pose_error_C(profile.state, fit.X_CT)
+                rise = max((profile.chi2 - fit.chi2) / scale2, 1.0)
+                delta = pose_error_C(profile.X_CT, fit.X_CT)
                 m = float(delta @ np.linalg.solve(widened, delta))
                 if m > rise:
                     widened += (1.0 / rise - 1.0 / m) * np.outer(delta, delta)

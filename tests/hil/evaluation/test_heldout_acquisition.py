@@ -7,8 +7,7 @@ from dataclasses import replace
 import pytest
 
 from hil.evaluation.matrix import run_case_group
-from hil.evaluation.targets import is_wrong_lock
-from tests.hil.evaluation.test_heldout_wrong_locks import HELD_OUT
+from tests.hil.evaluation.test_heldout_wrong_locks import HELD_OUT, wrong_locks
 
 
 @pytest.mark.parametrize(
@@ -22,10 +21,7 @@ from tests.hil.evaluation.test_heldout_wrong_locks import HELD_OUT
     ],
 )
 def test_a_faint_panel_is_acquired_on_its_four_edges_together(system, mockup, distance, at_least):
-    rows = run_case_group(replace(HELD_OUT, systems=(system,)), distance, "none", mockup)
-    acquired = [r for r in rows if r.mode == "acquisition" and r.status != "lost"]
-    assert len(acquired) >= at_least, [r.reason for r in rows if r.status == "lost"]
-    assert not any(is_wrong_lock(r.error, distance, ambiguous=r.ambiguous) for r in acquired)
+    _assert_acquired(system, mockup, distance, "none", at_least)
 
 
 @pytest.mark.parametrize(
@@ -38,7 +34,12 @@ def test_a_faint_panel_is_acquired_on_its_four_edges_together(system, mockup, di
     ],
 )
 def test_a_faint_panel_corner_is_looked_for_again_in_a_wider_window(mockup, distance, at_least):
-    rows = run_case_group(replace(HELD_OUT, systems=("corners",)), distance, "turn_y_10deg", mockup)
+    _assert_acquired("corners", mockup, distance, "turn_y_10deg", at_least)
+
+
+def _assert_acquired(system: str, mockup: str, distance: float, maneuver: str, at_least: int):
+    """At least ``at_least`` frames of the case acquired without a prior, none a wrong lock."""
+    rows = run_case_group(replace(HELD_OUT, systems=(system,)), distance, maneuver, mockup)
     acquired = [r for r in rows if r.mode == "acquisition" and r.status != "lost"]
     assert len(acquired) >= at_least, [r.reason for r in rows if r.status == "lost"]
-    assert not any(is_wrong_lock(r.error, distance, ambiguous=r.ambiguous) for r in acquired)
+    assert wrong_locks(acquired, distance) == []

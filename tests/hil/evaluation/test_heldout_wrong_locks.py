@@ -23,6 +23,16 @@ HELD_OUT = MatrixSpec(
 )
 
 
+def wrong_locks(rows, distance_m: float) -> list[tuple]:
+    """The answers among ``rows`` that are wrong locks at ``distance_m``, each as (mode, noise,
+    frame, position error, attitude error)."""
+    return [
+        (r.mode, r.noise, r.index, r.error.position_m, r.error.attitude_rad)
+        for r in rows
+        if r.status != "lost" and is_wrong_lock(r.error, distance_m, ambiguous=r.ambiguous)
+    ]
+
+
 @pytest.mark.parametrize(
     "mockup, maneuver",
     [
@@ -45,12 +55,7 @@ HELD_OUT = MatrixSpec(
 def test_lines_on_held_out_mockups_at_1_2_m_report_no_wrong_lock(mockup, maneuver):
     rows = run_case_group(HELD_OUT, 1.2, maneuver, mockup)
     assert len(rows) == 8
-    wrong = [
-        (r.mode, r.noise, r.index, r.error.position_m, r.error.attitude_rad)
-        for r in rows
-        if r.status != "lost" and is_wrong_lock(r.error, 1.2, ambiguous=r.ambiguous)
-    ]
-    assert wrong == []
+    assert wrong_locks(rows, 1.2) == []
 
 
 @pytest.mark.parametrize(
@@ -66,12 +71,7 @@ def test_lines_on_held_out_mockups_at_1_2_m_report_no_wrong_lock(mockup, maneuve
 def test_corners_on_held_out_mockups_at_2_m_report_no_wrong_lock(mockup, distance, maneuver):
     rows = run_case_group(replace(HELD_OUT, systems=("corners",)), distance, maneuver, mockup)
     assert len(rows) == 8
-    wrong = [
-        (r.mode, r.noise, r.index, r.error.position_m, r.error.attitude_rad)
-        for r in rows
-        if r.status != "lost" and is_wrong_lock(r.error, distance, ambiguous=r.ambiguous)
-    ]
-    assert wrong == []
+    assert wrong_locks(rows, distance) == []
 
 
 @pytest.mark.parametrize(
@@ -89,12 +89,7 @@ def test_clean_frames_of_held_out_mockups_report_no_wrong_lock(system, mockup, d
     spec = replace(HELD_OUT, systems=(system,), noises=("none",))
     rows = run_case_group(spec, distance, "none", mockup)
     assert len(rows) == 4
-    wrong = [
-        (r.mode, r.index, r.error.position_m, r.error.attitude_rad)
-        for r in rows
-        if r.status != "lost" and is_wrong_lock(r.error, distance, ambiguous=r.ambiguous)
-    ]
-    assert wrong == []
+    assert wrong_locks(rows, distance) == []
 
 
 def test_corners_report_a_tilt_from_few_features_at_3_m_with_its_uncertainty():
@@ -105,9 +100,4 @@ def test_corners_report_a_tilt_from_few_features_at_3_m_with_its_uncertainty():
     spec = replace(HELD_OUT, systems=("corners",), frames=3)
     rows = run_case_group(spec, 3.0, "none", "random:119")
     assert len(rows) == 12
-    wrong = [
-        (r.mode, r.noise, r.index, r.error.position_m, r.error.attitude_rad)
-        for r in rows
-        if r.status != "lost" and is_wrong_lock(r.error, 3.0, ambiguous=r.ambiguous)
-    ]
-    assert wrong == []
+    assert wrong_locks(rows, 3.0) == []
