@@ -651,15 +651,17 @@ class LineEstimator:
         if not tracking:
             # Which of the outline's edges is which depends on the panel's quarter turn, still
             # undecided here when the face is not square: each distinct turn predicts it (with
-            # the panel's edges measured again under that turn's labels), and the one that
-            # explains more of the outline wins — a single edge fitted as the wrong one drags
-            # the tilt by degrees.
+            # the panel's edges measured again under that turn's labels, or relabeled where a
+            # faint one, found along its image line, is not found again narrowly), and the one
+            # that explains more of the outline wins — a single edge fitted as the wrong one
+            # drags the tilt by degrees.
             predictions = [(X, edges) for X in predictions]
             for k in self._outline_turns[1:]:
                 turned = fit.X_CT @ self.turns.turns[k]
                 relabeled = self._panel_edges_at(image, turned)
-                if relabeled is not None:
-                    predictions.append((turned, relabeled))
+                predictions.append(
+                    (turned, relabeled if relabeled is not None else edges.turned(k))
+                )
         else:
             predictions = [(X, edges) for X in predictions]
         # In tracking the prior fixes the turn, and the joint fit that found more of the

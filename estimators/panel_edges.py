@@ -274,6 +274,16 @@ class PanelEdges:
         """Edge points as pose observations (point-to-projected-edge distances)."""
         return edge_observations(panel_edge_ends(target), self.edges)
 
+    def turned(self, quarter_turns: int) -> PanelEdges:
+        """The same image edges labeled for the pose turned by ``quarter_turns`` about the
+        panel's axis (``X_CT @ quarter_turns(target)[k]``): that turn carries the model's edge
+        j onto its edge j + k (the corners run counter-clockwise about the panel's normal), so
+        the turned pose sees edge j where this one sees edge j + k."""
+        k = quarter_turns % 4
+        edges = self.edges[k:] + self.edges[:k]
+        corners = None if self.corners_ideal is None else np.roll(self.corners_ideal, -k, axis=0)
+        return PanelEdges(edges, corners)
+
     def image_points(self) -> np.ndarray:
         """All inlier edge points in image pixels (for overlays)."""
         parts = [e.points.uv[e.used] for e in self.edges if e.found]

@@ -4,7 +4,15 @@ import cv2
 import numpy as np
 
 from configuration.camera import load_camera
-from estimators.panel_edges import fit_panel_edges, shift_strips_onto, strips_from_quad
+from estimators.acquisition import quarter_turns
+from estimators.geometry import Pose
+from estimators.panel_edges import (
+    fit_panel_edges,
+    shift_strips_onto,
+    strips_from_pose,
+    strips_from_quad,
+)
+from tests.estimators import rendered
 
 SUPERSAMPLE = 8
 
@@ -65,3 +73,28 @@ def test_an_image_line_askew_across_an_edge_does_not_tilt_it():
     # Strips searched along the askew line alone: 0.48° median, 1.2° at worst.
     assert np.median(errors) < 0.2, errors
     assert max(errors) < 0.4, errors
+
+
+def test_edges_turned_with_the_pose_are_labeled_as_the_turned_pose_sees_them():
+    """A quarter turn of the pose about the panel's axis images the same square: the edges
+    measured under ``X_CT``, turned, fit ``X_CT @ turn`` as they fit ``X_CT`` — and not
+    without the turn, nor turned the other way."""
+    camera = load_camera("reference").camera_info()
+    target = rendered.target()
+    X_CT = Pose.from_rotvec(np.array([0.2, -0.3, 0.4]), np.array([0.03, -0.02, 1.2]))
+    corners = camera.project(X_CT.apply(target.panel_corners_T))
+    image = _panel_image(corners, (camera.width, camera.height), 0.13, 0.35)
+    strips = strips_from_pose(X_CT, camera, target, 7.0)
+    edges = fit_panel_edges(image, strips, camera, polarity=-1.0, noise_sigma=0.01)
+    assert edges.all_found
+
+    def rms_px(panel_edges, X):
+        r, _, _ = panel_edges.observations(target).linearize(X, camera.K)
+        return float(np.sqrt(np.mean(r**2)))
+
+    assert rms_px(edges, X_CT) < 0.3
+    for k, turn in enumerate(quarter_turns(target)[1:], start=1):
+        assert rms_px(edges.turned(k), X_CT @ turn) < 0.3
+        assert rms_px(edges, X_CT @ turn) > 5.0
+        if k != 2:
+            assert rms_px(edges.turned(-k), X_CT @ turn) > 5.0

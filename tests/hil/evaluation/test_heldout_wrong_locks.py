@@ -101,3 +101,16 @@ def test_corners_report_a_tilt_from_few_features_at_3_m_with_its_uncertainty():
     rows = run_case_group(spec, 3.0, "none", "random:119")
     assert len(rows) == 12
     assert wrong_locks(rows, 3.0) == []
+
+
+def test_lines_try_the_outline_at_each_turn_when_a_faint_panel_edge_is_not_found_again():
+    # random:105 at 3 m, its face 6 % taller than wide, a hypothesis at the wrong quarter
+    # turn. Each turn predicts the outline with the panel's edges measured again narrowly
+    # under its labels; one panel edge, faint, found only along its Hough line, was not
+    # found again, so the right turn was never tried, and the wrong one, its tilt bent 15°
+    # to line up half the outline, was acquired 87° off (NEES 10⁴). Run with high noise
+    # alone, which gives the frames the low-noise case's seeds.
+    spec = replace(HELD_OUT, noises=("high",), frames=2)
+    rows = run_case_group(spec, 3.0, "turn_y_10deg", "random:105")
+    assert len(rows) == 4
+    assert wrong_locks(rows, 3.0) == []
