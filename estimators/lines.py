@@ -86,6 +86,7 @@ from estimators.planar_pose import (
     choose_pose,
     fit_from_starts,
     ippe_poses,
+    profile_widened,
     project_ideal,
     refine_pose,
 )
@@ -536,6 +537,12 @@ class LineEstimator:
                     roll_undecided = True
                 else:
                     reason = f"the panel's quarter turn is undecided (margin {turn.margin:.1f})"
+        if not reason:
+            # The covariance reported (the judges above test against the fit's own): widened
+            # where the tilt lies in a flat, bent χ² valley that the covariance at the minimum
+            # understates — the panel's edges alone, or a track from a prior far off that
+            # holds the tilt near the prior (``profile_widened``).
+            fit = profile_widened([self._observations(edges, outline)], fit, self.camera.K)
         corners_image = self.camera.project(X.apply(self.target.panel_corners_T))
         points = edges.image_points()
         if outline is not None:
