@@ -162,6 +162,7 @@ class _Solution:
     reason: str = ""
     roll_undecided: bool = False  # no part in view tells the panel's quarter turns apart
     from_prior: bool = False  # ... and the turn was kept from the prior
+    unconfirmed: bool = False  # other parts in view, none supported: the prior stood in
 
 
 #: A joint fit is taken as found when it used this share of the outline's strips in view.
@@ -261,7 +262,15 @@ class LineEstimator:
         segments = np.zeros((0, 4))
         if prior_X_CT is not None:
             solution = self._solve(image, gradients, prior_X_CT, tracking=True)
+            if not solution.reason and not solution.unconfirmed:
+                return self._measurement(frame, solution, "tracking", started)
             if not solution.reason:
+                # The mock-up's other parts are in view and none is where the track puts
+                # them: a prior that lost the tilt holds the panel's edges at it. A search
+                # that finds them wins; without one the prior stands in, as it may.
+                acquired = self._acquire(image, gradients) if search_allowed() else None
+                if acquired is not None and not acquired.reason:
+                    return self._measurement(frame, acquired, "acquired", started)
                 return self._measurement(frame, solution, "tracking", started)
             segments = solution.segments
             reasons.append(f"tracking failed ({solution.reason})")
@@ -485,6 +494,7 @@ class LineEstimator:
         X = fit.X_CT
         reason, confirmed_by_prior = self._validate(fit.reduced_chi2, support, tracking)
         from_prior = from_prior or confirmed_by_prior
+        unconfirmed = confirmed_by_prior and bool(support.others())
         if (
             not reason
             and tracking
@@ -558,6 +568,7 @@ class LineEstimator:
             reason,
             roll_undecided,
             from_prior,
+            unconfirmed,
         )
 
     def _observations(
