@@ -1,10 +1,11 @@
 import numpy as np
 import pytest
 
+from configuration.camera import load_camera
 from estimators.acquisition import TurnChecker, coarse_gradients, quarter_turns, search_tilt
 from estimators.geometry import Pose, rotation_error_geodesic
-from estimators.imaging import GradientImage, image_stack
-from estimators.model_support import ModelSupport, Support
+from estimators.imaging import GradientImage, ImageStack, image_stack
+from estimators.model_support import ModelSupport, Support, search_gain_under_noise
 from estimators.planar_pose import retract
 from estimators.target import facing_camera
 from tests.estimators import rendered
@@ -162,3 +163,36 @@ def test_on_a_clean_frame_the_ring_and_thruster_fit_the_true_tilt_best():
     if found.X_CT is not None:
         tilt = np.degrees(rotation_error_geodesic(found.X_CT, f.truth.X_CT))
         assert tilt <= 2.0, f"a tilt {tilt:.1f}° off the truth fits better by {found.gain:.0f}"
+
+
+def test_a_searchs_gain_on_noise_alone_is_what_the_turn_check_takes_off():
+    """On pure noise, the ring's and thruster's contours at their best offset within ±shift
+    score on average what ``search_gain_under_noise`` says (to 0.25 z), and the discs' summed
+    response at their best common offset does per √n (to 0.2): the selection bias the quarter
+    turns' comparison removes."""
+    camera = load_camera("reference").camera_info()
+    support = ModelSupport(rendered.target(), camera)
+    contours = frozenset(n for n in support.names if n.startswith(("ring", "thruster")))
+    discs = np.arange(len(support.disc_centres_T))
+    rng = np.random.default_rng(11)
+    shifts = (1.5, 3.0, 6.0)
+    contour_z = {s: [] for s in shifts}
+    disc_z = {s: [] for s in shifts}
+    for _ in range(50):
+        noise = rng.normal(0.5, 0.05, (camera.height, camera.width)).astype(np.float32)
+        gradients = ImageStack(noise, 0.05).gradients(2.0)
+        X_CT = Pose.from_rotvec(
+            rng.normal(0.0, 0.2, 3), np.array([*rng.normal(0.0, 0.1, 2), rng.uniform(1.0, 3.0)])
+        )
+        for shift in shifts:
+            z = support.contour_scores(
+                gradients, X_CT.R[None], X_CT.p[None], only=contours, shift_px=shift
+            )
+            contour_z[shift] += list(z[np.isfinite(z)])
+            d = support.disc_responses(gradients, X_CT, discs, shift_px=shift)
+            disc_z[shift].append(np.nansum(d) / np.sqrt(max(1, np.sum(np.isfinite(d)))))
+    for shift in shifts:
+        contour_gain, disc_gain = search_gain_under_noise(shift)
+        assert abs(np.mean(contour_z[shift]) - contour_gain) < 0.25, (shift, contour_gain)
+        assert abs(np.mean(disc_z[shift]) - disc_gain) < 0.2, (shift, disc_gain)
+    assert search_gain_under_noise(0.0) == (0.0, 0.0)
