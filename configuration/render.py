@@ -40,6 +40,11 @@ class NoiseConfig(Strict):
     read_noise_e: Annotated[float, Field(ge=0.0)] = 8.0
     motion_blur: bool = False
     exposure_s: Annotated[float, Field(ge=0.0, le=1.0)] = 0.008
+    #: Scale each frame, before its noise, so that the mock-up's brightest pixels come near
+    #: full scale (``sim_backends.sensor.auto_exposure_gain``): a camera's auto-exposure
+    #: metering the target, as a user sets an OAK's exposure region on the mock-up. Off: the
+    #: rendered intensities as the light makes them, however dim.
+    auto_exposure: bool = False
 
     @property
     def gaussian_variance(self) -> float:

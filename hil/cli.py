@@ -113,6 +113,13 @@ LightOpt = Annotated[
         help="Light: default | harsh (a low side sun with shadows) | random (per mock-up).",
     ),
 ]
+AutoExposureOpt = Annotated[
+    bool,
+    typer.Option(
+        help="The camera's auto-exposure: each frame scaled, before its noise, so the mock-up's "
+        "brightest pixels reach 0.9 of full scale (gain 1/8-8x). Off: as the light makes them."
+    ),
+]
 NoiseOpt = Annotated[
     Noise,
     typer.Option(help="Image noise: reference variances 0 / 0.05 / 0.1, or the sensor model."),
@@ -402,6 +409,7 @@ def matrix(
     acquisition: Annotated[
         bool, typer.Option(help="Also estimate every frame without a prior (acquisition rate).")
     ] = False,
+    auto_exposure: AutoExposureOpt = False,
 ) -> None:
     """Run the reference study's test matrix against simulator ground truth and print the
     per-case mean ± std of the errors beside the targets and the reference's numbers, the
@@ -441,6 +449,7 @@ def matrix(
             mockup=names[0],
             mockups=tuple(names) if len(names) > 1 else (),
             lighting=light,
+            auto_exposure=auto_exposure,
             blank_frames=tuple(int(i) for i in blank.split(",") if i.strip()),
         )
     except ValueError as exc:
@@ -488,6 +497,7 @@ def approach_path(
     out_path: Annotated[
         Path | None, typer.Option("--out", help="Write the markdown tables here.")
     ] = None,
+    auto_exposure: AutoExposureOpt = False,
 ) -> None:
     """Open loop: one estimator tracks the target along a scripted approach path (2.5 m →
     0.5 m, re-centring an off-centre, rotated start); print errors by distance and by the
@@ -517,6 +527,7 @@ def approach_path(
                 seed=seed,
                 path=path,
                 lighting=light,
+                auto_exposure=auto_exposure,
             )
     except (ConfigError, ValueError, NotImplementedError) as exc:
         raise _fail(str(exc)) from None

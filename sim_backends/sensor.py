@@ -8,6 +8,12 @@ Noise models (on [0, 1] intensities, then clipped to [0, 1] and rounded to 8 bit
   collects I·full_well electrons, with Poisson variance I·full_well (drawn as a Gaussian, exact
   to well under 1 % above ~20 e⁻) plus read noise σ_read electrons.
 
+Auto-exposure (``NoiseConfig.auto_exposure``) scales the frame before its noise so that the
+brightest 1 % of the target's pixels reach 0.9 of full scale: highlight metering on the
+target, as a machine-vision camera's auto-exposure region set on the mock-up, within a gain
+range of 1/8–8×. The noise is then added at its configured level, as on a camera that lengthens
+its exposure (the study's noise is fixed on the recorded intensities, whatever the exposure).
+
 Motion blur integrates the image over the exposure while the camera moves with twist (v, ω)
 relative to the target: each pixel's image velocity comes from the interaction matrix of an
 image point at depth Z (Chaumette & Hutchinson, "Visual servo control I", IEEE RAM 2006):
@@ -23,6 +29,12 @@ import numpy as np
 from configuration.render import NoiseConfig
 
 _BLUR_SUBFRAMES = 9
+
+#: Auto-exposure: the percentile of the target's pixels metered, the level it is brought to,
+#: and the gain's range (exposure time and analog gain together, around the nominal exposure).
+AUTO_EXPOSURE_PERCENTILE = 99.0
+AUTO_EXPOSURE_LEVEL = 0.9
+AUTO_EXPOSURE_GAIN_RANGE = (0.125, 8.0)
 
 
 def frame_rng(seed: int, seq: int = 0) -> np.random.Generator:
@@ -67,6 +79,24 @@ def motion_blur(
     return out / _BLUR_SUBFRAMES
 
 
+def auto_exposure_gain(image: np.ndarray, depth_m: np.ndarray | None) -> float:
+    """The gain that brings the target's brightest pixels (where ``depth_m`` is finite; without
+    a depth, the pixels that are not black) to ``AUTO_EXPOSURE_LEVEL``, within the camera's
+    range; 1 where nothing is metered."""
+    image = np.asarray(image, dtype=np.float32)
+    if depth_m is not None:
+        metered = image[np.isfinite(depth_m)]
+    else:
+        metered = image[image.max(axis=-1) > 0] if image.ndim == 3 else image[image > 0]
+    if metered.size == 0:
+        return 1.0
+    bright = float(np.percentile(metered, AUTO_EXPOSURE_PERCENTILE))
+    low, high = AUTO_EXPOSURE_GAIN_RANGE
+    if bright <= 0:
+        return high
+    return float(np.clip(AUTO_EXPOSURE_LEVEL / bright, low, high))
+
+
 def noise_sigma(image: np.ndarray, noise: NoiseConfig) -> np.ndarray | float:
     """Standard deviation (on [0, 1] intensities, before clipping) of the noise at each pixel."""
     if noise.preset == "sensor":
@@ -101,4 +131,6 @@ def expose(
     """The 8-bit frame a sensor records of a noise-free rendered ``image``."""
     if noise.motion_blur and twist_C is not None:
         image = motion_blur(image, depth_m, K, twist_C, noise.exposure_s)
+    if noise.auto_exposure:
+        image = np.clip(np.float32(auto_exposure_gain(image, depth_m)) * image, 0.0, 1.0)
     return to_uint8(add_noise(image, noise, rng))

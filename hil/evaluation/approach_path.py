@@ -112,11 +112,13 @@ def render_approach(
     seed: int = 0,
     fps: float = 30.0,
     light: Lighting | None = None,
+    auto_exposure: bool = False,
 ) -> Iterator[PathFrame]:
-    """Render the approach ``path`` in ``frames`` frames (seeded sensor noise) under
-    ``light`` (the default light when None), frame ``i`` stamped ``i / fps``."""
+    """Render the approach ``path`` in ``frames`` frames (seeded sensor noise, the camera's
+    auto-exposure if asked) under ``light`` (the default light when None), frame ``i`` stamped
+    ``i / fps``."""
     path = path or ApproachPath()
-    noise_config = NoiseConfig(preset=noise)
+    noise_config = NoiseConfig(preset=noise, auto_exposure=auto_exposure)
     render = RenderConfig() if light is None else RenderConfig(lighting=light)
     with MockupScene(mockup_config) as scene:
         renderer = make_renderer(scene, info, render)
@@ -143,9 +145,10 @@ def run_approach(
     circle: str = "ring_outer",
     estimator_options: dict | None = None,
     lighting: str = "default",
+    auto_exposure: bool = False,
 ) -> list[ApproachFrame]:
     """Track ``system`` along the approach; one result per frame. ``lighting``: ``default``,
-    ``harsh`` or ``random`` (the mock-up's random light)."""
+    ``harsh`` or ``random`` (the mock-up's random light); ``auto_exposure``: the sensor's."""
     info = load_camera(camera).camera_info()
     mockup_config = load_mockup(mockup)
     target = mockup_config.target_model()
@@ -154,7 +157,14 @@ def run_approach(
     light = named_lighting(lighting, seed_of(mockup) if is_random_name(mockup) else seed)
     results = []
     for rendered in render_approach(
-        info, mockup_config, frames=frames, noise=noise, path=path, seed=seed, light=light
+        info,
+        mockup_config,
+        frames=frames,
+        noise=noise,
+        path=path,
+        seed=seed,
+        light=light,
+        auto_exposure=auto_exposure,
     ):
         m = tracker.update(rendered.frame)
         X_CT = rendered.frame.truth.X_CT

@@ -62,7 +62,8 @@ class MatrixSpec:
     replaces those frame indices by blank frames (a forced loss, to measure re-acquisition).
     ``mockups`` (names, e.g. ``random:3``), when given, replaces ``mockup``: every case runs on
     each; ``lighting``: ``default``, ``harsh`` or ``random`` (a random light per mock-up);
-    ``supersample`` and ``passes``: the render's anti-aliasing (``RenderConfig``)."""
+    ``supersample`` and ``passes``: the render's anti-aliasing (``RenderConfig``);
+    ``auto_exposure``: the sensor's (``NoiseConfig``)."""
 
     systems: tuple[str, ...]
     distances_m: tuple[float, ...] = REFERENCE_DISTANCES_M
@@ -79,6 +80,7 @@ class MatrixSpec:
     blank_frames: tuple[int, ...] = ()
     mockups: tuple[str, ...] = ()
     lighting: str = "default"
+    auto_exposure: bool = False
 
     @property
     def mockup_names(self) -> tuple[str, ...]:
@@ -154,7 +156,7 @@ def run_case_group(
             renderings.append(renderer.render(X_WC))
     results = []
     for noise_index, noise in enumerate(spec.noises):
-        noise_config = NoiseConfig(preset=noise)
+        noise_config = NoiseConfig(preset=noise, auto_exposure=spec.auto_exposure)
         seed = case_seed(spec, distance_index, maneuver_index, noise_index, mockup_index)
         trackers = {
             s: Tracker(build_estimator(s, target, camera, **spec.estimator_options))

@@ -4,7 +4,16 @@ from scipy import stats
 
 from configuration.render import NoiseConfig
 from estimators.geometry import Pose, intrinsics_from_fov, project
-from sim_backends.sensor import add_noise, expose, frame_rng, image_flow, motion_blur, to_uint8
+from sim_backends.sensor import (
+    AUTO_EXPOSURE_GAIN_RANGE,
+    add_noise,
+    auto_exposure_gain,
+    expose,
+    frame_rng,
+    image_flow,
+    motion_blur,
+    to_uint8,
+)
 
 K = intrinsics_from_fov(640, 480, 70.0)
 
@@ -100,3 +109,25 @@ def test_motion_blur_smears_an_edge_along_the_flow():
     assert 7 <= len(ramp) <= 12
     assert row[95:105].mean() == pytest.approx(0.5, abs=0.1)
     assert np.array_equal(motion_blur(image, depth, Kc, np.zeros(6), 0.1), image)
+
+
+def test_auto_exposure_brings_a_dim_targets_highlights_near_full_scale_and_meters_only_it():
+    """A dim mock-up (its brightest pixels at 0.2) on black space, and a bright lamp outside the
+    target's depth mask: the gain meters the mock-up's pixels alone, and the recorded frame's
+    mock-up reaches 0.9 at its 99th percentile; the contrast between its parts scales with it."""
+    image = np.zeros((100, 100), dtype=np.float32)
+    depth = np.full((100, 100), np.inf, dtype=np.float32)
+    image[20:80, 20:80] = 0.1  # the face
+    image[40:60, 40:60] = 0.2  # a brighter panel on it
+    depth[20:80, 20:80] = 2.0
+    image[0:5, 0:5] = 1.0  # a lamp in the background, not the target
+    assert auto_exposure_gain(image, depth) == pytest.approx(4.5)
+    off = expose(image, depth, K, NoiseConfig(), frame_rng(0))
+    on = expose(image, depth, K, NoiseConfig(auto_exposure=True), frame_rng(0))
+    assert off[50, 50] == to_uint8(np.float32(0.2))
+    assert on[50, 50] == to_uint8(np.float32(0.9))
+    assert int(on[50, 50]) - int(on[25, 25]) == pytest.approx(4.5 * (int(off[50, 50]) - 25), abs=2)
+    assert on[2, 2] == 255  # the lamp saturates: it is not what was metered
+    # Without a depth the non-black pixels are metered; the gain stays in the camera's range.
+    assert auto_exposure_gain(image * 0.001, None) == AUTO_EXPOSURE_GAIN_RANGE[1]
+    assert auto_exposure_gain(np.zeros((4, 4), np.float32), None) == 1.0

@@ -70,3 +70,29 @@ def test_ellipses_never_take_the_rings_mirror_pose_as_decided(tmp_path):
     worst = max(math.degrees(r.error.normal_rad) for r in confident)
     assert worst < 5.0, f"an unflagged ring normal {worst:.1f}° off (the mirror pose)"
     assert sum(r.overconfident for r in results) <= 2
+
+
+def test_the_approach_path_under_a_dim_light_is_exposed_by_the_cameras_auto_exposure():
+    """Under a light at a fifth of the default the frames are dim as rendered; with the
+    camera's auto-exposure the mock-up's brightest pixels come back near full scale."""
+    from configuration.camera import load_camera
+    from configuration.mockup import load_mockup
+    from configuration.render import Lighting
+    from hil.evaluation.approach_path import render_approach
+
+    info = load_camera("reference").camera_info()
+    dim = Lighting(ambient=0.09, diffuse=0.11)
+
+    def brightest(auto_exposure: bool) -> float:
+        frames = render_approach(
+            info,
+            load_mockup("default"),
+            frames=2,
+            noise="none",
+            light=dim,
+            auto_exposure=auto_exposure,
+        )
+        return max(float(np.percentile(f.frame.image, 99.9)) for f in frames) / 255.0
+
+    assert brightest(False) < 0.3
+    assert brightest(True) > 0.8

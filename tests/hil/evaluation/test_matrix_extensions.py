@@ -111,3 +111,29 @@ def test_matrix_renders_with_the_passes_it_is_given(monkeypatch):
         run_case_group(spec, 2.0, spec.maneuvers[0])
     assert seen == [(4, 3)]
     assert matrix_campaign(spec).parts[0].settings["passes"] == 3
+
+
+def test_matrix_exposes_with_the_cameras_auto_exposure_when_asked(monkeypatch):
+    """``--auto-exposure`` reaches the sensor of every frame, and a campaign of the matrix
+    carries it to its trials' spec."""
+    import hil.evaluation.matrix as matrix
+    from hil.analysis.campaigns.matrix_runs import matrix_campaign
+    from hil.analysis.campaigns.trials import matrix_spec
+
+    seen = []
+    expose = matrix.expose
+
+    def recording(image, depth_m, K, noise, rng, *args):
+        seen.append(noise.auto_exposure)
+        return expose(image, depth_m, K, noise, rng, *args)
+
+    monkeypatch.setattr(matrix, "expose", recording)
+    spec = MatrixSpec(
+        systems=(ORACLE,), distances_m=(2.0,), noises=("low",), frames=2, auto_exposure=True
+    )
+    run_case_group(spec, 2.0, spec.maneuvers[0])
+    assert seen == [True, True]
+    part = matrix_campaign(spec).parts[0]
+    trial_params = {**part.settings, "systems": [ORACLE]}
+    assert matrix_spec(trial_params, seed=0).auto_exposure is True
+    assert "auto_exposure" not in matrix_campaign(MatrixSpec(systems=(ORACLE,))).parts[0].settings
