@@ -93,6 +93,12 @@ _HOLES_DECIDE_CHI2 = 25.0
 _POSES_DECIDE_CHI2 = 25.0
 #: ... and each fit's own cost (over the points it found) must be this much lower for the same.
 _POSES_DECIDE_COST_RATIO = 1.15
+#: Where the image does not decide, a prior picks the ring's pose whose normal it is nearer
+#: only when it lies clearly on that pose's side: at most this fraction of its angle to the
+#: other. The two poses lie symmetric about the line of sight, so a prior about midway — the
+#: ring turned by about its own tilt since, or a prior as uncertain as the poses are apart —
+#: is nearly as near the wrong pose as the right one.
+_PRIOR_DECIDES_RATIO = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -359,13 +365,27 @@ class EllipseEstimator:
             return self._choose_mirror(image, fit, prior)
         return fit, False, False
 
+    def _by_prior(self, a: _Fit, b: _Fit, prior: Pose):
+        """Of two poses the image does not decide between, the one whose normal is nearer the
+        prior's: kept because of the prior where the prior lies clearly on its side
+        (``_PRIOR_DECIDES_RATIO``), else ambiguous. Returns (fit, ambiguous, from_prior)."""
+        prior_normal = prior.R @ self.outer.normal_T
+        (near, nearer), (far, _) = sorted(
+            ((normal_angle(f.ring.normal_C, prior_normal), f) for f in (a, b)),
+            key=lambda pair: pair[0],
+        )
+        if near > _PRIOR_DECIDES_RATIO * far:
+            return nearer, True, False
+        return nearer, False, True
+
     def _choose_mirror(self, image: _Image, fit: _Fit, prior: Pose):
         """The ring alone while tracking: its two poses, and which the frame supports. The
         image decides when the other pose does not fit it (or is the same pose, near head-on),
         shows the thruster, or costs clearly more (15 %); otherwise the pose nearer the prior's
         normal is kept *because of the prior* (``from_prior``: a lock only if the prior's
         choice was itself decided, which the Tracker knows — issue 13: a mirror taken at
-        acquisition must not become a confident track). Returns (fit, ambiguous, from_prior)."""
+        acquisition must not become a confident track) — where the prior sides with it
+        (``_by_prior``). Returns (fit, ambiguous, from_prior)."""
         mirror = self._mirror(image, fit)
         if mirror is None:
             return fit, False, False
@@ -375,9 +395,7 @@ class EllipseEstimator:
         best, decided = self._better_of(fit, mirror)
         if decided:
             return best, False, False
-        prior_normal = prior.R @ self.outer.normal_T
-        nearer = min((fit, mirror), key=lambda f: normal_angle(f.ring.normal_C, prior_normal))
-        return nearer, False, True
+        return self._by_prior(fit, mirror, prior)
 
     def _track_by_extraction(self, image: _Image, prior: Pose, ring0: CirclePose, predicted):
         """Extract ellipses around the prediction, label them against the predicted ring edges
