@@ -38,6 +38,11 @@ from tests.hil.runtime.test_loop import RecordingLog
 pytestmark = pytest.mark.wall_clock
 
 SLEEPY = "tests.hil.fake_estimators:build_sleepy"
+#: The tick deadline here: this test is about the estimate never entering the tick, and an
+#: estimate computed inline would take the sleepy estimator's 200 ms. The rig's 24 ms deadline
+#: is the supervisor's (test_supervisor, test_loop); on the shared CI machine the host once
+#: stalled a tick of this trial for 79 ms, and the trial aborted on it.
+HOST_STALL_BOUND_S = 0.15
 
 
 class LiveWorld(FakeWorld):
@@ -98,7 +103,13 @@ def test_wall_clock_control_tick_never_waits_for_a_slow_estimator():
     try:
         feeder.start()
         config = ApproachConfig.model_validate(
-            {"supervisor": {"max_estimate_age_s": 1.0, "max_frame_age_s": 1.0}}
+            {
+                "supervisor": {
+                    "max_estimate_age_s": 1.0,
+                    "max_frame_age_s": 1.0,
+                    "max_tick_s": HOST_STALL_BOUND_S,
+                }
+            }
         )
         log = RecordingLog()
         loop = ControlLoop(arm, track, FakeGripper(clock), vision, geometry, config, clock, log)
@@ -115,7 +126,10 @@ def test_wall_clock_control_tick_never_waits_for_a_slow_estimator():
     assert min(r.processing_ms for r in fused) >= 190.0
     # The tick's own work never contains the 200 ms estimate: vision runs beside the loop.
     work = np.array([t.timing.work_ms for t in log.ticks])
-    assert np.median(work) < 4.0 and work.max() < 100.0, (np.median(work), work.max())
+    assert np.median(work) < 4.0 and work.max() < 1000 * HOST_STALL_BOUND_S, (
+        np.median(work),
+        work.max(),
+    )
     periods = np.array([t.timing.period_ms for t in log.ticks[1:]])
     assert abs(np.median(periods) - 8.0) < 0.5 and np.percentile(periods, 99) < 20.0
     # What the supervisor saw instead: an estimate at least latency + processing old.
