@@ -35,6 +35,11 @@ class ConfigError(ValueError):
         lines = "\n".join(f"  {p}" for p in problems)
         super().__init__(f"invalid configuration {source}:\n{lines}")
 
+    def __reduce__(self):
+        # Raised in a worker process, it crosses back pickled: rebuilt from its own fields
+        # (the default rebuilds from the message alone and fails, breaking the whole pool).
+        return (type(self), (self.source, self.problems))
+
 
 def builtin_config_dir() -> Path:
     """Directory holding the built-in YAML files (the repository's ``configs/``).

@@ -252,3 +252,16 @@ def test_a_named_light_for_a_closed_loop_approach():
     assert with_light(sim, "harsh", 7).render.supersample == sim.render.supersample
     with pytest.raises(ValueError, match="light must be one of default, harsh, random"):
         with_light(sim, "dusk", 1)
+
+
+def test_config_error_survives_the_trip_back_from_a_worker_process():
+    import pickle
+
+    error = ConfigError("mockup.yaml", ["marman_ring.outer_diameter (line 12): too small"])
+    back = pickle.loads(pickle.dumps(error))
+    assert (type(back), str(back), back.source, back.problems) == (
+        ConfigError,
+        str(error),
+        error.source,
+        error.problems,
+    )

@@ -10,6 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from configuration.campaign import CampaignConfig, CampaignPart
+from configuration.mockup import load_mockup
 from hil.analysis.campaigns.runner import run_campaign
 from hil.analysis.campaigns.spec import expand
 from hil.analysis.campaigns.trials import frame_results_from_json, read_result
@@ -50,6 +51,8 @@ def run_matrix_campaign(
 ) -> list[FrameResult]:
     """Run ``spec`` through the campaign runner (in ``out_dir``, resumable; a temporary
     directory by default) and return every frame's result in campaign order."""
+    for name in spec.mockup_names:
+        load_mockup(name)  # a bad name fails here, once, before any trial runs
     config = matrix_campaign(spec)
     with tempfile.TemporaryDirectory(prefix="satgrasp-matrix-") as scratch:
         folder = Path(out_dir) if out_dir is not None else Path(scratch)

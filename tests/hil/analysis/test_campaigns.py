@@ -276,6 +276,13 @@ def test_matrix_through_the_campaign_runner_runs_every_mockup_as_run_matrix_does
         (["campaign", "smoke", "--scheduler", "tcp://127.0.0.1:1"], "--scheduler needs"),
         (["crb", "--noise", "none"], "needs Gaussian noise"),
         (["crb", "--distance", "far"], "--distance"),
+        # "random:1,2" names random:1 and a file "2" (random:1,random:2 was meant): refused
+        # before any trial runs, not as a broken worker pool's traceback
+        (
+            ["matrix", "--system", "ellipses", "--mockup", "random:1,2", "--frames", "2"]
+            + ["--distance", "2", "--noise", "low", "--maneuver", "none", "--jobs", "2"],
+            "no built-in configuration named '2'",
+        ),
     ],
 )
 def test_campaign_commands_refuse_bad_input_in_one_line(args, message):
