@@ -123,6 +123,11 @@ class EllipseSettings:
     min_outer_support: float = 0.35
     min_inner_support: float = 0.25
     min_thruster_support: float = 0.45
+    #: The bore's foot stands in for an unseen rim only when found over this much of its
+    #: length: a deep bore holds several circular edges, and a pose 4 cm off found half of a
+    #: foot (``rendered.DEEP_BORE_MOCKUP`` at 0.6 m), where a rim without contrast leaves the
+    #: foot found all round (random:101: 0.98).
+    min_bore_foot_support: float = 0.7
     max_hypotheses: int = 6
     #: Of the ring hypotheses that verify, a later one replaces the one kept only when its
     #: ring's edges are found over this much more of their lengths (mean support of the outer
@@ -163,6 +168,9 @@ class _Image:
     camera: CameraInfo
     fine_sigma: float
     scale: float = 1.0  # smoothing of every stage, relative to the settings' (low contrast: > 1)
+    # Whether the bore's foot may stand in for an unseen rim (``_bore_edges``): in acquisition
+    # only. A track from a prior far off finds the true rim where it predicts the foot.
+    foot_for_rim: bool = False
     # Samples of a projected circle by (pose, circle, spacing, margin): the ring's polarity
     # probes and the search after them sample the same curve up to three times a stage.
     samples: dict = field(default_factory=dict, repr=False)
@@ -270,6 +278,7 @@ class EllipseEstimator:
                 return Measurement.lost(SYSTEM, frame, reason, started=started)
             if found is None:
                 status = "acquired"
+                image = replace(image, foot_for_rim=True)
                 extractor = s.extractor
                 if scale != 1.0:
                     extractor = replace(
@@ -745,6 +754,12 @@ class EllipseEstimator:
                 found = self._circle_edges(
                     image, X_CT, circle, sigma, circle_width, polarities.get(circle.name)
                 )
+                if (
+                    circle is self.inner
+                    and image.foot_for_rim
+                    and self._bore_wall_shows(X_CT, sigma)
+                ):
+                    found = self._bore_edges(image, X_CT, sigma, circle_width, found)
                 if found is not None and found.hits.count >= 8:
                     edges[circle.name] = found
                     polarities.setdefault(circle.name, found.polarity)
@@ -825,6 +840,31 @@ class EllipseEstimator:
             return False
         gap = abs(self._radius_px(X_CT, self.inner) - self._radius_px(X_CT, self.foot))
         return gap > 2.0 * sigma + 1.0
+
+    def _bore_edges(
+        self,
+        image: _Image,
+        X_CT: Pose,
+        sigma: float,
+        half_width: float,
+        at_rim: CircleEdges | None,
+    ) -> CircleEdges | None:
+        """The bore's edge where its wall shows as a band: the rim's search (``at_rim``) or,
+        when that found too little to support the ring, the foot's, if it finds the foot over
+        most of its length (``min_bore_foot_support``; its samples are then fitted to the
+        nearer of the two circles, ``_inner_sets``). A wall as dark as the ring's front leaves
+        no rim at all — only its foot, against the face seen through the bore (random:101,
+        square on at 1.2 m: the rim's search found 0 of 320 samples, the foot 9 px inside it
+        stood out all round, and no ring verified). Acquisition only (``_Image.foot_for_rim``):
+        after the matrix's 17° turn a track from the prior found the true rim where it put
+        the foot and held a ring 12° off (random:109 at 1.2 m)."""
+        assert self.foot is not None
+        if at_rim is not None and at_rim.support >= self.settings.min_inner_support:
+            return at_rim
+        at_foot = self._circle_edges(image, X_CT, self.foot, sigma, half_width, None)
+        if at_foot is None or at_foot.support < self.settings.min_bore_foot_support:
+            return at_rim
+        return at_foot
 
     def _ring_supported(self, edges: dict[str, CircleEdges]) -> bool:
         s = self.settings
