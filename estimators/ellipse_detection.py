@@ -125,7 +125,12 @@ def ring_hypotheses(
     ratio — which depends on the distance — fits the pair better than r_inner / r_outer does,
     the pair is also taken for the bore (the inner edge with ``bore_foot``): a ring larger by
     r_outer / r_inner, tried first. Taken for the ring's two edges, such a pair put the ring
-    15 % too far, at 0.5 m and 1.2 m, with its normal right (random mock-ups, issue 13)."""
+    15 % too far, at 0.5 m and 1.2 m, with its normal right (random mock-ups, issue 13).
+
+    A lone ellipse is taken for the outer edge and for the inner edge; with a deep bore the
+    largest-supported one is also taken, last, for the bore's foot alone: a wall as dark as
+    the ring's front shows no rim, and close up, the outer edge out of view, the foot may be
+    all of the ring the image holds."""
     hypotheses: list[RingHypothesis] = []
     if inner is not None:
         ratio = inner.radius / outer.radius
@@ -155,7 +160,11 @@ def ring_hypotheses(
         hypotheses.append(RingHypothesis(e, None, np.inf))
         if inner is not None:
             hypotheses.append(RingHypothesis(None, e, np.inf))
-    return hypotheses[:max_count]
+    hypotheses = hypotheses[:max_count]
+    if inner is not None and bore_depth_m > 0.0 and singles:
+        # Last and beyond the count: the likelier readings keep their places.
+        hypotheses.append(RingHypothesis(None, None, np.inf, bore_foot=singles[0]))
+    return hypotheses
 
 
 def _pair_cost(ra: float, rb: float, ratio: float, distance_px: float, a_px: float) -> float | None:

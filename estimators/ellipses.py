@@ -473,8 +473,12 @@ class EllipseEstimator:
         )
         best, best_support = None, 0.0
         for hypothesis in hypotheses:
-            labeled = hypothesis.outer if hypothesis.outer is not None else hypothesis.inner
-            circle = self.outer if hypothesis.outer is not None else self.inner
+            if hypothesis.outer is not None:
+                labeled, circle = hypothesis.outer, self.outer
+            elif hypothesis.inner is not None:
+                labeled, circle = hypothesis.inner, self.inner
+            else:  # a lone ellipse taken for the bore's foot
+                labeled, circle = hypothesis.bore_foot, self.foot
             assert labeled is not None and circle is not None
             polarities = {}
             if hypothesis.outer is not None:

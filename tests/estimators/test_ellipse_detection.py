@@ -85,7 +85,21 @@ def test_ring_hypotheses_take_a_deep_bores_rim_and_foot_for_what_they_are():
     ring_in = extracted(Ellipse(296, 240, 0.870 * 270.1, 0.870 * 267.9, 0.0), True)
     hypotheses = ring_hypotheses([ring_in, rim], outer, inner, bore_depth_m=0.088, focal_px=focal)
     assert hypotheses[0].outer is rim and hypotheses[0].inner is ring_in
-    assert all(h.bore_foot is None for h in hypotheses)
+    assert all(h.bore_foot is None for h in hypotheses if h.inner is not None)
+
+
+def test_ring_hypotheses_take_a_lone_ellipse_for_a_deep_bores_foot_too():
+    """A bore's wall as dark as the ring's front shows no rim: close up, the foot (wall against
+    the face seen through the bore) may be the only ellipse in the image. A lone ellipse is
+    then tried as the outer edge, the inner edge and the foot — the last only with a bore."""
+    z = np.array([0.0, 0.0, 1.0])
+    outer, inner = Circle3D("o", np.zeros(3), z, 0.407), Circle3D("i", np.zeros(3), z, 0.342)
+    foot = extracted(Ellipse(320, 240, 266.9, 266.7, 0.0), True)
+    hypotheses = ring_hypotheses([foot], outer, inner, bore_depth_m=0.086, focal_px=460.0)
+    readings = [(h.outer is foot, h.inner is foot, h.bore_foot is foot) for h in hypotheses]
+    assert readings == [(True, False, False), (False, True, False), (False, False, True)]
+    shallow = ring_hypotheses([foot], outer, inner)
+    assert [h.bore_foot for h in shallow] == [None, None]
 
 
 def test_pose_with_roll_and_roll_of_are_inverse():

@@ -37,11 +37,13 @@ def test_a_faint_panel_corner_is_looked_for_again_in_a_wider_window(mockup, dist
     _assert_acquired("corners", mockup, distance, "turn_y_10deg", at_least)
 
 
-@pytest.mark.parametrize("distance", [1.2])
+@pytest.mark.parametrize("distance", [1.2, 0.5])
 def test_a_bore_as_dark_as_the_ring_is_acquired_on_its_foot(distance):
     # random:101, square on: ring and bore wall near black, the face seen through the bore
-    # bright. The bore shows no rim, only its foot, 9 px inside the rim at 1.2 m, and no ring
-    # verified (0 of 4 frames). Frames exposed by the camera's auto-exposure.
+    # bright. The bore shows no rim, only its foot — 9 px inside the rim at 1.2 m, 46 px at
+    # 0.5 m, where it is the only ellipse extracted, and was taken for the rim or the outer
+    # edge only — and no ring verified (0 of 4 frames at either distance). Frames exposed by
+    # the camera's auto-exposure.
     _assert_acquired("ellipses", "random:101", distance, "none", 4, auto_exposure=True)
 
 
