@@ -114,7 +114,7 @@ def test_pose_hypotheses_rank_the_true_quarter_turn_first():
     image = image_stack(f)
     gradients = GradientImage.of(image.pixels, 2.0, image.noise_sigma)
     support = ModelSupport(TARGET, f.info)
-    hypotheses = pose_hypotheses(
+    hypotheses, quads = pose_hypotheses(
         image,
         gradients,
         coarse_gradients(image),
@@ -123,7 +123,7 @@ def test_pose_hypotheses_rank_the_true_quarter_turn_first():
         support,
         TurnChecker(TARGET, support),
     )
-    assert hypotheses
+    assert hypotheses and quads >= 1
     assert rotation_error_geodesic(f.truth.X_CT, hypotheses[0].X_CT) < math.radians(15)
 
 
@@ -268,9 +268,11 @@ def test_acquisition_looks_at_the_next_cut_only_for_quads_the_first_did_not_solv
     }
     cuts_asked = []
 
+    quads_cut = {CUTS[0]: 0, CUTS[1]: 0}
+
     def hypotheses(*args, cut):
         cuts_asked.append(cut)
-        return by_cut[cut]
+        return by_cut[cut], max(len(by_cut[cut]), quads_cut[cut])
 
     monkeypatch.setattr(acquisition, "pose_hypotheses", hypotheses)
     solved = []
@@ -297,3 +299,8 @@ def test_acquisition_looks_at_the_next_cut_only_for_quads_the_first_did_not_solv
     assert solution is None and reason == "2 hypotheses rejected: too faint"
     by_cut[CUTS[0]], by_cut[CUTS[1]] = [], []
     assert search([]) == (None, "no panel-like quadrilateral in the image")
+    # Quads cut, but none with its four sides refined (a faint panel's edge not found at full
+    # resolution): said as such, not as no quad at all.
+    quads_cut[CUTS[1]] = 2
+    reason = "panel-like quadrilateral(s) found, none with all four sides refined"
+    assert search([]) == (None, reason)
