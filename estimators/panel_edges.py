@@ -26,6 +26,10 @@ from estimators.target import TargetModel
 CORNER_CLEARANCE_PX = 5.0
 #: ...and at least this fraction of the edge.
 MIN_CORNER_FRACTION = 0.04
+#: Strips on the shortest edge, shorter than ``strip_px`` where the edge is short: a line needs
+#: three points, and with three strips a single one lost to noise loses the edge (a faint
+#: panel 35 px across at 3 m: held-out random:111 and 112).
+MIN_STRIPS = 5
 
 
 def edge_span(length_px: float, strip_px: float) -> tuple[float, float]:
@@ -59,7 +63,7 @@ class EdgeStrips:
 
 def strip_count(length_px: float, strip_px: float) -> int:
     t0, t1 = edge_span(length_px, strip_px)
-    return int(np.clip(round(length_px * (t1 - t0) / strip_px), 3, 60))
+    return int(np.clip(round(length_px * (t1 - t0) / strip_px), MIN_STRIPS, 60))
 
 
 def strips_from_pose(
@@ -170,7 +174,9 @@ def strips_along_edge(
     dense_uv = camera.project(X_CT.apply(a + dense[:, None] * (b - a)))
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense_uv, axis=0), axis=1))])
     span_px = float(arc[-1])
-    count = int(np.clip(round(span_px / strip_px), 3, 60 if max_strips is None else max_strips))
+    count = int(
+        np.clip(round(span_px / strip_px), MIN_STRIPS, 60 if max_strips is None else max_strips)
+    )
     t = np.interp(np.linspace(0.0, span_px, count), arc, dense)[:, None]
     points = a + t * (b - a)
     points_C = X_CT.apply(points)

@@ -7,6 +7,7 @@ from configuration.camera import load_camera
 from estimators.acquisition import quarter_turns
 from estimators.geometry import Pose
 from estimators.panel_edges import (
+    edge_span,
     fit_panel_edges,
     shift_strips_onto,
     strips_from_pose,
@@ -98,3 +99,16 @@ def test_edges_turned_with_the_pose_are_labeled_as_the_turned_pose_sees_them():
         assert rms_px(edges, X_CT @ turn) > 5.0
         if k != 2:
             assert rms_px(edges.turned(-k), X_CT @ turn) > 5.0
+
+
+def test_a_short_edge_gets_enough_strips_to_lose_two():
+    """A panel 35 px across (a small panel at 3 m) had three strips a side: one point lost to
+    noise left two and the edge, with it the panel, was not found. Its strips are now shorter
+    and at least five (two may be lost), over the same part of the edge."""
+    corners = np.array([[300.0, 220.0], [335.0, 220.0], [335.0, 255.0], [300.0, 255.0]])
+    t0, t1 = edge_span(35.0, 6.0)
+    for i, strips in enumerate(strips_from_quad(corners, 6.0)):
+        a, b = corners[i], corners[(i + 1) % 4]
+        assert len(strips.centers_uv) >= 5
+        assert 2.0 * strips.half_length_px < 6.0
+        np.testing.assert_allclose(strips.centers_uv[[0, -1]], [a + t0 * (b - a), a + t1 * (b - a)])
