@@ -124,6 +124,16 @@ NoiseOpt = Annotated[
     Noise,
     typer.Option(help="Image noise: reference variances 0 / 0.05 / 0.1, or the sensor model."),
 ]
+SupersampleOpt = Annotated[
+    int,
+    typer.Option(
+        min=1,
+        max=4,
+        help="Samples per pixel side, averaged (pixel-area sampling, as a sensor integrates "
+        "light). 1 samples pixel centres: edges along the pixel grid, as at the head-on "
+        "pose, snap to whole pixels (docs/reference_study.md).",
+    ),
+]
 
 
 def _fail(message: str, code: int = 2) -> typer.Exit:
@@ -386,16 +396,7 @@ def matrix(
     results: Annotated[
         Path | None, typer.Option(help="Write every frame's result as JSON lines.")
     ] = None,
-    supersample: Annotated[
-        int,
-        typer.Option(
-            min=1,
-            max=4,
-            help="Samples per pixel side, averaged (pixel-area sampling, as a sensor integrates "
-            "light). 1 samples pixel centres: edges along the pixel grid, as at the head-on "
-            "pose, snap to whole pixels (docs/reference_study.md).",
-        ),
-    ] = 4,
+    supersample: SupersampleOpt = 4,
     passes: Annotated[
         int,
         typer.Option(
@@ -498,11 +499,14 @@ def approach_path(
         Path | None, typer.Option("--out", help="Write the markdown tables here.")
     ] = None,
     auto_exposure: AutoExposureOpt = False,
+    supersample: SupersampleOpt = 1,
 ) -> None:
     """Open loop: one estimator tracks the target along a scripted approach path (2.5 m →
     0.5 m, re-centring an off-centre, rotated start); print errors by distance and by the
     fraction of the ring in view, and count the frames that claim a pose beyond their own 3σ
-    without flagging it ambiguous. (The closed loop is `satgrasp approach`.)"""
+    without flagging it ambiguous. (The closed loop is `satgrasp approach`.) Rendered one
+    sample a pixel unless asked, as the reference study's path; close up its edges' aliasing
+    then shows in the panel systems' fits as over-confidence (docs/any_mockup.md)."""
     from configuration.random_mockup import mockup_names
     from hil.evaluation.approach_path import (
         ApproachPath,
@@ -528,6 +532,7 @@ def approach_path(
                 path=path,
                 lighting=light,
                 auto_exposure=auto_exposure,
+                supersample=supersample,
             )
     except (ConfigError, ValueError, NotImplementedError) as exc:
         raise _fail(str(exc)) from None

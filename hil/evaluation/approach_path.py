@@ -113,13 +113,14 @@ def render_approach(
     fps: float = 30.0,
     light: Lighting | None = None,
     auto_exposure: bool = False,
+    supersample: int = 1,
 ) -> Iterator[PathFrame]:
     """Render the approach ``path`` in ``frames`` frames (seeded sensor noise, the camera's
-    auto-exposure if asked) under ``light`` (the default light when None), frame ``i`` stamped
-    ``i / fps``."""
+    auto-exposure if asked) under ``light`` (the default light when None), ``supersample``²
+    samples a pixel (as ``RenderConfig``), frame ``i`` stamped ``i / fps``."""
     path = path or ApproachPath()
     noise_config = NoiseConfig(preset=noise, auto_exposure=auto_exposure)
-    render = RenderConfig() if light is None else RenderConfig(lighting=light)
+    render = RenderConfig(supersample=supersample, lighting=light or Lighting())
     with MockupScene(mockup_config) as scene:
         renderer = make_renderer(scene, info, render)
         for i in range(frames):
@@ -146,9 +147,11 @@ def run_approach(
     estimator_options: dict | None = None,
     lighting: str = "default",
     auto_exposure: bool = False,
+    supersample: int = 1,
 ) -> list[ApproachFrame]:
     """Track ``system`` along the approach; one result per frame. ``lighting``: ``default``,
-    ``harsh`` or ``random`` (the mock-up's random light); ``auto_exposure``: the sensor's."""
+    ``harsh`` or ``random`` (the mock-up's random light); ``auto_exposure``: the sensor's;
+    ``supersample``: the renderer's samples per pixel side (1: the reference study's path)."""
     info = load_camera(camera).camera_info()
     mockup_config = load_mockup(mockup)
     target = mockup_config.target_model()
@@ -165,6 +168,7 @@ def run_approach(
         seed=seed,
         light=light,
         auto_exposure=auto_exposure,
+        supersample=supersample,
     ):
         m = tracker.update(rendered.frame)
         X_CT = rendered.frame.truth.X_CT

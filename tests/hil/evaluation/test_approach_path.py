@@ -96,3 +96,33 @@ def test_the_approach_path_under_a_dim_light_is_exposed_by_the_cameras_auto_expo
 
     assert brightest(False) < 0.3
     assert brightest(True) > 0.8
+
+
+def test_the_approach_path_renders_anti_aliased_when_asked(monkeypatch):
+    """One sample a pixel leaves every edge a staircase; close up the panel systems' fits
+    read it as the panel's edge to a fraction of the noise they claim (the lines' over-confident
+    frames at 0.5 m, docs/any_mockup.md). ``supersample`` reaches the renderer, and changes
+    the frames."""
+    import hil.evaluation.approach_path as approach_path
+    from configuration.camera import load_camera
+    from configuration.mockup import load_mockup
+
+    info = load_camera("reference").camera_info()
+    configs = []
+    make_renderer = approach_path.make_renderer
+
+    def recording(scene, camera, render):
+        configs.append(render)
+        return make_renderer(scene, camera, render)
+
+    monkeypatch.setattr(approach_path, "make_renderer", recording)
+
+    def first_frame(supersample: int) -> np.ndarray:
+        frames = approach_path.render_approach(
+            info, load_mockup("default"), frames=2, noise="none", supersample=supersample
+        )
+        return next(iter(frames)).frame.image
+
+    aliased, smooth = first_frame(1), first_frame(4)
+    assert [c.supersample for c in configs] == [1, 4]
+    assert np.abs(smooth.astype(int) - aliased.astype(int)).max() > 50
