@@ -691,12 +691,11 @@ def refine_quad(
     passes: int = 3,
 ) -> np.ndarray | None:
     """Sub-pixel corners (4,2 ideal px) of a rough quad (image px) from its four edges, or
-    None if the first pass does not find all four. A quad cut from a thresholded, reduced image may be several
-    pixels and degrees off: the first pass searches a wide band, later ones narrow it around
-    the lines just found, until the corners settle. A narrower pass that loses an edge the
-    wider one found keeps the wider pass's corners: a faint panel's side at 3 m has three
-    strips, and one point more than a pixel off the line drops it below a line's three
-    (held-out random:111)."""
+    None if the first pass does not find all four. A quad cut from a thresholded, reduced
+    image may be several pixels and degrees off: the first pass searches a wide band, later
+    ones narrow it around the lines just found, until the corners settle. A narrower pass that
+    loses an edge the wider one found keeps the wider pass's corners (held-out random:111 at
+    3 m: a faint side's one point more than a pixel off the line left too few for a line)."""
     schedule = [(5.0, 5.0), (4.0, 2.0), (3.0, 1.0)][:passes]
     quad_uv = np.asarray(corners_uv, dtype=float)
     corners = None
