@@ -854,7 +854,7 @@ class LineEstimator:
         whitened = observations.whiten(r_w)
         count = len(r_w)
         chi2 = np.zeros(len(observations.edges.ends_T))
-        for k, (index, *_rest) in enumerate(observations.groups):
+        for k, index in enumerate(observations.group_points):
             edge = int(observations.edges.edge[index[0]])
             total = float(whitened[index] @ whitened[index])
             total += float(np.sum(whitened[count + 2 * k : count + 2 * k + 2] ** 2))

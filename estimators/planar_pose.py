@@ -24,6 +24,7 @@ Algorithms:
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -268,24 +269,44 @@ class EdgeObservations:
         return len(self.uv)
 
     def linearize(self, X_CT: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        ends_uv, J_ends, _ = projection_jacobian(X_CT, self.ends_T.reshape(-1, 3), K)
-        ends_uv = ends_uv.reshape(-1, 2, 2)
-        J_ends = J_ends.reshape(-1, 2, 2, 6)
-        a = ends_uv[self.edge, 0]
-        b = ends_uv[self.edge, 1]
-        e = b - a
-        length = np.linalg.norm(e, axis=1)
-        w = self.uv - a
-        r = (e[:, 0] * w[:, 1] - e[:, 1] * w[:, 0]) / length  # n·(m − a), n = (−e_y, e_x)/|e|
-        n = np.column_stack([-e[:, 1], e[:, 0]]) / length[:, None]
-        dr_db = (
-            np.column_stack([w[:, 1], -w[:, 0]]) / length[:, None] - (r / length**2)[:, None] * e
+        return _edge_residuals(
+            np.asarray(X_CT.R, dtype=float),
+            np.asarray(X_CT.p, dtype=float),
+            np.ascontiguousarray(self.ends_T.reshape(-1, 3)),
+            np.asarray(K, dtype=float),
+            self.edge,
+            self.uv,
+            self.sigma_px,
         )
-        dr_da = -n - dr_db  # moving a, b and the point together leaves r unchanged
-        J = np.einsum("mi,mik->mk", dr_da, J_ends[self.edge, 0]) + np.einsum(
-            "mi,mik->mk", dr_db, J_ends[self.edge, 1]
-        )
-        return r, r / self.sigma_px, J / self.sigma_px[:, None]
+
+
+@compiled
+def _edge_residuals(R, p, ends_T, K, edge, uv, sigma):
+    """``EdgeObservations.linearize`` compiled, point by point: each point's signed distance r
+    from the line through its edge's projected ends a, b (n·(m − a), n = (−e_y, e_x)/|e|,
+    e = b − a) and ∂r/∂[δθ, δp] through the ends' projection Jacobians; r, r/σ and J/σ."""
+    ends_uv, J_ends, _ = _projection(R, p, ends_T, K)
+    m = len(uv)
+    r, r_w, J_w = np.empty(m), np.empty(m), np.empty((m, 6))
+    for i in range(m):
+        a, b = 2 * edge[i], 2 * edge[i] + 1
+        ex, ey = ends_uv[b, 0] - ends_uv[a, 0], ends_uv[b, 1] - ends_uv[a, 1]
+        length = math.sqrt(ex * ex + ey * ey)
+        wx, wy = uv[i, 0] - ends_uv[a, 0], uv[i, 1] - ends_uv[a, 1]
+        ri = (ex * wy - ey * wx) / length
+        # ∂r/∂b; moving a, b and the point together leaves r unchanged, so ∂r/∂a = −n − ∂r/∂b
+        db_x = wy / length - ri / length**2 * ex
+        db_y = -wx / length - ri / length**2 * ey
+        da_x = ey / length - db_x
+        da_y = -ex / length - db_y
+        for c in range(6):
+            J = (da_x * J_ends[a, 0, c] + da_y * J_ends[a, 1, c]) + (
+                db_x * J_ends[b, 0, c] + db_y * J_ends[b, 1, c]
+            )
+            J_w[i, c] = J / sigma[i]
+        r[i] = ri
+        r_w[i] = ri / sigma[i]
+    return r, r_w, J_w
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -321,24 +342,8 @@ class CorrelatedEdgeObservations:
             )
         object.__setattr__(self, "offset_sigma_px", offset)
         object.__setattr__(self, "turn_sigma_px", turn)
-        groups = []
-        uv, sigma = self.edges.uv, self.edges.sigma_px
-        for e in np.unique(self.edges.edge):
-            index = np.flatnonzero(self.edges.edge == e)
-            points = uv[index]
-            centre = points.mean(axis=0)
-            if len(index) > 1:
-                direction = np.linalg.svd(points - centre, full_matrices=False)[2][0]
-            else:
-                direction = np.array([1.0, 0.0])
-            along = (points - centre) @ direction
-            half = max(float(np.max(np.abs(along))), 1e-9)
-            A_w = np.column_stack([np.ones(len(index)), along / half]) / sigma[index, None]
-            Q_inv = np.diag([offset[e] ** -2, turn[e] ** -2])
-            H_inv = np.linalg.inv(Q_inv + A_w.T @ A_w)
-            Q_inv_half = np.diag([1.0 / offset[e], 1.0 / turn[e]])
-            groups.append((index, A_w, H_inv @ A_w.T, Q_inv_half))
-        object.__setattr__(self, "_groups", tuple(groups))
+        groups = _edge_groups(self.edges.edge, self.edges.uv, self.edges.sigma_px, offset, turn)
+        object.__setattr__(self, "_groups", groups)
 
     @property
     def size(self) -> int:
@@ -349,27 +354,101 @@ class CorrelatedEdgeObservations:
         return self.edges.count
 
     @property
-    def groups(self) -> tuple:
-        """Per measured edge, in order of edge index: (point indices, A_w, gain, Q^−½) — the
+    def group_points(self) -> tuple[np.ndarray, ...]:
+        """Per measured edge, in order of edge index, its points' indices (ascending) — the
         pseudo-residuals of the k-th group follow the points' residuals at 2k, 2k + 1."""
-        return self._groups
+        order, bounds = self._groups[0], self._groups[1]
+        return tuple(order[a:b] for a, b in itertools.pairwise(bounds))
 
     def whiten(self, values_w: np.ndarray) -> np.ndarray:
         """M applied to point-whitened values (M,) or (M,k): (M + 2·edges,) or (M + 2·edges, k)."""
-        out = np.array(values_w, dtype=float, copy=True)
-        extra = []
-        for index, A_w, gain, Q_inv_half in self._groups:
-            common = gain @ values_w[index]  # ĉ
-            out[index] -= A_w @ common
-            extra.append(Q_inv_half @ common)
-        if not extra:
-            return out
-        return np.concatenate([out, np.concatenate(extra)])
+        values = np.asarray(values_w, dtype=float)
+        out = _whiten(np.ascontiguousarray(values.reshape(len(values), -1)), *self._groups)
+        return out.reshape(-1) if values.ndim == 1 else out
 
     def linearize(self, X_CT: Pose, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         r, r_w, J_w = self.edges.linearize(X_CT, K)
         whitened = self.whiten(np.column_stack([r_w, J_w]))  # one pass over the edges for both
         return r, whitened[:, 0], whitened[:, 1:]
+
+
+@compiled
+def _edge_groups(edge, uv, sigma, offset, turn):
+    """The whitening's pieces per measured edge (``CorrelatedEdgeObservations``): the points in
+    order of edge (``order``, group k is ``order[bounds[k]:bounds[k + 1]]``), each point's
+    row of A_w = [1, τ]/σ and of the gain (Q⁻¹ + A_wᵀA_w)⁻¹A_wᵀ (transposed, both (M,2) in
+    that order), and each group's Q^−½ diagonal (G,2). τ is the point's place along the
+    stretch's principal direction (the larger eigenvector of the points' scatter), scaled to
+    [−1, 1]."""
+    m = len(edge)
+    order = np.argsort(edge, kind="mergesort")
+    count = 0
+    for k in range(m):
+        if k == 0 or edge[order[k]] != edge[order[k - 1]]:
+            count += 1
+    bounds = np.empty(count + 1, np.int64)
+    g = 0
+    for k in range(m):
+        if k == 0 or edge[order[k]] != edge[order[k - 1]]:
+            bounds[g] = k
+            g += 1
+    bounds[count] = m
+    A_w, gain, q_half = np.empty((m, 2)), np.empty((m, 2)), np.empty((count, 2))
+    for g in range(count):
+        lo, hi = bounds[g], bounds[g + 1]
+        e = edge[order[lo]]
+        cx = cy = 0.0
+        for k in range(lo, hi):
+            cx += uv[order[k], 0]
+            cy += uv[order[k], 1]
+        cx, cy = cx / (hi - lo), cy / (hi - lo)
+        sxx = sxy = syy = 0.0
+        for k in range(lo, hi):
+            dx, dy = uv[order[k], 0] - cx, uv[order[k], 1] - cy
+            sxx += dx * dx
+            sxy += dx * dy
+            syy += dy * dy
+        angle = 0.5 * math.atan2(2.0 * sxy, sxx - syy) if hi - lo > 1 else 0.0
+        ux, uy = math.cos(angle), math.sin(angle)
+        half = 1e-9
+        for k in range(lo, hi):
+            half = max(half, abs((uv[order[k], 0] - cx) * ux + (uv[order[k], 1] - cy) * uy))
+        h00, h01, h11 = offset[e] ** -2, 0.0, turn[e] ** -2
+        for k in range(lo, hi):
+            i = order[k]
+            along = (uv[i, 0] - cx) * ux + (uv[i, 1] - cy) * uy
+            A_w[k, 0], A_w[k, 1] = 1.0 / sigma[i], along / half / sigma[i]
+            h00 += A_w[k, 0] * A_w[k, 0]
+            h01 += A_w[k, 0] * A_w[k, 1]
+            h11 += A_w[k, 1] * A_w[k, 1]
+        det = h00 * h11 - h01 * h01
+        for k in range(lo, hi):
+            gain[k, 0] = (h11 * A_w[k, 0] - h01 * A_w[k, 1]) / det
+            gain[k, 1] = (h00 * A_w[k, 1] - h01 * A_w[k, 0]) / det
+        q_half[g, 0], q_half[g, 1] = 1.0 / offset[e], 1.0 / turn[e]
+    return order, bounds, A_w, gain, q_half
+
+
+@compiled
+def _whiten(values, order, bounds, A_w, gain, q_half):
+    """``CorrelatedEdgeObservations.whiten`` on (M,k) values: per group and column the common
+    error ĉ = gain·v, the points' values less A_w·ĉ, then Q^−½·ĉ as two rows per group."""
+    m, columns = values.shape
+    count = len(bounds) - 1
+    out = np.empty((m + 2 * count, columns))
+    out[:m] = values
+    for g in range(count):
+        lo, hi = bounds[g], bounds[g + 1]
+        for c in range(columns):
+            c0 = c1 = 0.0
+            for k in range(lo, hi):
+                c0 += gain[k, 0] * values[order[k], c]
+                c1 += gain[k, 1] * values[order[k], c]
+            for k in range(lo, hi):
+                out[order[k], c] -= A_w[k, 0] * c0 + A_w[k, 1] * c1
+            out[m + 2 * g, c] = q_half[g, 0] * c0
+            out[m + 2 * g + 1, c] = q_half[g, 1] * c1
+    return out
 
 
 def _linearize_all(observations: Sequence[Observations], X_CT: Pose, K: np.ndarray):

@@ -19,7 +19,12 @@ from estimators.edge_search import search_edges
 from estimators.geometry import Pose, distort_normalized, undistort_pixels
 from estimators.imaging import smoothed_gradient
 from estimators.model_view import outside_circles
-from estimators.planar_pose import PointObservations, projection_jacobian
+from estimators.planar_pose import (
+    CorrelatedEdgeObservations,
+    EdgeObservations,
+    PointObservations,
+    projection_jacobian,
+)
 from estimators.point_fit import fit_corners, fit_discs
 from estimators.target import Circle3D
 
@@ -74,6 +79,11 @@ def compile_kernels() -> None:
     points = PointObservations(np.eye(3), np.ones((3, 2)), np.tile(np.eye(2), (3, 1, 1)))
     points.linearize(Pose(np.eye(3), np.array([0.0, 0.0, 1.0])), conics.K)
     projection_jacobian(Pose(np.eye(3), np.array([0.0, 0.0, 1.0])), np.eye(3), conics.K)
+    ends = np.array([[[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]], [[0.0, 0.0, 0.0], [0.0, 0.1, 0.0]]])
+    lines = EdgeObservations(ends, np.array([0, 0, 1, 1]), np.ones((4, 2)), np.ones(4))
+    CorrelatedEdgeObservations(lines, np.ones(2), np.ones(2)).linearize(
+        Pose(np.eye(3), np.array([0.0, 0.0, 1.0])), conics.K
+    )
 
 
 if __name__ == "__main__":  # `python -m estimators.warmup` (make does it after installing)
