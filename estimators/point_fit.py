@@ -35,13 +35,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from estimators.clipped_noise import (
-    clipped_likelihood_terms,
-    clipped_moments,
+    clipped_moment,
     clipped_terms,
     normal_cdf,
     normal_pdf,
 )
-from estimators.compiled import compiled
+from estimators.compiled import compiled, compiled_inline
 from estimators.small_linalg import solve_small
 
 EDGE_WIDTH_PX = 0.45
@@ -134,13 +133,10 @@ def fit_discs(
     if np.any(walled):
         columns.append(np.where(walled[owner], stadium - top, 0.0))
     J = np.stack(columns, axis=1)
-    weights, sigma2 = _clipped_statistics(
-        values, values - r, noise_sigma, owner, mask, n, J.shape[1]
-    )
     used = np.bincount(owner, mask, minlength=n)
     ok = (used >= 12) & np.all(np.isfinite(c), axis=1) & np.isfinite(a) & np.isfinite(b)
     fits = _point_fits(
-        J, r, owner, weights, used, c, a, b, ok, contrast_columns=(2, 3), sigma2=sigma2
+        J, r, owner, values, mask, noise_sigma, used, c, a, b, ok, contrast_columns=(2, 3)
     )
     return _converged(fits, last_step)
 
@@ -293,37 +289,13 @@ def _converged(fits: PointFits, last_step: np.ndarray) -> PointFits:
     return replace(fits, ok=fits.ok & settled)
 
 
-def _clipped_statistics(
-    values: np.ndarray,
-    predicted: np.ndarray,
-    noise_sigma: float,
-    owner: np.ndarray,
-    mask: np.ndarray | float,
-    n: int,
-    k: int,
-) -> tuple[np.ndarray | float, np.ndarray | None]:
-    """Covariance weights and per-feature σ² of fits to pixels with clipped noise (None and
-    the mask without a noise σ: least squares). Each pixel weighs its clipped likelihood's
-    information relative to an unclipped pixel's; σ² is the noise's, raised by how much the
-    residuals exceed what clipped noise of that σ leaves (the misfit of the model) — never
-    the residuals' own spread, which clipping shrinks."""
-    if noise_sigma <= 0:
-        return mask, None
-    _, info = clipped_likelihood_terms(values, predicted, noise_sigma)
-    mean, variance, _ = clipped_moments(predicted, noise_sigma)
-    weights = mask * np.ones_like(values)
-    seen = np.bincount(owner, (values - mean) ** 2 * weights, minlength=n)
-    expected = np.bincount(owner, variance * weights, minlength=n)
-    count = np.bincount(owner, weights, minlength=n)
-    ratio = seen / np.maximum(expected, 1e-12) * count / np.maximum(count - k, 1)
-    return weights * info * noise_sigma**2, noise_sigma**2 * np.maximum(ratio, 1.0)
-
-
 def _point_fits(
     J: np.ndarray,
     r: np.ndarray,
     owner: np.ndarray,
-    weights: np.ndarray | float,
+    values: np.ndarray,
+    mask: np.ndarray,
+    noise_sigma: float,
     used: np.ndarray,
     uv: np.ndarray,
     inside: np.ndarray,
@@ -331,26 +303,17 @@ def _point_fits(
     ok: np.ndarray,
     *,
     contrast_columns: tuple[int, int],
-    sigma2: np.ndarray | None = None,
 ) -> PointFits:
-    """Statistics of N per-feature least-squares fits at their solution: the Gauss–Newton
-    covariance s²·(JᵀJ)⁻¹ of each feature's parameters from its pixels' Jacobian rows ``J``
-    (M,k) and residuals ``r`` (M,) (pixel m belongs to feature ``owner[m]``, weighted by
-    ``weights``), with s² the residual variance over ``used − k`` degrees of freedom. The
-    first two parameters are the image position; ``contrast_columns`` are the inside and
-    outside grey levels. ``ok`` is and-ed with a positive position variance. ``sigma2`` (N,),
-    when given, replaces s² (fits with clipped noise, ``_clipped_statistics``)."""
+    """Statistics of N per-feature fits at their solution, from their pixels' Jacobian rows
+    ``J`` (M,k), residuals ``r`` (M,) and ``values`` (M,) (pixel m belongs to feature
+    ``owner[m]`` and counts where ``mask`` is 1): the covariance s²·(JᵀWJ)⁻¹ of each feature's
+    parameters (``_normal_equations``). The first two parameters are the image position;
+    ``contrast_columns`` are the inside and outside grey levels. ``ok`` is and-ed with a
+    positive position variance."""
     n, k = len(uv), J.shape[1]
-
-    def sums(x: np.ndarray) -> np.ndarray:
-        return np.bincount(owner, x * weights, minlength=n)
-
-    H = np.zeros((n, k, k))
-    for i in range(k):
-        for j in range(i, k):
-            H[:, i, j] = H[:, j, i] = sums(J[:, i] * J[:, j])
-    if sigma2 is None:
-        sigma2 = sums(r * r) / np.maximum(used - k, 1)
+    H, sigma2 = _normal_equations(
+        np.ascontiguousarray(J), r, owner, values, mask, float(noise_sigma), n, used
+    )
     H += 1e-12 * np.eye(k)
     try:
         cov = np.linalg.inv(H) * sigma2[:, None, None]
@@ -368,6 +331,56 @@ def _point_fits(
         pixels_used=used,
         ok=ok & (cov[:, 0, 0] > 0) & (cov[:, 1, 1] > 0),
     )
+
+
+@compiled
+def _normal_equations(J, r, owner, values, mask, noise_sigma, n, used):
+    """Per feature: JᵀWJ (n,k,k) and the residual variance s² (n,) of its pixels.
+
+    Without a noise σ, least squares: W is the mask and s² the residuals' variance over
+    ``used − k`` degrees of freedom. With σ (clipped noise), each pixel weighs its clipped
+    likelihood's information relative to an unclipped pixel's, and s² is σ² raised by how much
+    the residuals exceed what clipped noise of that σ leaves (the misfit of the model) — never
+    the residuals' own spread, which clipping shrinks."""
+    m, k = J.shape
+    H = np.zeros((n, k, k))
+    sigma2 = np.empty(n)
+    seen, expected, count = np.zeros(n), np.zeros(n), np.zeros(n)
+    variance0 = noise_sigma**2
+    for p in range(m):
+        o = owner[p]
+        w = mask[p]
+        if noise_sigma > 0:
+            predicted = values[p] - r[p]
+            _, info = clipped_terms(values[p], predicted, noise_sigma)
+            mean, variance, _ = clipped_moment(predicted, noise_sigma)
+            d = values[p] - mean
+            seen[o] += d * d * w
+            expected[o] += variance * w
+            count[o] += w
+            w = w * info * variance0
+        else:
+            seen[o] += r[p] * r[p] * w
+        for i in range(k):
+            for j in range(i, k):
+                H[o, i, j] += J[p, i] * J[p, j] * w
+    for o in range(n):
+        for i in range(k):
+            for j in range(i + 1, k):
+                H[o, j, i] = H[o, i, j]
+        if noise_sigma > 0:
+            ratio = seen[o] / _at_least(expected[o], 1e-12) * count[o]
+            ratio = ratio / _at_least(count[o] - k, 1.0)
+            sigma2[o] = variance0 * _at_least(ratio, 1.0)
+        else:
+            sigma2[o] = seen[o] / _at_least(used[o] - k, 1.0)
+    return H, sigma2
+
+
+@compiled_inline
+def _at_least(x, floor):
+    """NumPy's maximum(x, floor): NaN stays NaN."""
+    return x if x >= floor or x != x else floor
 
 
 def _pixels_within(centers: np.ndarray, reach: np.ndarray, height: int, width: int):
@@ -441,21 +454,19 @@ def fit_corners(
     J = np.column_stack([(a - b)[owner][:, None] * g, inside, 1.0 - inside])
     used = np.bincount(owner, minlength=n).astype(float)
     ok = (used >= 24) & np.all(np.isfinite(params), axis=1) & np.isfinite(a) & np.isfinite(b)
-    weights, sigma2 = _clipped_statistics(
-        values, values - r, noise_sigma, owner, np.ones_like(values), n, J.shape[1]
-    )
     fits = _point_fits(
         J,
         r,
         owner,
-        weights,
+        values,
+        np.ones_like(values),
+        noise_sigma,
         used,
         params[:, :2].copy(),
         a,
         b,
         ok,
         contrast_columns=(4, 5),
-        sigma2=sigma2,
     )
     return _converged(fits, last_step)
 

@@ -32,6 +32,7 @@ ENTRY_POINTS = [
     planar_pose._whiten,
     point_fit._disc_model,
     point_fit._fit_discs_kernel,
+    point_fit._normal_equations,
     point_fit._wedge_model,
     point_fit._wedge_levels,
     point_fit._fit_wedges_kernel,
