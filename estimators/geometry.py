@@ -244,12 +244,22 @@ def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
 
 def _lens_terms(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     """The distortion coefficients padded to 14, the tilted sensor's projection (identity
-    without a tilt) and whether there is one — the compiled lens model's arguments."""
-    d = np.zeros(14)
+    without a tilt) and whether there is one — the compiled lens model's arguments (read-only:
+    a camera's are computed once, as every projection asks for them)."""
     coeffs = check_distortion(dist)
+    return _lens_terms_of(coeffs.tobytes())
+
+
+@functools.lru_cache(maxsize=32)
+def _lens_terms_of(coeffs_bytes: bytes) -> tuple[np.ndarray, np.ndarray, bool]:
+    coeffs = np.frombuffer(coeffs_bytes)
+    d = np.zeros(14)
     d[: coeffs.size] = coeffs
     tilted = bool(d[12] != 0.0 or d[13] != 0.0)
-    return d, sensor_tilt_matrix(d[12], d[13]) if tilted else np.eye(3), tilted
+    M = sensor_tilt_matrix(d[12], d[13]) if tilted else np.eye(3)
+    d.flags.writeable = False
+    M.flags.writeable = False
+    return d, M, tilted
 
 
 def project(points_C: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None) -> np.ndarray:
@@ -260,9 +270,13 @@ def project(points_C: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None)
     points = as_points(points_C, 3, "points_C")
     if np.any(points[:, 2] <= 0):
         raise ValueError("project: points must have positive depth z in the camera frame")
-    xy = points[:, :2] / points[:, 2:3]
     if dist is not None and np.size(dist) > 0:
-        xy = distort_normalized(xy, dist)
+        from estimators.lens_distortion import project_distorted
+
+        return project_distorted(
+            np.ascontiguousarray(points), np.asarray(K, dtype=float), *_lens_terms(dist)
+        )
+    xy = points[:, :2] / points[:, 2:3]
     K = np.asarray(K, dtype=float)
     uv = np.empty((len(xy), 2))
     uv[:, 0] = K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2]

@@ -43,6 +43,20 @@ def distort(xy, d, M, tilted):
 
 
 @compiled
+def project_distorted(points_C, K, d, M, tilted):
+    """``geometry.project`` through a lens, point by point: every system projects model points
+    some fifty times a frame, and as NumPy calls each projection cost more than its
+    arithmetic."""
+    out = np.empty((len(points_C), 2))
+    for i in range(len(points_C)):
+        x, y = points_C[i, 0] / points_C[i, 2], points_C[i, 1] / points_C[i, 2]
+        x, y = _distort_point(x, y, d, M, tilted)
+        out[i, 0] = K[0, 0] * x + K[0, 1] * y + K[0, 2]
+        out[i, 1] = K[1, 1] * y + K[1, 2]
+    return out
+
+
+@compiled
 def refine_undistorted(xy, xy_d, d, M, tilted, steps):
     """Newton steps on distort(xy) = ``xy_d`` from ``xy`` (N,2), each point on its own, the
     Jacobian by central differences of 1e-7: OpenCV's fixed-point inversion can stall short of

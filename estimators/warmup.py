@@ -16,7 +16,7 @@ from estimators.circle_fit import ConicObservations, EdgeSet
 from estimators.clipped_noise import clipped_likelihood_terms, clipped_moments
 from estimators.edge_fit import coarse_edge_offsets, fit_edge_points, fit_line_robust
 from estimators.edge_search import search_edges
-from estimators.geometry import Pose, distort_normalized, undistort_pixels
+from estimators.geometry import Pose, distort_normalized, project, undistort_pixels
 from estimators.imaging import smoothed_gradient
 from estimators.model_view import outside_circles
 from estimators.planar_pose import (
@@ -42,6 +42,9 @@ def compile_kernels() -> None:
     distort_normalized(np.array([[0.1, -0.2]]), lens)
     undistort_pixels(
         np.array([[10.0, 20.0]]), np.array([[200.0, 0, 32], [0, 200.0, 32], [0, 0, 1]]), lens
+    )
+    project(
+        np.array([[0.1, -0.2, 1.0]]), np.array([[200.0, 0, 32], [0, 200.0, 32], [0, 0, 1]]), lens
     )
     centers = np.column_stack([np.full(8, 40.0), np.linspace(10.0, 54.0, 8)])
     normals = np.tile([-1.0, 0.0], (8, 1))

@@ -18,6 +18,7 @@ ENTRY_POINTS = [
     edge_fit._band_kernel,
     lens_distortion.distort,
     lens_distortion.refine_undistorted,
+    lens_distortion.project_distorted,
     model_view._outside_circles,
     edge_fit._coarse_steps,
     edge_fit._lattice_kernel,
