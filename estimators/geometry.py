@@ -239,10 +239,10 @@ def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     # does not load numba.
     from estimators.lens_distortion import distort
 
-    return distort(np.ascontiguousarray(xy), *_lens_terms(dist))
+    return distort(np.ascontiguousarray(xy), *lens_terms(dist))
 
 
-def _lens_terms(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+def lens_terms(dist: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     """The distortion coefficients padded to 14, the tilted sensor's projection (identity
     without a tilt) and whether there is one — the compiled lens model's arguments (read-only:
     a camera's are computed once, as every projection asks for them)."""
@@ -274,7 +274,7 @@ def project(points_C: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None)
         from estimators.lens_distortion import project_distorted
 
         return project_distorted(
-            np.ascontiguousarray(points), np.asarray(K, dtype=float), *_lens_terms(dist)
+            np.ascontiguousarray(points), np.asarray(K, dtype=float), *lens_terms(dist)
         )
     xy = points[:, :2] / points[:, 2:3]
     K = np.asarray(K, dtype=float)
@@ -315,7 +315,7 @@ def undistort_pixels(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> 
     # two Newton steps on distort(xy) = xy_d make the inverse exact to ~1e-12.
     from estimators.lens_distortion import refine_undistorted
 
-    return refine_undistorted(np.ascontiguousarray(xy, dtype=float), xy_d, *_lens_terms(dist), 2)
+    return refine_undistorted(np.ascontiguousarray(xy, dtype=float), xy_d, *lens_terms(dist), 2)
 
 
 def field_radius(K: np.ndarray, dist: np.ndarray | None, width: int, height: int) -> float:

@@ -42,6 +42,16 @@ def distort(xy, d, M, tilted):
     return out
 
 
+@compiled_inline
+def project_point(X, Y, Z, K, d, M, tilted, distorted):
+    """The pixel (u, v) of one point in C (``geometry.project``), through the lens when
+    ``distorted``, for compiled callers."""
+    x, y = X / Z, Y / Z
+    if distorted:
+        x, y = _distort_point(x, y, d, M, tilted)
+    return K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]
+
+
 @compiled
 def project_distorted(points_C, K, d, M, tilted):
     """``geometry.project`` through a lens, point by point: every system projects model points
@@ -49,10 +59,9 @@ def project_distorted(points_C, K, d, M, tilted):
     arithmetic."""
     out = np.empty((len(points_C), 2))
     for i in range(len(points_C)):
-        x, y = points_C[i, 0] / points_C[i, 2], points_C[i, 1] / points_C[i, 2]
-        x, y = _distort_point(x, y, d, M, tilted)
-        out[i, 0] = K[0, 0] * x + K[0, 1] * y + K[0, 2]
-        out[i, 1] = K[1, 1] * y + K[1, 2]
+        out[i, 0], out[i, 1] = project_point(
+            points_C[i, 0], points_C[i, 1], points_C[i, 2], K, d, M, tilted, True
+        )
     return out
 
 

@@ -15,10 +15,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from estimators.compiled import compiled, compiled_inline
 from estimators.edge_fit import EdgePoints, Line2D, fit_edge_points, fit_line_robust, intersect
 from estimators.frame import CameraInfo
-from estimators.geometry import Pose
-from estimators.least_squares import median
+from estimators.geometry import Pose, lens_terms
+from estimators.lens_distortion import project_point
 from estimators.planar_pose import EdgeObservations, ideal_pixel_jacobians, ideal_pixels
 from estimators.target import TargetModel
 
@@ -170,30 +171,90 @@ def strips_along_edge(
             return None
     # Strips evenly spaced in the image (a receding edge is foreshortened unevenly): places
     # along the edge by its image arc length.
-    dense = np.linspace(lo, hi, 65)
-    dense_uv = camera.project(X_CT.apply(a + dense[:, None] * (b - a)))
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense_uv, axis=0), axis=1))])
-    span_px = float(arc[-1])
-    count = int(
-        np.clip(round(span_px / strip_px), MIN_STRIPS, 60 if max_strips is None else max_strips)
+    max_count = 60 if max_strips is None else max_strips
+    dist = np.zeros(0) if camera.dist is None else camera.dist
+    lens = lens_terms(dist)
+    # (writable copies of the small arrays: one compiled signature whatever the caller holds)
+    uv, normal, points, span_px, count = _strip_places(
+        np.array(X_CT.R, dtype=float),
+        np.array(X_CT.p, dtype=float),
+        np.array(camera.K, dtype=float),
+        *lens,
+        dist.size > 0,
+        np.array(a),
+        np.array(b),
+        np.array(inside_T, dtype=float),
+        float(lo),
+        float(hi),
+        float(strip_px),
+        MIN_STRIPS,
+        max_count,
     )
-    t = np.interp(np.linspace(0.0, span_px, count), arc, dense)[:, None]
-    points = a + t * (b - a)
-    points_C = X_CT.apply(points)
-    uv = camera.project(points_C)
-    ahead = camera.project(X_CT.apply(a + (t + 1e-3) * (b - a)))
-    tangent = ahead - uv
-    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-    normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
-    toward = np.asarray(inside_T, dtype=float) - points
-    toward /= np.maximum(np.linalg.norm(toward, axis=1, keepdims=True), 1e-12)
-    step_m = 1e-3 * median(points_C[:, 2])
-    inward = camera.project(X_CT.apply(points + step_m * toward)) - uv
-    if np.mean(np.sum(inward * normal, axis=1)) < 0:
-        normal = -normal
     spacing = span_px / max(count - 1, 1)
     half_length = 0.5 * spacing if max_strips is None else 0.5 * min(spacing, strip_px)
     return EdgeStrips(uv, normal, half_length, points)
+
+
+@compiled
+def _strip_places(
+    R, p, K, d, M, tilted, distorted, a, b, inside_T, lo, hi, strip_px, min_count, max_count
+):
+    """Strip centres (K,2 px), unit normals toward ``inside_T`` (K,2) and model points (K,3)
+    along the edge a→b between its fractions ``lo`` and ``hi``, evenly spaced by image arc
+    length (65 places along the edge measure it), about ``strip_px`` apart within
+    [``min_count``, ``max_count``] strips; and the arc's length (px) and the strip count.
+    Compiled: as NumPy, some forty calls an edge, and the line system places a dozen edges a
+    frame."""
+    e = b - a
+    dense = np.linspace(lo, hi, 65)
+    arc = np.zeros(65)
+    u0 = v0 = 0.0
+    for j in range(65):
+        u, v = _image_of(R, p, K, d, M, tilted, distorted, a + dense[j] * e)
+        if j > 0:
+            arc[j] = arc[j - 1] + math.sqrt((u - u0) * (u - u0) + (v - v0) * (v - v0))
+        u0, v0 = u, v
+    span_px = arc[64]
+    count = min(max(_round_half_even(span_px / strip_px), min_count), max_count)
+    t = np.interp(np.linspace(0.0, span_px, count), arc, dense)
+    uv, normal, points = np.empty((count, 2)), np.empty((count, 2)), np.empty((count, 3))
+    depth = np.empty(count)
+    for i in range(count):
+        points[i] = a + t[i] * e
+        depth[i] = R[2, 0] * points[i, 0] + R[2, 1] * points[i, 1] + R[2, 2] * points[i, 2] + p[2]
+        uv[i, 0], uv[i, 1] = _image_of(R, p, K, d, M, tilted, distorted, points[i])
+        au, av = _image_of(R, p, K, d, M, tilted, distorted, a + (t[i] + 1e-3) * e)
+        tu, tv = au - uv[i, 0], av - uv[i, 1]
+        norm = math.sqrt(tu * tu + tv * tv)
+        normal[i, 0], normal[i, 1] = -tv / norm, tu / norm
+    step_m = 1e-3 * np.median(depth)
+    facing = 0.0
+    for i in range(count):
+        toward = inside_T - points[i]
+        toward = toward / max(math.sqrt(np.sum(toward * toward)), 1e-12)
+        iu, iv = _image_of(R, p, K, d, M, tilted, distorted, points[i] + step_m * toward)
+        facing += (iu - uv[i, 0]) * normal[i, 0] + (iv - uv[i, 1]) * normal[i, 1]
+    if facing < 0:
+        normal = -normal
+    return uv, normal, points, span_px, count
+
+
+@compiled_inline
+def _image_of(R, p, K, d, M, tilted, distorted, point_T):
+    """The pixel of a model point (3,) in T seen from (R, p)."""
+    X = R[0, 0] * point_T[0] + R[0, 1] * point_T[1] + R[0, 2] * point_T[2] + p[0]
+    Y = R[1, 0] * point_T[0] + R[1, 1] * point_T[1] + R[1, 2] * point_T[2] + p[1]
+    Z = R[2, 0] * point_T[0] + R[2, 1] * point_T[1] + R[2, 2] * point_T[2] + p[2]
+    return project_point(X, Y, Z, K, d, M, tilted, distorted)
+
+
+@compiled_inline
+def _round_half_even(x):
+    """Python's round() of a float: halves go to the even integer."""
+    r = math.floor(x + 0.5)
+    if r - x == 0.5 and r % 2 == 1:
+        r -= 1
+    return int(r)
 
 
 def strips_from_quad(corners_uv: np.ndarray, strip_px: float) -> list[EdgeStrips]:

@@ -16,9 +16,11 @@ from estimators.circle_fit import ConicObservations, EdgeSet
 from estimators.clipped_noise import clipped_likelihood_terms, clipped_moments
 from estimators.edge_fit import coarse_edge_offsets, fit_edge_points, fit_line_robust
 from estimators.edge_search import search_edges
+from estimators.frame import CameraInfo
 from estimators.geometry import Pose, distort_normalized, project, undistort_pixels
 from estimators.imaging import smoothed_gradient
 from estimators.model_view import outside_circles
+from estimators.panel_edges import strips_along_edge
 from estimators.planar_pose import (
     CorrelatedEdgeObservations,
     EdgeObservations,
@@ -82,6 +84,16 @@ def compile_kernels() -> None:
     points = PointObservations(np.eye(3), np.ones((3, 2)), np.tile(np.eye(2), (3, 1, 1)))
     points.linearize(Pose(np.eye(3), np.array([0.0, 0.0, 1.0])), conics.K)
     projection_jacobian(Pose(np.eye(3), np.array([0.0, 0.0, 1.0])), np.eye(3), conics.K)
+    for dist in (np.zeros(0), lens):
+        camera = CameraInfo(64, 64, conics.K, dist, "warm-up")
+        strips_along_edge(
+            Pose(np.eye(3), np.array([0.0, 0.0, 1.0])),
+            camera,
+            np.array([-0.05, -0.05, 0.0]),
+            np.array([0.05, -0.05, 0.0]),
+            np.zeros(3),
+            4.0,
+        )
     ends = np.array([[[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]], [[0.0, 0.0, 0.0], [0.0, 0.1, 0.0]]])
     lines = EdgeObservations(ends, np.array([0, 0, 1, 1]), np.ones((4, 2)), np.ones(4))
     CorrelatedEdgeObservations(lines, np.ones(2), np.ones(2)).linearize(

@@ -5,6 +5,7 @@ from estimators import (
     edge_search,
     lens_distortion,
     model_view,
+    panel_edges,
     planar_pose,
     point_fit,
 )
@@ -20,6 +21,7 @@ ENTRY_POINTS = [
     lens_distortion.refine_undistorted,
     lens_distortion.project_distorted,
     model_view._outside_circles,
+    panel_edges._strip_places,
     edge_fit._coarse_steps,
     edge_fit._lattice_kernel,
     edge_fit._lattice_samples,
