@@ -7,15 +7,18 @@ ideal-pinhole pixels, where circles project to conics and ``circle_fit`` applies
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.conics import circle_points
+from estimators.compiled import compiled, compiled_inline
+from estimators.conics import circle_plane_basis
 from estimators.edge_search import EdgeHits, search_edges
 from estimators.frame import CameraInfo
-from estimators.geometry import field_radius
+from estimators.geometry import field_radius, lens_terms
 from estimators.imaging import GradientField
+from estimators.lens_distortion import project_point
 from estimators.planar_pose import ideal_pixels
 
 _MAX_SAMPLES = 2400
@@ -40,18 +43,56 @@ def visible_pixels(
     points_C: np.ndarray, camera: CameraInfo, margin_px: float, field_radius: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """(mask, pixels) of points (N,3) in C that the camera images at least ``margin_px``
-    inside its borders; pixels are NaN where not visible. Same test as ``geometry.in_view``,
-    with the field radius (which rejects distortion fold-back) computed once by the caller."""
-    mask = points_C[:, 2] > 1e-3
-    xy = np.full((len(points_C), 2), np.inf)
-    xy[mask] = points_C[mask, :2] / points_C[mask, 2:3]
-    mask &= np.einsum("ij,ij->i", xy, xy) <= (1.02 * field_radius) ** 2
-    uv = np.full((len(points_C), 2), np.nan)
-    if np.any(mask):
-        uv[mask] = camera.project(points_C[mask])
-    with np.errstate(invalid="ignore"):
-        mask &= (uv[:, 0] >= margin_px - 0.5) & (uv[:, 0] <= camera.width - 0.5 - margin_px)
-        mask &= (uv[:, 1] >= margin_px - 0.5) & (uv[:, 1] <= camera.height - 0.5 - margin_px)
+    inside its borders; pixels are NaN where not in front or beyond the field. Same test as
+    ``geometry.in_view``, with the field radius (which rejects distortion fold-back) computed
+    once by the caller."""
+    dist = np.zeros(0) if camera.dist is None else camera.dist
+    return _visible_pixels(
+        np.ascontiguousarray(points_C, dtype=float).reshape(-1, 3),
+        np.array(camera.K, dtype=float),
+        *lens_terms(dist),
+        dist.size > 0,
+        float(margin_px),
+        (1.02 * float(field_radius)) ** 2,
+        camera.width,
+        camera.height,
+    )
+
+
+@compiled_inline
+def _pixel_in_view(X, Y, Z, K, d, M, tilted, distorted, margin_px, limit, width, height):
+    """(in view, u, v) of one point in C: in front (z > 1 mm), within the field (normalised
+    radius² ≤ ``limit``) and imaged ``margin_px`` inside the borders; u, v NaN unless in front
+    and within the field."""
+    if not Z > 1e-3:
+        return False, np.nan, np.nan
+    x, y = X / Z, Y / Z
+    if not x * x + y * y <= limit:
+        return False, np.nan, np.nan
+    u, v = project_point(X, Y, Z, K, d, M, tilted, distorted)
+    inside = margin_px - 0.5 <= u <= width - 0.5 - margin_px
+    return inside and margin_px - 0.5 <= v <= height - 0.5 - margin_px, u, v
+
+
+@compiled
+def _visible_pixels(points_C, K, d, M, tilted, distorted, margin_px, limit, width, height):
+    mask = np.zeros(len(points_C), np.bool_)
+    uv = np.empty((len(points_C), 2))
+    for i in range(len(points_C)):
+        mask[i], uv[i, 0], uv[i, 1] = _pixel_in_view(
+            points_C[i, 0],
+            points_C[i, 1],
+            points_C[i, 2],
+            K,
+            d,
+            M,
+            tilted,
+            distorted,
+            margin_px,
+            limit,
+            width,
+            height,
+        )
     return mask, uv
 
 
@@ -77,32 +118,109 @@ def sample_projected_circle(
     view. ``field_radius_xy`` (``camera_field_radius``) saves its recomputation."""
     if field_radius_xy is None:
         field_radius_xy = camera_field_radius(camera)
-    center_C = np.asarray(center_C, dtype=float)
-    coarse = circle_points(center_C, normal_C, radius, 32)
-    if center_C[2] <= 0 or np.any(coarse[:, 2] < 0.02):
-        return None
-    # Perimeter from the ideal (pinhole) projection; distortion changes it by a few percent.
-    K = camera.K
-    coarse_uv = coarse[:, :2] / coarse[:, 2:3] * np.array([K[0, 0], K[1, 1]])
-    perimeter = float(
-        np.linalg.norm(np.diff(np.vstack([coarse_uv, coarse_uv[:1]]), axis=0), axis=1).sum()
+    center_C = np.array(center_C, dtype=float)
+    u, v = circle_plane_basis(normal_C)
+    dist = np.zeros(0) if camera.dist is None else camera.dist
+    # (writable copies of the small arrays: one compiled signature whatever the caller holds)
+    found, uv, normals, t, center_uv, perimeter, count = _sample_circle(
+        center_C,
+        u,
+        v,
+        float(radius),
+        np.array(camera.K, dtype=float),
+        *lens_terms(dist),
+        dist.size > 0,
+        float(spacing_px),
+        float(margin_px),
+        float(field_radius_xy),
+        camera.width,
+        camera.height,
+        int(max_samples),
     )
-    count = int(np.clip(perimeter / max(spacing_px, 0.25), 16, max_samples))
-    t = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
-    dt = 1e-4
-    points = circle_points(center_C, normal_C, radius, angles=np.concatenate([t, t + dt, t - dt]))
-    mask, uv_all = visible_pixels(points, camera, margin_px, field_radius_xy)
-    keep = mask[:count] & mask[count : 2 * count] & mask[2 * count :]
-    if not np.any(keep):
+    if not found:
         return None
-    uv = uv_all[:count][keep]
-    tangent = uv_all[count : 2 * count][keep] - uv_all[2 * count :][keep]
-    normals = np.column_stack([tangent[:, 1], -tangent[:, 0]])
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    center_uv = camera.project(center_C[None, :])[0]
-    outward = np.einsum("ij,ij->i", normals, uv - center_uv) >= 0
-    normals[~outward] *= -1.0
-    return CurveSamples(uv, normals, t[keep], center_uv, perimeter, perimeter / count)
+    return CurveSamples(uv, normals, t, center_uv, perimeter, perimeter / count)
+
+
+@compiled
+def _sample_circle(
+    center,
+    u,
+    v,
+    radius,
+    K,
+    d,
+    M,
+    tilted,
+    distorted,
+    spacing_px,
+    margin_px,
+    field_radius,
+    width,
+    height,
+    max_samples,
+):
+    """``sample_projected_circle``'s work, compiled (the ellipse system samples a dozen circles
+    a frame, and as NumPy each took thirty calls): whether any sample is in view; the samples'
+    pixels, unit outward normals and circle parameters; the projected centre; the perimeter
+    (px) and the number of samples around the whole circle. A sample is kept when it and its
+    two neighbours 10⁻⁴ rad either side (which give its tangent) are in view
+    (``visible_pixels``' test)."""
+    empty = np.zeros((0, 2))
+    # Perimeter from the ideal (pinhole) projection; distortion changes it by a few percent.
+    perimeter = 0.0
+    first_u = first_v = last_u = last_v = 0.0
+    for i in range(32):
+        a = i * (2.0 * np.pi / 32)
+        P = center + radius * (math.cos(a) * u) + radius * (math.sin(a) * v)
+        if P[2] < 0.02 or center[2] <= 0:
+            return False, empty, empty, np.zeros(0), np.zeros(2), 0.0, 0
+        pu, pv = P[0] / P[2] * K[0, 0], P[1] / P[2] * K[1, 1]
+        if i == 0:
+            first_u, first_v = pu, pv
+        else:
+            perimeter += math.sqrt((pu - last_u) ** 2 + (pv - last_v) ** 2)
+        last_u, last_v = pu, pv
+    perimeter += math.sqrt((first_u - last_u) ** 2 + (first_v - last_v) ** 2)
+    count = int(min(max(perimeter / max(spacing_px, 0.25), 16.0), float(max_samples)))
+    cu, cv = project_point(center[0], center[1], center[2], K, d, M, tilted, distorted)
+    step = 2.0 * np.pi / count
+    uv, normals, t_kept = np.empty((count, 2)), np.empty((count, 2)), np.empty(count)
+    kept = 0
+    limit = (1.02 * field_radius) ** 2
+    seen = np.empty(3, np.bool_)
+    pixel = np.empty((3, 2))
+    for i in range(count):
+        t = i * step
+        for k, angle in enumerate((t, t + 1e-4, t - 1e-4)):
+            P = center + radius * (math.cos(angle) * u) + radius * (math.sin(angle) * v)
+            seen[k], pixel[k, 0], pixel[k, 1] = _pixel_in_view(
+                P[0], P[1], P[2], K, d, M, tilted, distorted, margin_px, limit, width, height
+            )
+        if not (seen[0] and seen[1] and seen[2]):
+            continue
+        tu, tv = pixel[1, 0] - pixel[2, 0], pixel[1, 1] - pixel[2, 1]
+        nu, nv = tv, -tu
+        norm = max(math.sqrt(nu * nu + nv * nv), 1e-12)
+        nu, nv = nu / norm, nv / norm
+        if nu * (pixel[0, 0] - cu) + nv * (pixel[0, 1] - cv) < 0:
+            nu, nv = -nu, -nv
+        uv[kept, 0], uv[kept, 1] = pixel[0, 0], pixel[0, 1]
+        normals[kept, 0], normals[kept, 1] = nu, nv
+        t_kept[kept] = t
+        kept += 1
+    if kept == 0:
+        return False, empty, empty, np.zeros(0), np.zeros(2), 0.0, 0
+    center_uv = np.array([cu, cv])
+    return (
+        True,
+        uv[:kept].copy(),
+        normals[:kept].copy(),
+        t_kept[:kept].copy(),
+        center_uv,
+        perimeter,
+        count,
+    )
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from estimators.circle_edges import sample_projected_circle, visible_pixels
 from estimators.circle_fit import ConicObservations, EdgeSet
 from estimators.clipped_noise import clipped_likelihood_terms, clipped_moments
 from estimators.edge_fit import coarse_edge_offsets, fit_edge_points, fit_line_robust
@@ -94,6 +95,10 @@ def compile_kernels() -> None:
             np.zeros(3),
             4.0,
         )
+        sample_projected_circle(
+            np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0]), 0.05, camera, spacing_px=2.0
+        )
+        visible_pixels(np.array([[0.0, 0.0, 1.0]]), camera, 0.0, 1.0)
     ends = np.array([[[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]], [[0.0, 0.0, 0.0], [0.0, 0.1, 0.0]]])
     lines = EdgeObservations(ends, np.array([0, 0, 1, 1]), np.ones((4, 2)), np.ones(4))
     CorrelatedEdgeObservations(lines, np.ones(2), np.ones(2)).linearize(

@@ -1,4 +1,5 @@
 from estimators import (
+    circle_edges,
     circle_fit,
     clipped_noise,
     edge_fit,
@@ -13,6 +14,8 @@ from estimators.warmup import compile_kernels
 
 #: The compiled functions NumPy code calls (the others are compiled into these).
 ENTRY_POINTS = [
+    circle_edges._sample_circle,
+    circle_edges._visible_pixels,
     circle_fit._sampson_distances,
     clipped_noise._terms_array,
     clipped_noise._moments_array,
