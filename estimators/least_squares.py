@@ -41,6 +41,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from estimators.compiled import compiled
+
 HUBER_K = 1.345
 
 
@@ -63,27 +65,48 @@ class Problem(Protocol):
 
 def robust_sigma(residuals: np.ndarray, floor: float = 0.05) -> float:
     """Noise scale of residuals: 1.4826 × median absolute deviation, at least ``floor``."""
-    r = np.asarray(residuals, dtype=float)
+    r = np.ascontiguousarray(residuals, dtype=float).reshape(-1)
+    return float(_robust_sigma(r, float(floor)))
+
+
+@compiled
+def _robust_sigma(r, floor):
     if len(r) == 0:
         return 1.0
-    return float(max(1.4826 * median(np.abs(r - median(r))), floor))
+    scale = 1.4826 * _median(np.abs(r - _median(r)))
+    return floor if floor > scale else scale  # (Python's max: a NaN scale stays NaN)
+
+
+@compiled
+def _huber_group(r, floor, k):
+    """One group's Huber IRLS weights (1 inside k·σ, k·σ/|r| outside, divided by σ²) at its
+    own noise scale σ (``robust_sigma``), and σ — one call per group and iteration of a fit."""
+    sigma = _robust_sigma(r, floor)
+    w = np.empty(len(r))
+    for i in range(len(r)):
+        a = abs(r[i]) / (k * sigma)
+        w[i] = (1.0 if a <= 1.0 else 1.0 / max(a, 1e-12)) / sigma**2
+    return w, sigma
 
 
 def median(values: np.ndarray) -> float:
-    """``np.median`` of a non-empty 1-D array by partial sorting (np.median's overhead
-    dominates the short arrays of a fit)."""
-    n = len(values)
-    half = n // 2
-    if n % 2:
-        return float(np.partition(values, half)[half])
-    part = np.partition(values, (half - 1, half))
-    return 0.5 * float(part[half - 1] + part[half])
+    """``np.median`` of a non-empty 1-D array (np.median's overhead dominates the short arrays
+    of a fit)."""
+    values = np.ascontiguousarray(values)
+    if values.size == 0:
+        raise ValueError("median of an empty array")
+    return float(_median(values.reshape(-1)))
 
 
-def huber_weights(residuals: np.ndarray, sigma: float) -> np.ndarray:
-    """Huber IRLS weights (1 inside k·σ, k·σ/|r| outside), divided by σ²."""
-    a = np.abs(residuals) / (HUBER_K * sigma)
-    return np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12)) / sigma**2
+@compiled
+def _median(values):
+    """The middle value, or the mean of the two middle values of an even count (in the array's
+    own precision, as NumPy adds them)."""
+    ordered = np.sort(values)
+    half = len(ordered) // 2
+    if len(ordered) % 2:
+        return ordered[half]
+    return 0.5 * (ordered[half - 1] + ordered[half])
 
 
 def _huber_rho(residuals: np.ndarray, sigma: float) -> np.ndarray:
@@ -117,8 +140,9 @@ class NoLoss:
 @dataclass(frozen=True, slots=True)
 class Huber:
     """Huber weights with each group's own noise scale (MAD, at least its floor): a group's
-    weights are ``huber_weights(r, σ_g)`` × ``group_weights[g]`` (information scale, e.g. < 1
-    for samples that are not independent). ``floors`` per group (default ``floor``)."""
+    weights are the Huber weights at σ_g (``_huber_group``) × ``group_weights[g]``
+    (information scale, e.g. < 1 for samples that are not independent). ``floors`` per group
+    (default ``floor``)."""
 
     floor: float = 0.05
     floors: tuple[float, ...] | None = None
@@ -129,13 +153,16 @@ class Huber:
         return tuple(robust_sigma(r, f) for r, f in zip(groups, floors, strict=True))
 
     def weights(self, groups: Sequence[np.ndarray]) -> tuple[np.ndarray, tuple[float, ...]]:
-        sigmas = self.sigmas(groups)
+        floors = self.floors if self.floors is not None else (self.floor,) * len(groups)
         scale = self.group_weights
-        w = [
-            huber_weights(r, s) * (1.0 if scale is None else scale[g])
-            for g, (r, s) in enumerate(zip(groups, sigmas, strict=True))
-        ]
-        return (np.concatenate(w) if w else np.zeros(0)), sigmas
+        w, sigmas = [], []
+        for g, (r, floor) in enumerate(zip(groups, floors, strict=True)):
+            weights, sigma = _huber_group(
+                np.ascontiguousarray(r, dtype=float).reshape(-1), float(floor), HUBER_K
+            )
+            w.append(weights if scale is None else weights * scale[g])
+            sigmas.append(float(sigma))
+        return (np.concatenate(w) if w else np.zeros(0)), tuple(sigmas)
 
     def cost(self, groups: Sequence[np.ndarray], sigmas: Sequence[float]) -> float:
         scale = self.group_weights

@@ -20,6 +20,7 @@ from estimators.edge_search import search_edges
 from estimators.frame import CameraInfo
 from estimators.geometry import Pose, distort_normalized, project, undistort_pixels
 from estimators.imaging import smoothed_gradient
+from estimators.least_squares import Huber, median, robust_sigma
 from estimators.model_view import outside_circles
 from estimators.panel_edges import strips_along_edge
 from estimators.planar_pose import (
@@ -41,6 +42,9 @@ def compile_kernels() -> None:
     pixels[:, 40:] = 0.7
     clipped_likelihood_terms(np.array([0.0, 0.5, 1.0]), np.array([0.1, 0.5, 0.9]), 0.1)
     clipped_moments(np.array([0.1, 0.5]), 0.1)
+    robust_sigma(np.array([0.1, -0.2, 0.3]))
+    Huber().weights([np.array([0.1, -0.2, 0.3])])
+    median(np.array([0.1, -0.2, 0.3]))
     lens = np.array([0.1, -0.05, 0.001, 0.002, 0.01])
     distort_normalized(np.array([[0.1, -0.2]]), lens)
     undistort_pixels(
