@@ -24,9 +24,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimators.compiled import compiled, compiled_inline
 from estimators.frame import CameraInfo
-from estimators.geometry import Pose, field_radius
+from estimators.geometry import Pose, field_radius, lens_terms
 from estimators.imaging import NOISE_FLOOR, GradientImage
+from estimators.lens_distortion import project_point
 from estimators.target import TargetModel
 
 _SAMPLES_PER_EDGE = 24
@@ -256,29 +258,34 @@ class ModelSupport:
             across_T = self.across_T[chosen]
             contour_of = self.contour_of[chosen]
         k = len(R_CT)
-        p_CT = np.asarray(p_CT, dtype=float).reshape(k, 1, 3)
-        points_C = points_T @ R_CT.transpose(0, 2, 1) + p_CT  # (k, samples, 3)
-        uv, visible = self._project(points_C.reshape(-1, 3), margin)
+        R_CT = np.ascontiguousarray(R_CT, dtype=float).reshape(k, 3, 3)
+        p_CT = np.ascontiguousarray(p_CT, dtype=float).reshape(k, 3)
         if self._foot is not None:
             on_foot = contour_of == self.names.index("ring_foot")
-            camera_T = -np.einsum("kji,kj->ki", R_CT, p_CT[:, 0])
-            foot_seen = np.ones(points_C.shape[:2], bool)
+            camera_T = -np.einsum("kji,kj->ki", R_CT, p_CT)
+            foot_seen = np.ones((k, len(points_T)), bool)
             foot_seen[:, on_foot] = self._foot_unoccluded(camera_T, points_T[on_foot])
-            visible &= foot_seen.reshape(-1)
-        depth = np.maximum(np.abs(points_C[..., 2]), 1e-3)
-        ahead_T = points_T + (0.002 * depth)[..., None] * across_T
-        ahead_uv, ahead_ok = self._project(
-            (ahead_T @ R_CT.transpose(0, 2, 1) + p_CT).reshape(-1, 3), 0.0
+        else:
+            foot_seen = np.ones((k, len(points_T)), bool)
+        camera = self.camera
+        dist = np.zeros(0) if camera.dist is None else camera.dist
+        points, n, group, counts, length = _contour_samples(
+            np.ascontiguousarray(points_T, dtype=float),
+            np.ascontiguousarray(across_T, dtype=float),
+            np.ascontiguousarray(contour_of, dtype=np.int64),
+            count,
+            R_CT,
+            p_CT,
+            foot_seen,
+            np.array(camera.K, dtype=float),
+            *lens_terms(dist),
+            dist.size > 0,
+            float(margin),
+            1.02 * self._field_radius,
+            camera.width,
+            camera.height,
         )
-        visible &= ahead_ok
-        normal = ahead_uv - uv
-        length = np.linalg.norm(np.nan_to_num(normal), axis=1)
-        visible &= length > 1e-9
-        normal = normal / np.where(length > 1e-9, length, 1.0)[:, None]
-        # One group per (pose, contour): the samples of each stay contiguous and in order.
-        group = (np.arange(k)[:, None] * count + contour_of).reshape(-1)
         groups = k * count
-        counts = np.bincount(group[visible], minlength=groups)
         z = np.full(groups, np.nan)
         if not np.any(counts >= _MIN_SAMPLES):
             return z.reshape(k, count)
@@ -288,26 +295,12 @@ class ModelSupport:
             half = max(1, round(shift_px / 1.5))
             steps = np.linspace(-shift_px, shift_px, 2 * half + 1)
             shifts = [(dx, dy) for dx in steps for dy in steps]
-        points = uv[visible]
-        n = normal[visible]
-        group = group[visible]
         best = np.full(groups, -np.inf)
         tangent = np.column_stack([-n[:, 1], n[:, 0]])
         # Samples closer than the smoothing's correlation length (≈ 2σ) are not independent:
         # count the contour's image length in units of it.
-        step = np.zeros(len(points))
-        same = group[1:] == group[:-1]
-        step[1:][same] = np.linalg.norm(np.diff(points, axis=0), axis=1)[same]
-        length = np.bincount(group, step, minlength=groups)
         independent = np.clip(length / (2.0 * gradients.sigma_px), 1.0, np.maximum(counts, 1))
         safe = np.maximum(counts, 1)
-        # The spread of |g·t| is never taken below what noise of ``NOISE_FLOOR`` would give it
-        # (the spread of |N(0, s)| is √(1 − 2/π) s; under the reference study's noise it is a
-        # third of what the noise gives, and does not bind). On a clean frame (a camera's shot
-        # and read noise is a thirty-fifth of the study's low noise) the spread along a contour
-        # lying on an edge is near zero, and the ratio then ranks poses by how uniform their
-        # along-contour gradients are, not by how well they sit on the edges: a pose tilted 8°
-        # outscored the truth by 490 z units, and the quarter-turn check chose a wrong turn.
         spread_floor = (
             HALF_NORMAL_SPREAD * GradientImage.noise_after(gradients.sigma_px, NOISE_FLOOR)[1]
         )
@@ -315,9 +308,7 @@ class ModelSupport:
             shifted = points + np.array([dx, dy])
             across = np.abs(gradients.directional(shifted, n))
             along = np.abs(gradients.directional(shifted, tangent))
-            diff_sum = np.bincount(group, across - along, minlength=groups)
-            along_sq = np.bincount(group, along * along, minlength=groups)
-            along_sum = np.bincount(group, along, minlength=groups)
+            diff_sum, along_sq, along_sum = _group_sums(group, across, along, groups)
             spread = np.sqrt(np.maximum(along_sq / safe - (along_sum / safe) ** 2, 0))
             spread = np.maximum(spread, spread_floor)  # positive: noise_after floors it
             best = np.maximum(best, (diff_sum / safe) / (spread * np.sqrt(2.0 / independent)))
@@ -405,3 +396,113 @@ class ModelSupport:
             z[visible] = difference / (gradients.noise_sigma * math.sqrt(1.125))
             out.append(z)
         return out
+
+
+@compiled
+def _contour_samples(
+    points_T,
+    across_T,
+    contour_of,
+    count,
+    R_CT,
+    p_CT,
+    foot_seen,
+    K,
+    d,
+    M,
+    tilted,
+    distorted,
+    margin_px,
+    field_limit,
+    width,
+    height,
+):
+    """The contours' samples seen at each of k poses, as ``ModelSupport.contour_scores``
+    reads them: their pixels (V,2) and unit image normals (V,2), each sample's group (pose ×
+    count + contour; the samples of a group contiguous and in order), the samples per group
+    and each group's image length (px, summed over neighbouring samples). A sample is seen
+    when it and a point 2 mm (× depth) across the contour from it are in front (z > 1 µm),
+    within the field (normalised radius ≤ ``field_limit``) and imaged ``margin_px`` (the
+    point across: 0) inside the borders, where the bore's wall does not hide it
+    (``foot_seen``). Compiled: a grid search scores a hundred poses, and tracking three a
+    frame, each a few dozen NumPy calls."""
+    k, m = R_CT.shape[0], len(points_T)
+    uv, normal = np.empty((k * m, 2)), np.empty((k * m, 2))
+    group = np.empty(k * m, np.int64)
+    counts, length = np.zeros(k * count, np.int64), np.zeros(k * count)
+    seen = 0
+    for j in range(k):
+        R, p = R_CT[j], p_CT[j]
+        last_group, last_u, last_v = -1, 0.0, 0.0
+        for i in range(m):
+            if not foot_seen[j, i]:
+                continue
+            P = _transformed(R, p, points_T[i, 0], points_T[i, 1], points_T[i, 2])
+            ok, u, v = _support_pixel(
+                P, K, d, M, tilted, distorted, margin_px, field_limit, width, height
+            )
+            if not ok:
+                continue
+            step = 0.002 * max(abs(P[2]), 1e-3)
+            ahead = _transformed(
+                R,
+                p,
+                points_T[i, 0] + step * across_T[i, 0],
+                points_T[i, 1] + step * across_T[i, 1],
+                points_T[i, 2] + step * across_T[i, 2],
+            )
+            ok, au, av = _support_pixel(
+                ahead, K, d, M, tilted, distorted, 0.0, field_limit, width, height
+            )
+            nu, nv = au - u, av - v
+            norm = math.sqrt(nu * nu + nv * nv)
+            if not ok or not norm > 1e-9:
+                continue
+            g = j * count + contour_of[i]
+            uv[seen, 0], uv[seen, 1] = u, v
+            normal[seen, 0], normal[seen, 1] = nu / norm, nv / norm
+            group[seen] = g
+            counts[g] += 1
+            if g == last_group:
+                length[g] += math.sqrt((u - last_u) ** 2 + (v - last_v) ** 2)
+            last_group, last_u, last_v = g, u, v
+            seen += 1
+    return uv[:seen].copy(), normal[:seen].copy(), group[:seen].copy(), counts, length
+
+
+@compiled_inline
+def _transformed(R, p, x, y, z):
+    """R·(x, y, z) + p."""
+    return np.array(
+        [
+            R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + p[0],
+            R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + p[1],
+            R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + p[2],
+        ]
+    )
+
+
+@compiled_inline
+def _support_pixel(P, K, d, M, tilted, distorted, margin_px, field_limit, width, height):
+    """(seen, u, v) of a model point P (3,) in C for the support: in front, within the field
+    and imaged ``margin_px`` inside the image (pixel centres 0 … width − 1)."""
+    if not P[2] > 1e-6:
+        return False, 0.0, 0.0
+    x, y = P[0] / P[2], P[1] / P[2]
+    if not math.sqrt(x * x + y * y) <= field_limit:
+        return False, 0.0, 0.0
+    u, v = project_point(P[0], P[1], P[2], K, d, M, tilted, distorted)
+    inside = margin_px <= u <= width - 1 - margin_px and margin_px <= v <= height - 1 - margin_px
+    return inside, u, v
+
+
+@compiled
+def _group_sums(group, across, along, groups):
+    """Per group: Σ(across − along), Σ along² and Σ along."""
+    diff_sum, along_sq, along_sum = np.zeros(groups), np.zeros(groups), np.zeros(groups)
+    for i in range(len(group)):
+        g = group[i]
+        diff_sum[g] += across[i] - along[i]
+        along_sq[g] += along[i] * along[i]
+        along_sum[g] += along[i]
+    return diff_sum, along_sq, along_sum

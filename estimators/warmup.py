@@ -18,9 +18,10 @@ from estimators.clipped_noise import clipped_likelihood_terms, clipped_moments
 from estimators.edge_fit import coarse_edge_offsets, fit_edge_points, fit_line_robust
 from estimators.edge_search import search_edges
 from estimators.frame import CameraInfo
-from estimators.geometry import Pose, distort_normalized, project, undistort_pixels
+from estimators.geometry import Pose, distort_normalized, lens_terms, project, undistort_pixels
 from estimators.imaging import smoothed_gradient
 from estimators.least_squares import Huber, median, robust_sigma
+from estimators.model_support import _contour_samples, _group_sums
 from estimators.model_view import outside_circles
 from estimators.panel_edges import strips_along_edge
 from estimators.planar_pose import (
@@ -86,6 +87,7 @@ def compile_kernels() -> None:
         centre, normal, radius, np.ones((6, 1, 3)), np.ones((6, 1, 3)), np.ones((6, 1))
     )
     outside_circles(np.ones((2, 2)), np.zeros((1, 2)), np.ones(1), within=2.0)
+    _group_sums(np.zeros(2, np.int64), np.ones(2), np.ones(2), 1)
     points = PointObservations(np.eye(3), np.ones((3, 2)), np.tile(np.eye(2), (3, 1, 1)))
     points.linearize(Pose(np.eye(3), np.array([0.0, 0.0, 1.0])), conics.K)
     projection_jacobian(Pose(np.eye(3), np.array([0.0, 0.0, 1.0])), np.eye(3), conics.K)
@@ -103,6 +105,23 @@ def compile_kernels() -> None:
             np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0]), 0.05, camera, spacing_px=2.0
         )
         visible_pixels(np.array([[0.0, 0.0, 1.0]]), camera, 0.0, 1.0)
+        # (``ModelSupport.contour_scores``'s kernels, with the argument types it passes)
+        _contour_samples(
+            np.zeros((2, 3)),
+            np.ones((2, 3)),
+            np.zeros(2, np.int64),
+            1,
+            np.eye(3)[None],
+            np.array([[0.0, 0.0, 1.0]]),
+            np.ones((1, 2), bool),
+            np.array(camera.K),
+            *lens_terms(dist),
+            dist.size > 0,
+            4.0,
+            1.0,
+            64,
+            64,
+        )
     ends = np.array([[[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]], [[0.0, 0.0, 0.0], [0.0, 0.1, 0.0]]])
     lines = EdgeObservations(ends, np.array([0, 0, 1, 1]), np.ones((4, 2)), np.ones(4))
     CorrelatedEdgeObservations(lines, np.ones(2), np.ones(2)).linearize(
