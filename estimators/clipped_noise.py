@@ -35,6 +35,25 @@ def normal_pdf(z: float) -> float:
     return math.exp(-0.5 * z * z) / _SQRT_2PI
 
 
+#: Beyond this many edge widths from an edge a pixel lies wholly on one side: Φ is 1 to the
+#: last bit above it, and Φ and φ below it (10⁻¹⁷ and less) are lost beside the other pixels'
+#: terms of a fit.
+SATURATED_Z = 8.5
+
+
+@compiled_inline
+def edge_coverage(z: float, s: float) -> tuple[float, float]:
+    """Φ(z) and φ(z)/s: the share of a pixel z edge widths s inside a blurred edge, and its
+    slope per pixel. Most pixels of a disc's window or a corner's lie beyond ``SATURATED_Z``
+    of the edge, where the pair is (1, 0) or (0, 0) and the transcendental functions are
+    skipped."""
+    if z > SATURATED_Z:
+        return 1.0, 0.0
+    if z < -SATURATED_Z:
+        return 0.0, 0.0
+    return normal_cdf(z), normal_pdf(z) / s
+
+
 @compiled
 def clipped_terms(value: float, intensity: float, sigma: float) -> tuple[float, float]:
     """Score ∂ℓ/∂I and information −∂²ℓ/∂I² of one pixel's log-likelihood ℓ given its

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.clipped_noise import clipped_moment, clipped_terms, normal_cdf, normal_pdf
+from estimators.clipped_noise import clipped_moment, clipped_terms, edge_coverage, normal_cdf
 from estimators.compiled import compiled, compiled_inline
 from estimators.point_fit import EDGE_WIDTH_PX
 from estimators.small_linalg import solve_small
@@ -72,13 +72,11 @@ def _profile_at(d: float, delta: float, wall: float, s: float):
     (on the side the normals point away from), at offset ``d`` across the edge: inside
     Φ((d − δ)/s), outside 1 − Φ((d − δ + w)/s) and the wall between them; and their
     derivatives in δ (3). Levels · basis = intensity."""
-    z1 = (d - delta) / s
-    f1, p1 = normal_cdf(z1), normal_pdf(z1) / s
+    f1, p1 = edge_coverage((d - delta) / s, s)
     if wall == 0.0:  # no wall: the outside starts where the inside ends
         f2, p2 = f1, p1
     else:
-        z2 = (d - delta + wall) / s
-        f2, p2 = normal_cdf(z2), normal_pdf(z2) / s
+        f2, p2 = edge_coverage((d - delta + wall) / s, s)
     return f1, 1.0 - f2, f2 - f1, -p1, p2, p1 - p2
 
 

@@ -34,12 +34,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from estimators.clipped_noise import (
-    clipped_moment,
-    clipped_terms,
-    normal_cdf,
-    normal_pdf,
-)
+from estimators.clipped_noise import clipped_moment, clipped_terms, edge_coverage
 from estimators.compiled import compiled, compiled_inline
 from estimators.small_linalg import solve_small
 
@@ -174,8 +169,8 @@ def _disc_model(u, v, owner, A_inv, scale, rad_px, window, e_m, e_m2, c, s, wind
         inv_q = scale[o] / max(dq, 1e-12)
         hx[p] = (a11 * qx + a21 * qy) * inv_q
         hy[p] = (a12 * qx + a22 * qy) * inv_q
-        top[p], stadium[p] = normal_cdf(z), normal_cdf(zq)
-        slope_t[p], slope_s[p] = normal_pdf(z) / s, normal_pdf(zq) / s
+        top[p], slope_t[p] = edge_coverage(z, s)
+        stadium[p], slope_s[p] = edge_coverage(zq, s)
         mask[p] = 1.0 if d < window[o] else 0.0
     return top, stadium, slope_t, slope_s, gx, gy, hx, hy, mask
 
@@ -490,8 +485,8 @@ def _wedge_model(x, y, owner, side, params, s):
         n2x, n2y = s2 * side[p], -c2 * side[p]
         d1 = (dx * n1x + dy * n1y) / s
         d2 = (dx * n2x + dy * n2y) / s
-        f1, f2 = normal_cdf(d1), normal_cdf(d2)
-        p1, p2 = normal_pdf(d1) / s, normal_pdf(d2) / s
+        f1, p1 = edge_coverage(d1, s)
+        f2, p2 = edge_coverage(d2, s)
         inside[p] = f1 * f2
         # ∂inside/∂(u, v, α1, α2): ∂d_k/∂c = −n_k; ∂d1/∂α1 = −side·x·e1; ∂d2/∂α2 = side·x·e2
         g[p, 0] = -(p1 * f2 * n1x + f1 * p2 * n2x)
