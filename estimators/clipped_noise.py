@@ -80,8 +80,9 @@ def clipped_moment(intensity: float, sigma: float) -> tuple[float, float, float]
         return intensity, 0.0, 1.0
     alpha = -intensity / sigma
     beta = (1.0 - intensity) / sigma
-    below, above = normal_cdf(alpha), normal_cdf(beta)
-    pdf_a, pdf_b = normal_pdf(alpha), normal_pdf(beta)
+    # (a grey level far from black and white, the usual case, is not clipped at all)
+    below, pdf_a = edge_coverage(alpha, 1.0)
+    above, pdf_b = edge_coverage(beta, 1.0)
     inside = above - below
     mean = intensity * inside + sigma * (pdf_a - pdf_b) + (1.0 - above)
     second = (

@@ -354,7 +354,7 @@ def noise_levels(pixels: np.ndarray, local_mean: np.ndarray | None = None) -> tu
     if min(pixels.shape[:2]) < 6:
         return 0.0, 0.0
     # Every third pixel each way is plenty for a global statistic.
-    response = np.abs(cv2.filter2D(pixels, cv2.CV_32F, mask))[1:-1:3, 1:-1:3]
+    response = np.abs(cv2.filter2D(pixels, cv2.CV_32F, mask)[1:-1:3, 1:-1:3])
     if local_mean is None:
         local_mean = cv2.blur(pixels, (5, 5))
     level = local_mean[1:-1:3, 1:-1:3]
