@@ -43,6 +43,7 @@ from estimators.acquisition import (
     turn_axis_circle,
     warn_if_roll_ambiguous,
 )
+from estimators.compiled import compiled, compiled_inline
 from estimators.deadline import NO_TIME_FOR_SEARCH, search_allowed
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose
@@ -429,26 +430,15 @@ class CornerEstimator:
     def _disc_starts(self, smoothed, labels, radius_px) -> tuple[np.ndarray, np.ndarray]:
         """Start positions for disc fits: the smoothed image's extremum near each candidate."""
         index = np.array([i for i in labels if self.layout.is_disc[i]], int)
-        starts = []
-        h, w = smoothed.shape
-        for i in index:
-            u, v = labels[i]
-            r = max(1, math.ceil(max(radius_px[i], 1.5)))
-            u0, v0 = round(u), round(v)
-            if u0 - r - 1 < 0 or v0 - r - 1 < 0 or u0 + r + 2 > w or v0 + r + 2 > h:
-                starts.append((u, v))
-                continue
-            sign = 1.0 if self.layout.brighter[i] else -1.0
-            patch = sign * smoothed[v0 - r : v0 + r + 1, u0 - r : u0 + r + 1]
-            yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
-            patch = np.where(xx * xx + yy * yy <= r * r, patch, -np.inf)
-            pv, pu = np.unravel_index(int(np.argmax(patch)), patch.shape)
-            vi, ui = v0 - r + pv, u0 - r + pu
-            c = sign * smoothed[vi - 1 : vi + 2, ui - 1 : ui + 2]
-            du = _parabola_peak(c[1, 0], c[1, 1], c[1, 2])
-            dv = _parabola_peak(c[0, 1], c[1, 1], c[2, 1])
-            starts.append((ui + du, vi + dv))
-        return index, np.array(starts, dtype=float).reshape(-1, 2)
+        if len(index) == 0:
+            return index, np.zeros((0, 2))
+        starts = _extrema_near(
+            np.ascontiguousarray(smoothed, dtype=np.float32),
+            np.array([labels[i] for i in index], dtype=float).reshape(-1, 2),
+            np.maximum(radius_px[index], 1.5),
+            np.where(self.layout.brighter[index], 1.0, -1.0),
+        )
+        return index, starts
 
     def _fit_discs(
         self, image, smoothed, labels, A, radius_px, X_CT: Pose
@@ -824,12 +814,42 @@ def _bilinear(image: np.ndarray, points: np.ndarray) -> np.ndarray:
     return cv2.remap(image, map_xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
 
 
-def _parabola_peak(left: float, centre: float, right: float) -> float:
+@compiled
+def _extrema_near(smoothed, candidates, radius_px, sign):
+    """Per candidate (n,2 px): the extremum of ``sign`` × the smoothed image (maximum for +1)
+    within ⌈radius⌉ px of its nearest pixel, refined by a parabola through its neighbours
+    across and down (±0.5 px); the candidate itself where that window leaves the image. The
+    arithmetic is the image's own (float32), as NumPy's was."""
+    h, w = smoothed.shape
+    starts = np.empty((len(candidates), 2))
+    for k in range(len(candidates)):
+        u, v = candidates[k, 0], candidates[k, 1]
+        r = max(1, math.ceil(radius_px[k]))
+        u0, v0 = round(u), round(v)
+        if u0 - r - 1 < 0 or v0 - r - 1 < 0 or u0 + r + 2 > w or v0 + r + 2 > h:
+            starts[k, 0], starts[k, 1] = u, v
+            continue
+        s = np.float32(sign[k])
+        best, bu, bv = -np.inf, 0, 0
+        for dv in range(-r, r + 1):
+            for du in range(-r, r + 1):
+                if du * du + dv * dv <= r * r and s * smoothed[v0 + dv, u0 + du] > best:
+                    best, bu, bv = s * smoothed[v0 + dv, u0 + du], u0 + du, v0 + dv
+        centre = s * smoothed[bv, bu]
+        offset_u = _parabola_peak(s * smoothed[bv, bu - 1], centre, s * smoothed[bv, bu + 1])
+        offset_v = _parabola_peak(s * smoothed[bv - 1, bu], centre, s * smoothed[bv + 1, bu])
+        starts[k, 0], starts[k, 1] = bu + offset_u, bv + offset_v
+    return starts
+
+
+@compiled_inline
+def _parabola_peak(left, centre, right):
     """Sub-pixel offset of a maximum from three samples (clamped to ±0.5)."""
-    curvature = left - 2.0 * centre + right
+    curvature = left - np.float32(2.0) * centre + right
     if curvature >= 0:
         return 0.0
-    return float(np.clip(0.5 * (left - right) / curvature, -0.5, 0.5))
+    offset = np.float32(0.5) * (left - right) / curvature
+    return float(min(max(offset, np.float32(-0.5)), np.float32(0.5)))
 
 
 def build(target: TargetModel, camera: CameraInfo, **options) -> CornerEstimator:

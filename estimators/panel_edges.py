@@ -215,7 +215,7 @@ def _strip_places(
             arc[j] = arc[j - 1] + math.sqrt((u - u0) * (u - u0) + (v - v0) * (v - v0))
         u0, v0 = u, v
     span_px = arc[64]
-    count = min(max(_round_half_even(span_px / strip_px), min_count), max_count)
+    count = min(max(round(span_px / strip_px), min_count), max_count)  # (half to even)
     t = np.interp(np.linspace(0.0, span_px, count), arc, dense)
     uv, normal, points = np.empty((count, 2)), np.empty((count, 2)), np.empty((count, 3))
     depth = np.empty(count)
@@ -246,15 +246,6 @@ def _image_of(R, p, K, d, M, tilted, distorted, point_T):
     Y = R[1, 0] * point_T[0] + R[1, 1] * point_T[1] + R[1, 2] * point_T[2] + p[1]
     Z = R[2, 0] * point_T[0] + R[2, 1] * point_T[1] + R[2, 2] * point_T[2] + p[2]
     return project_point(X, Y, Z, K, d, M, tilted, distorted)
-
-
-@compiled_inline
-def _round_half_even(x):
-    """Python's round() of a float: halves go to the even integer."""
-    r = math.floor(x + 0.5)
-    if r - x == 0.5 and r % 2 == 1:
-        r -= 1
-    return int(r)
 
 
 def strips_from_quad(corners_uv: np.ndarray, strip_px: float) -> list[EdgeStrips]:

@@ -15,6 +15,7 @@ import numpy as np
 from estimators.circle_edges import sample_projected_circle, visible_pixels
 from estimators.circle_fit import ConicObservations, EdgeSet
 from estimators.clipped_noise import clipped_likelihood_terms, clipped_moments
+from estimators.corners import _extrema_near
 from estimators.edge_fit import coarse_edge_offsets, fit_edge_points, fit_line_robust
 from estimators.edge_search import search_edges
 from estimators.frame import CameraInfo
@@ -87,6 +88,7 @@ def compile_kernels() -> None:
         centre, normal, radius, np.ones((6, 1, 3)), np.ones((6, 1, 3)), np.ones((6, 1))
     )
     outside_circles(np.ones((2, 2)), np.zeros((1, 2)), np.ones(1), within=2.0)
+    _extrema_near(pixels, np.array([[20.0, 20.0]]), np.array([3.0]), np.array([1.0]))
     _group_sums(np.zeros(2, np.int64), np.ones(2), np.ones(2), 1)
     points = PointObservations(np.eye(3), np.ones((3, 2)), np.tile(np.eye(2), (3, 1, 1)))
     points.linearize(Pose(np.eye(3), np.array([0.0, 0.0, 1.0])), conics.K)
