@@ -338,7 +338,7 @@ class LineEstimator:
         gy = cv2.Sobel(as_uint8, cv2.CV_32F, 0, 1, ksize=3)
         magnitude = np.abs(gx) + np.abs(gy)
         # Edges are sparse: the median gradient is the noise's; Canny's hysteresis above it.
-        reference = float(np.median(magnitude)) + 1.0
+        reference = _integer_median(magnitude) + 1.0
         edges = cv2.Canny(as_uint8, 1.5 * reference, 3.0 * reference, L2gradient=False)
         lengths = np.linalg.norm(corners_uv - np.roll(corners_uv, -1, axis=0), axis=1)
         shortest = float(lengths.min())
@@ -896,6 +896,18 @@ class LineEstimator:
         if unsupported:
             return unsupported, False
         return support.confirmation(options.min_edge_support, tracking=tracking)
+
+
+def _integer_median(values: np.ndarray) -> float:
+    """``np.median`` of non-negative integer values (an 8-bit image's Sobel magnitudes, held as
+    floats) from their histogram: linear in the pixel count, where sorting a close-up crop's
+    hundred thousand values took a millisecond."""
+    counts = np.bincount(values.astype(np.int64).ravel())
+    cumulative = np.cumsum(counts)
+    n = int(cumulative[-1])
+    lower = int(np.searchsorted(cumulative, (n - 1) // 2, side="right"))
+    upper = int(np.searchsorted(cumulative, n // 2, side="right"))
+    return 0.5 * (lower + upper)
 
 
 def build(target: TargetModel, camera: CameraInfo, **options) -> LineEstimator:

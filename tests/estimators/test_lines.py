@@ -129,3 +129,16 @@ def test_without_a_prior_the_outline_is_searched_at_the_tilt_its_edges_support()
         assert found is not None
         normal_error = math.acos(min(1.0, float(found.R[:, 2] @ X_true.R[:, 2])))
         assert math.degrees(normal_error) < 3.0, axis
+
+
+def test_the_integer_median_of_gradient_magnitudes_is_numpys_median():
+    """The Canny thresholds rest on the crop's median Sobel magnitude, taken from a histogram
+    (``lines._integer_median``): it must be the median, for odd and even counts and for
+    values piled on a few levels."""
+    from estimators.lines import _integer_median
+
+    rng = np.random.default_rng(3)
+    for size in (1, 2, 7, 10, 999, 1000):
+        for high in (3, 2041):
+            values = rng.integers(0, high, size=size).astype(np.float32)
+            assert _integer_median(values) == float(np.median(values))
