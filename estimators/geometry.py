@@ -235,7 +235,7 @@ def sensor_tilt_matrix(tau_x: float, tau_y: float) -> np.ndarray:
 def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """Apply OpenCV lens distortion to normalized image coordinates (N,2) → (N,2)."""
     xy = as_points(xy, 2, "xy")
-    # Compiled, and imported here: a process that never distorts a point (the control loop)
+    # Compiled, and imported here: importing this module (configuration, scenes, logs do)
     # does not load numba.
     from estimators.lens_distortion import distort
 
