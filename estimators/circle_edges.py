@@ -16,7 +16,7 @@ from estimators.compiled import compiled, compiled_inline
 from estimators.conics import circle_plane_basis
 from estimators.edge_search import EdgeHits, search_edges
 from estimators.frame import CameraInfo
-from estimators.geometry import field_radius, lens_terms
+from estimators.geometry import field_radius
 from estimators.imaging import GradientField
 from estimators.lens_distortion import project_point
 from estimators.planar_pose import ideal_pixels
@@ -46,12 +46,10 @@ def visible_pixels(
     inside its borders; pixels are NaN where not in front or beyond the field. Same test as
     ``geometry.in_view``, with the field radius (which rejects distortion fold-back) computed
     once by the caller."""
-    dist = np.zeros(0) if camera.dist is None else camera.dist
     return _visible_pixels(
         np.ascontiguousarray(points_C, dtype=float).reshape(-1, 3),
         np.array(camera.K, dtype=float),
-        *lens_terms(dist),
-        dist.size > 0,
+        *camera.lens,
         float(margin_px),
         (1.02 * float(field_radius)) ** 2,
         camera.width,
@@ -120,7 +118,6 @@ def sample_projected_circle(
         field_radius_xy = camera_field_radius(camera)
     center_C = np.array(center_C, dtype=float)
     u, v = circle_plane_basis(normal_C)
-    dist = np.zeros(0) if camera.dist is None else camera.dist
     # (writable copies of the small arrays: one compiled signature whatever the caller holds)
     found, uv, normals, t, center_uv, perimeter, count = _sample_circle(
         center_C,
@@ -128,8 +125,7 @@ def sample_projected_circle(
         v,
         float(radius),
         np.array(camera.K, dtype=float),
-        *lens_terms(dist),
-        dist.size > 0,
+        *camera.lens,
         float(spacing_px),
         float(margin_px),
         float(field_radius_xy),
@@ -171,8 +167,7 @@ def _sample_circle(
     perimeter = 0.0
     first_u = first_v = last_u = last_v = 0.0
     for i in range(32):
-        a = i * (2.0 * np.pi / 32)
-        P = center + radius * (math.cos(a) * u) + radius * (math.sin(a) * v)
+        P = _circle_point(center, u, v, radius, i * (2.0 * np.pi / 32))
         if P[2] < 0.02 or center[2] <= 0:
             return False, empty, empty, np.zeros(0), np.zeros(2), 0.0, 0
         pu, pv = P[0] / P[2] * K[0, 0], P[1] / P[2] * K[1, 1]
@@ -193,7 +188,7 @@ def _sample_circle(
     for i in range(count):
         t = i * step
         for k, angle in enumerate((t, t + 1e-4, t - 1e-4)):
-            P = center + radius * (math.cos(angle) * u) + radius * (math.sin(angle) * v)
+            P = _circle_point(center, u, v, radius, angle)
             seen[k], pixel[k, 0], pixel[k, 1] = _pixel_in_view(
                 P[0], P[1], P[2], K, d, M, tilted, distorted, margin_px, limit, width, height
             )
@@ -221,6 +216,12 @@ def _sample_circle(
         perimeter,
         count,
     )
+
+
+@compiled_inline
+def _circle_point(center, u, v, radius, angle):
+    """The circle's point at ``angle`` in its plane's basis (u, v) (``conics.circle_points``)."""
+    return center + radius * (math.cos(angle) * u) + radius * (math.sin(angle) * v)
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimators.geometry import Pose, check_distortion, in_view, project
+from estimators.geometry import Pose, check_distortion, in_view, lens_terms, project
 
 
 def readonly_array(array: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -51,6 +51,12 @@ class CameraInfo:
         object.__setattr__(self, "dist", dist)
         if self.channels not in (1, 3):
             raise ValueError(f"CameraInfo.channels must be 1 or 3; got {self.channels}")
+
+    @property
+    def lens(self) -> tuple[np.ndarray, np.ndarray, bool, bool]:
+        """The compiled lens model's arguments (``geometry.lens_terms``) and whether the camera
+        distorts at all."""
+        return (*lens_terms(self.dist), self.dist.size > 0)
 
     @property
     def shape(self) -> tuple[int, ...]:

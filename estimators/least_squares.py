@@ -42,6 +42,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from estimators.compiled import compiled
+from estimators.small_linalg import at_least
 
 HUBER_K = 1.345
 
@@ -74,7 +75,7 @@ def _robust_sigma(r, floor):
     if len(r) == 0:
         return 1.0
     scale = 1.4826 * _median(np.abs(r - _median(r)))
-    return floor if floor > scale else scale  # (Python's max: a NaN scale stays NaN)
+    return at_least(scale, floor)
 
 
 @compiled

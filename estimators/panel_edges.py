@@ -18,9 +18,10 @@ import numpy as np
 from estimators.compiled import compiled, compiled_inline
 from estimators.edge_fit import EdgePoints, Line2D, fit_edge_points, fit_line_robust, intersect
 from estimators.frame import CameraInfo
-from estimators.geometry import Pose, lens_terms
+from estimators.geometry import Pose
 from estimators.lens_distortion import project_point
 from estimators.planar_pose import EdgeObservations, ideal_pixel_jacobians, ideal_pixels
+from estimators.small_linalg import rigid_transform
 from estimators.target import TargetModel
 
 #: Strips stay this far (px) from a corner, beyond the band across the neighbouring edge.
@@ -172,15 +173,12 @@ def strips_along_edge(
     # Strips evenly spaced in the image (a receding edge is foreshortened unevenly): places
     # along the edge by its image arc length.
     max_count = 60 if max_strips is None else max_strips
-    dist = np.zeros(0) if camera.dist is None else camera.dist
-    lens = lens_terms(dist)
     # (writable copies of the small arrays: one compiled signature whatever the caller holds)
     uv, normal, points, span_px, count = _strip_places(
         np.array(X_CT.R, dtype=float),
         np.array(X_CT.p, dtype=float),
         np.array(camera.K, dtype=float),
-        *lens,
-        dist.size > 0,
+        *camera.lens,
         np.array(a),
         np.array(b),
         np.array(inside_T, dtype=float),
@@ -221,7 +219,7 @@ def _strip_places(
     depth = np.empty(count)
     for i in range(count):
         points[i] = a + t[i] * e
-        depth[i] = R[2, 0] * points[i, 0] + R[2, 1] * points[i, 1] + R[2, 2] * points[i, 2] + p[2]
+        depth[i] = rigid_transform(R, p, points[i, 0], points[i, 1], points[i, 2])[2]
         uv[i, 0], uv[i, 1] = _image_of(R, p, K, d, M, tilted, distorted, points[i])
         au, av = _image_of(R, p, K, d, M, tilted, distorted, a + (t[i] + 1e-3) * e)
         tu, tv = au - uv[i, 0], av - uv[i, 1]
@@ -242,9 +240,7 @@ def _strip_places(
 @compiled_inline
 def _image_of(R, p, K, d, M, tilted, distorted, point_T):
     """The pixel of a model point (3,) in T seen from (R, p)."""
-    X = R[0, 0] * point_T[0] + R[0, 1] * point_T[1] + R[0, 2] * point_T[2] + p[0]
-    Y = R[1, 0] * point_T[0] + R[1, 1] * point_T[1] + R[1, 2] * point_T[2] + p[1]
-    Z = R[2, 0] * point_T[0] + R[2, 1] * point_T[1] + R[2, 2] * point_T[2] + p[2]
+    X, Y, Z = rigid_transform(R, p, point_T[0], point_T[1], point_T[2])
     return project_point(X, Y, Z, K, d, M, tilted, distorted)
 
 

@@ -35,8 +35,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from estimators.clipped_noise import clipped_moment, clipped_terms, edge_coverage
-from estimators.compiled import compiled, compiled_inline
-from estimators.small_linalg import solve_small
+from estimators.compiled import compiled
+from estimators.small_linalg import at_least, solve_small
 
 EDGE_WIDTH_PX = 0.45
 
@@ -364,18 +364,12 @@ def _normal_equations(J, r, owner, values, mask, noise_sigma, n, used):
             for j in range(i + 1, k):
                 H[o, j, i] = H[o, i, j]
         if noise_sigma > 0:
-            ratio = seen[o] / _at_least(expected[o], 1e-12) * count[o]
-            ratio = ratio / _at_least(count[o] - k, 1.0)
-            sigma2[o] = variance0 * _at_least(ratio, 1.0)
+            ratio = seen[o] / at_least(expected[o], 1e-12) * count[o]
+            ratio = ratio / at_least(count[o] - k, 1.0)
+            sigma2[o] = variance0 * at_least(ratio, 1.0)
         else:
-            sigma2[o] = seen[o] / _at_least(used[o] - k, 1.0)
+            sigma2[o] = seen[o] / at_least(used[o] - k, 1.0)
     return H, sigma2
-
-
-@compiled_inline
-def _at_least(x, floor):
-    """NumPy's maximum(x, floor): NaN stays NaN."""
-    return x if x >= floor or x != x else floor
 
 
 def _pixels_within(centers: np.ndarray, reach: np.ndarray, height: int, width: int):

@@ -29,6 +29,7 @@ ENTRY_POINTS = [
     lens_distortion.project_distorted,
     model_support._contour_samples,
     model_support._group_sums,
+    model_support._support_pixels,
     model_view._outside_circles,
     panel_edges._strip_places,
     edge_fit._coarse_steps,
