@@ -241,6 +241,31 @@ def test_ellipses_track_a_faint_ring_not_its_deep_bore_close_up(seed):
     assert error.center_m < 0.005 and math.degrees(error.normal_rad) < 1.0, error
 
 
+@pytest.mark.parametrize("distance", [0.62, 0.67])
+def test_ellipses_acquire_a_faint_ring_not_the_ring_its_deep_bore_implies(distance):
+    """Random mock-up 104 under its own light, 0.62–0.67 m, no prior: the ring's hypotheses
+    include the bore's rim and foot read as the ring's two edges (a ring 10 cm farther),
+    which verified with its foot — a strong edge all round — as the "inner edge" over 0.99
+    of its length, against 0.47 / 0.57 for the true ring's faint edges: the wrong ring won,
+    9–10 cm off, and so did a track falling back to it. Judged with the bore's foot too
+    (only the true ring explains it), the ring is right."""
+    name = "random:104"
+    mockup = load_mockup(name)
+    target = mockup.target_model()
+    offset = target_offset(0.01, -0.01, 0.0, math.radians(2.0), math.radians(-2.0), 0.5)
+    X_WC = camera_pose_for(distance, offset)[0]
+    with MockupScene(mockup) as scene:
+        config = RenderConfig(supersample=4, lighting=named_lighting("random", seed_of(name)))
+        r = PybulletRenderer(scene, REFERENCE, config).render(X_WC)
+    noise = NoiseConfig(preset="low", auto_exposure=True)
+    image = expose(r.image, r.depth_m, REFERENCE.K, noise, frame_rng(0, 0))
+    frame = Frame(image, 0.0, REFERENCE, 0, GroundTruth(r.X_CT, X_WC))
+    m = build(target, REFERENCE).estimate(frame, None)
+    assert m.valid, m.reason
+    error = _errors(m, frame, target)
+    assert error.center_m < 0.005 and math.degrees(error.normal_rad) < 1.0, error
+
+
 @pytest.mark.parametrize(("distance", "turn_deg"), [(0.5, 0.0), (0.6, 8.0), (0.8, 0.0), (0.8, 8.0)])
 def test_ellipses_acquire_a_ring_with_a_deep_narrow_bore_close_up(distance, turn_deg):
     """``rendered.DEEP_BORE_MOCKUP`` close up, no prior: the bore's rim and foot (a concentric
