@@ -558,6 +558,48 @@ def covariance_at(
     tangent says the tilt is well known while the cost is nearly flat back to head-on; the
     covariance at the head-on pose does not make that mistake.
     """
+    J, w, keep = _weighted_jacobian(edge_sets, fit, pose, K, reference, points)
+    return covariance(J.T @ (J * w[:, None]), keep=keep)
+
+
+def pose_shift(
+    edge_sets: Sequence[EdgeSet],
+    fit: FitResult,
+    pose: CirclePose | Pose,
+    K: np.ndarray,
+    displacements: Sequence[np.ndarray],
+    *,
+    reference: Circle3D | None = None,
+    points: PointObservations | None = None,
+) -> np.ndarray:
+    """How far the fit's pose parameters (5 or 6, as ``covariance_at``'s) move when each edge
+    sample's residual moves by ``displacements`` (px; one array per edge set): the weighted
+    least-squares response −(JᵀWJ)⁻¹JᵀW·b at ``pose``, nuisance radii refitted.
+
+    A systematic error of known shape and unknown size — an unmodelled feature that can pull
+    the edges by up to b — enters the covariance as shift·shiftᵀ times its size's second
+    moment: a "consider" parameter (Schmidt; Tapley, Schutz & Born, *Statistical Orbit
+    Determination*, 2004, §6.3), estimated by no one and accounted for.
+    """
+    J, w, keep = _weighted_jacobian(edge_sets, fit, pose, K, reference, points)
+    b = np.concatenate([np.asarray(d, dtype=float) for d in displacements])
+    if len(b) > len(w):
+        raise ValueError(f"{len(b)} displacements for {len(w)} residuals")
+    b = np.concatenate([b, np.zeros(len(w) - len(b))])  # (the points' residuals: unmoved)
+    information = J.T @ (J * w[:, None])
+    return -np.linalg.solve(information, J.T @ (w * b))[:keep]
+
+
+def _weighted_jacobian(
+    edge_sets: Sequence[EdgeSet],
+    fit: FitResult,
+    pose: CirclePose | Pose,
+    K: np.ndarray,
+    reference: Circle3D | None,
+    points: PointObservations | None,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The fit's residual Jacobian at ``pose``, the residuals' weights (edge sets first, then
+    the points) and the number of pose parameters."""
     observations = ConicObservations(tuple(edge_sets), K)
     if points is not None and not points.count:
         points = None
@@ -579,5 +621,4 @@ def covariance_at(
     ]
     if points is not None:
         weights.append(np.full(points.size, 1.0 / fit.point_sigma**2))
-    w = np.concatenate(weights)
-    return covariance(J.T @ (J * w[:, None]), keep=keep)
+    return J, np.concatenate(weights), keep

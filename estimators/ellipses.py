@@ -51,6 +51,7 @@ from estimators.circle_fit import (
     covariance_at,
     fit_circle_pose,
     fit_target_pose,
+    pose_shift,
 )
 from estimators.circle_pose import CirclePose, circle_poses_from_conic
 from estimators.conics import (
@@ -238,6 +239,7 @@ class EllipseEstimator:
             raise ValueError("target circle 'ring_inner' must be coaxial with 'ring_outer'")
         self.off_axis = tuple(c for c in target.circles if not _coaxial(c, self.outer))
         self.foot = target.ring_foot
+        self.outer_foot = target.ring_outer_foot
         self._bore_depth_m = target.bore_depth_m
         # The outer edge's polarity when the model knows which side is brighter (an edge
         # search's polarity is −1 where the image darkens outward): a light that darkens or
@@ -1378,11 +1380,62 @@ class EllipseEstimator:
                 )
                 sigma0 = _normal_sigma(cov0, weak=True)
         except (ValueError, np.linalg.LinAlgError):
-            return inflation * fit.result.covariance
+            return inflation * fit.result.covariance + self._outer_wall_covariance(fit)
         sigma0 *= np.sqrt(inflation)
         weight = float(np.exp(-0.5 * (tilt / max(1.5 * sigma0, 1e-9)) ** 2))
         blended = inflation * ((1.0 - weight) * fit.result.covariance + weight * cov0)
+        blended = blended + self._outer_wall_covariance(fit)
         return 0.5 * (blended + blended.T)
+
+    def _outer_wall_covariance(self, fit: _Fit) -> np.ndarray:
+        """What the ring's outer wall may do to the fit, as covariance (in the fit's own
+        parameters; zeros where the wall does not show).
+
+        Seen obliquely, the wall shows outside the ring's front on one side, as a band from
+        the rim out to its foot on the face. Where the band is no wider than the smoothing it
+        blurs into the edge, which then lies anywhere between rim and foot depending on the
+        wall's shade — which no model here knows (fitting the samples to the nearer of rim
+        and foot lost on the matrix: docs/any_mockup_heldout.md, "The ring's outer wall").
+        The fit takes the rim; the edge may lie a fraction α ∈ [0, 1] of the band out. α is a
+        consider parameter (``circle_fit.pose_shift``): the pose's shift for the whole band
+        times α's second moment about the rim, 1/3 for α uniform. A foot beyond the final
+        search's reach (window and smoothing) cannot have been found, and adds nothing.
+        (random:101 and 109 at 3 m, bore walls of 7–9 cm: the normal 2–5° off on every
+        frame of the approach path, each claiming under 0.5°.)"""
+        size = len(fit.result.covariance)
+        outer_sets = [k for k, e in enumerate(fit.sets) if e.circle.name == self.outer.name]
+        if self.outer_foot is None or not outer_sets:
+            return np.zeros((size, size))
+        X_CT = fit.X_CT if fit.X_CT is not None else pose_with_roll(fit.ring, self.outer, 0.0)
+        reach = self.settings.fine_half_width_px + 1.0 + fit.sigma_px
+        displacements = []
+        for k, edge_set in enumerate(fit.sets):
+            band = np.zeros(len(edge_set.uv))
+            if k in outer_sets:
+                # (negative: the sample lies inside the foot's image, which there lies outside
+                # the rim's — the wall shows)
+                band = np.maximum(-self._signed_distances(self.outer_foot, X_CT, edge_set.uv), 0.0)
+                band[band > reach] = 0.0
+            displacements.append(band)
+        if not any(d.any() for d in displacements):
+            return np.zeros((size, size))
+        try:
+            if fit.X_CT is not None:
+                shift = pose_shift(
+                    fit.sets, fit.result, fit.X_CT, self.camera.K, displacements, points=fit.holes
+                )
+            else:
+                shift = pose_shift(
+                    fit.sets,
+                    fit.result,
+                    fit.ring,
+                    self.camera.K,
+                    displacements,
+                    reference=self.outer,
+                )
+        except (ValueError, np.linalg.LinAlgError):
+            return np.zeros((size, size))
+        return np.outer(shift, shift) / 3.0
 
     # --- the measurement ------------------------------------------------------------------
     def _measurement(

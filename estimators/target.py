@@ -120,14 +120,28 @@ class TargetModel:
         circle moved back to the face's plane (the outline's), or None when the model does not
         say where that is. Close up the wall shows as a band of its own, and the foot, not the
         ring's inner rim, is the edge the image holds (wall against face)."""
-        if not self.has_circle("ring_inner") or self.outline_corners_T is None:
+        return self._on_face("ring_inner", "ring_foot")
+
+    @property
+    def ring_outer_foot(self) -> Circle3D | None:
+        """Where the ring's outer wall meets the face (``ring_outer_foot``): the outer circle
+        moved back to the face's plane, or None as for ``ring_foot``. Seen obliquely the wall
+        shows outside the ring's front on one side, and the edge found there lies between
+        the rim and this foot."""
+        return self._on_face("ring_outer", "ring_outer_foot")
+
+    def _on_face(self, name: str, moved_name: str) -> Circle3D | None:
+        """Circle ``name`` moved along its normal back to the face's plane, named
+        ``moved_name``; None without such a circle, without the face's plane, or when the
+        circle lies in that plane."""
+        if not self.has_circle(name) or self.outline_corners_T is None:
             return None
-        inner = self.circle("ring_inner")
-        depth = float((self.outline_corners_T.mean(axis=0) - inner.center_T) @ inner.normal_T)
+        circle = self.circle(name)
+        depth = float((self.outline_corners_T.mean(axis=0) - circle.center_T) @ circle.normal_T)
         if depth >= -1e-4:
             return None
         return Circle3D(
-            "ring_foot", inner.center_T + depth * inner.normal_T, inner.normal_T, inner.radius
+            moved_name, circle.center_T + depth * circle.normal_T, circle.normal_T, circle.radius
         )
 
     @property

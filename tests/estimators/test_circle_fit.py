@@ -6,7 +6,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from configuration.mockup import load_mockup
-from estimators.circle_fit import EdgeSet, covariance_at, fit_circle_pose, fit_target_pose
+from estimators.circle_fit import (
+    CircleProblem,
+    ConicObservations,
+    EdgeSet,
+    covariance_at,
+    fit_circle_pose,
+    fit_target_pose,
+    pose_shift,
+)
 from estimators.circle_pose import CirclePose
 from estimators.conics import circle_plane_basis, circle_points
 from estimators.geometry import Pose, intrinsics_from_fov, normal_angle, project
@@ -37,6 +45,41 @@ def test_fit_circle_pose_recovers_ring_from_a_perturbed_start():
     assert np.degrees(normal_angle(fit.pose.normal_C, X_TRUE.R[:, 2])) < 0.5
     assert fit.covariance.shape == (5, 5) and np.all(np.linalg.eigvalsh(fit.covariance) > 0)
     assert fit.sigma_px == pytest.approx((0.3, 0.3), rel=0.25)
+
+
+def test_pose_shift_predicts_the_refit_after_a_systematic_edge_displacement():
+    """``pose_shift`` is the fit's linear response: noise-free ring edges pushed outward on
+    one side (as an unresolved wall would), refitted, move the 5-DOF pose as predicted. (The
+    push stays within the Huber loss's quadratic zone, whose noise floor is 0.05 px.)"""
+    rng = np.random.default_rng(2)
+    outer, inner = TARGET.circle("ring_outer"), TARGET.circle("ring_inner")
+    clean = [edge_points(outer, X_TRUE, 240, 0.0, rng), edge_points(inner, X_TRUE, 200, 0.0, rng)]
+    truth = CirclePose(X_TRUE.p, X_TRUE.R[:, 2])
+    sets = [EdgeSet(outer, clean[0]), EdgeSet(inner, clean[1], free_radius=True)]
+    fit = fit_circle_pose(sets, truth, outer, K)
+    # Outer samples right of the ring's image centre, pushed 0.03 px away from it.
+    centre = project(X_TRUE.p[None], K)[0]
+    away = clean[0] - centre
+    side = away[:, 0] > 0
+    moved = clean[0] + np.where(side, 0.03, 0.0)[:, None] * away / np.linalg.norm(
+        away, axis=1, keepdims=True
+    )
+    problem = CircleProblem(ConicObservations((EdgeSet(outer, clean[0]),), K), outer)
+    state = problem.state(truth.center_C, truth.normal_C)
+    before = problem.residuals(state)[0]
+    problem_moved = CircleProblem(ConicObservations((EdgeSet(outer, moved),), K), outer)
+    displacement = problem_moved.residuals(state)[0] - before
+    assert np.all(np.abs(displacement[~side]) < 1e-9) and np.all(np.abs(displacement[side]) > 0.02)
+
+    predicted = pose_shift(
+        sets, fit, fit.pose, K, [displacement, np.zeros(len(clean[1]))], reference=outer
+    )
+    refit = fit_circle_pose([EdgeSet(outer, moved), sets[1]], fit.pose, outer, K)
+    u, v = circle_plane_basis(fit.pose.normal_C)
+    dn = refit.pose.normal_C - fit.pose.normal_C
+    actual = np.concatenate([refit.pose.center_C - fit.pose.center_C, [dn @ u, dn @ v]])
+    assert np.linalg.norm(actual[:3]) > 1e-4  # (the push moves the ring measurably)
+    np.testing.assert_allclose(predicted, actual, rtol=0.05, atol=2e-6)
 
 
 def test_fit_target_pose_recovers_six_dof_and_ignores_outliers():
