@@ -69,6 +69,25 @@ def _errors(m, frame, target=None):
     return measurement_error(m, frame.truth.X_CT, target or DEFAULT.target_model())
 
 
+def _lit_random_frame(name: str, distance: float, offset, seed: int = 0) -> Frame:
+    """A frame of random mock-up ``name`` under its own random light, 4 × 4 samples a pixel,
+    the camera's auto-exposure and low noise."""
+    mockup = load_mockup(name)
+    X_WC = camera_pose_for(distance, offset)[0]
+    with MockupScene(mockup) as scene:
+        config = RenderConfig(supersample=4, lighting=named_lighting("random", seed_of(name)))
+        r = PybulletRenderer(scene, REFERENCE, config).render(X_WC)
+    noise = NoiseConfig(preset="low", auto_exposure=True)
+    image = expose(r.image, r.depth_m, REFERENCE.K, noise, frame_rng(seed, 0))
+    return Frame(image, 0.0, REFERENCE, 0, GroundTruth(r.X_CT, X_WC))
+
+
+def _prior_behind(X_CT: Pose, metres: float) -> Pose:
+    """``X_CT`` moved ``metres`` farther along its line of sight (a track one frame behind
+    on an approach)."""
+    return Pose(X_CT.R, X_CT.p * (1.0 + metres / np.linalg.norm(X_CT.p)))
+
+
 @pytest.mark.parametrize(
     ("distance", "normal_bound_deg"),
     [(3.0, 6.0), (1.2, 1.0)],
@@ -214,18 +233,10 @@ def test_ellipses_track_a_deep_bore_from_a_prior_off_in_depth():
     tilted the ring to hold them: 4.9° off, unflagged (the open-loop path drifted 4° over nine
     frames, claiming 0.3°). Split again at the fitted pose, the ring is right."""
     name = "random:100"
-    mockup = load_mockup(name)
-    target = mockup.target_model()
+    target = load_mockup(name).target_model()
     offset = target_offset(0.02, -0.01, 0.0, math.radians(4.0), math.radians(2.0), 0.3)
-    X_WC = camera_pose_for(1.6, offset)[0]
-    with MockupScene(mockup) as scene:
-        config = RenderConfig(supersample=4, lighting=named_lighting("random", seed_of(name)))
-        r = PybulletRenderer(scene, REFERENCE, config).render(X_WC)
-    noise = NoiseConfig(preset="low", auto_exposure=True)
-    image = expose(r.image, r.depth_m, REFERENCE.K, noise, frame_rng(0, 0))
-    frame = Frame(image, 0.0, REFERENCE, 0, GroundTruth(r.X_CT, X_WC))
-    behind = r.X_CT.p * (1.0 + 0.03 / np.linalg.norm(r.X_CT.p))
-    m = build(target, REFERENCE).estimate(frame, Pose(r.X_CT.R, behind))
+    frame = _lit_random_frame(name, 1.6, offset)
+    m = build(target, REFERENCE).estimate(frame, _prior_behind(frame.truth.X_CT, 0.03))
     assert m.valid, m.reason
     error = _errors(m, frame, target)
     assert math.degrees(error.normal_rad) < 1.0 and error.center_m < 0.005, error
@@ -241,18 +252,10 @@ def test_ellipses_track_a_faint_ring_not_its_deep_bore_close_up(seed):
     track (the open-loop path held it down to the stand-off, NEES ~10⁵). They are now
     verified as acquisition verifies them, and the ring is found."""
     name = "random:104"
-    mockup = load_mockup(name)
-    target = mockup.target_model()
+    target = load_mockup(name).target_model()
     offset = target_offset(0.01, -0.01, 0.0, math.radians(2.0), math.radians(-2.0), 0.5)
-    X_WC = camera_pose_for(0.8, offset)[0]
-    with MockupScene(mockup) as scene:
-        config = RenderConfig(supersample=4, lighting=named_lighting("random", seed_of(name)))
-        r = PybulletRenderer(scene, REFERENCE, config).render(X_WC)
-    noise = NoiseConfig(preset="low", auto_exposure=True)
-    image = expose(r.image, r.depth_m, REFERENCE.K, noise, frame_rng(seed, 0))
-    frame = Frame(image, 0.0, REFERENCE, 0, GroundTruth(r.X_CT, X_WC))
-    behind = r.X_CT.p * (1.0 + 0.025 / np.linalg.norm(r.X_CT.p))
-    m = build(target, REFERENCE).estimate(frame, Pose(r.X_CT.R, behind))
+    frame = _lit_random_frame(name, 0.8, offset, seed)
+    m = build(target, REFERENCE).estimate(frame, _prior_behind(frame.truth.X_CT, 0.025))
     assert m.valid, m.reason
     error = _errors(m, frame, target)
     assert error.center_m < 0.005 and math.degrees(error.normal_rad) < 1.0, error
@@ -267,16 +270,9 @@ def test_ellipses_acquire_a_faint_ring_not_the_ring_its_deep_bore_implies(distan
     9–10 cm off, and so did a track falling back to it. Judged with the bore's foot too
     (only the true ring explains it), the ring is right."""
     name = "random:104"
-    mockup = load_mockup(name)
-    target = mockup.target_model()
+    target = load_mockup(name).target_model()
     offset = target_offset(0.01, -0.01, 0.0, math.radians(2.0), math.radians(-2.0), 0.5)
-    X_WC = camera_pose_for(distance, offset)[0]
-    with MockupScene(mockup) as scene:
-        config = RenderConfig(supersample=4, lighting=named_lighting("random", seed_of(name)))
-        r = PybulletRenderer(scene, REFERENCE, config).render(X_WC)
-    noise = NoiseConfig(preset="low", auto_exposure=True)
-    image = expose(r.image, r.depth_m, REFERENCE.K, noise, frame_rng(0, 0))
-    frame = Frame(image, 0.0, REFERENCE, 0, GroundTruth(r.X_CT, X_WC))
+    frame = _lit_random_frame(name, distance, offset)
     m = build(target, REFERENCE).estimate(frame, None)
     assert m.valid, m.reason
     error = _errors(m, frame, target)
