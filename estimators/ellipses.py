@@ -368,7 +368,7 @@ class EllipseEstimator:
                 # No ring, or the ring and thruster that should be there did not verify, or the
                 # ring moved beyond the window: edges of something else may have been taken.
                 # The extraction around the prediction does not depend on the window.
-                extracted = self._track_by_extraction(image, predicted)
+                extracted = self._track_by_extraction(image, ring0, predicted)
                 if ring is None or (extracted is not None and extracted.cost < ring.cost):
                     ring = extracted
             if ring is None:
@@ -410,9 +410,11 @@ class EllipseEstimator:
             return best, False, False
         return self._by_prior(fit, mirror, prior)
 
-    def _track_by_extraction(self, image: _Image, predicted) -> _Fit | None:
+    def _track_by_extraction(self, image: _Image, ring0: CirclePose, predicted) -> _Fit | None:
         """Extract ellipses around the prediction and keep the best ring they verify, as
-        acquisition does (``_best_ring``); the prior then only chooses between its two poses.
+        acquisition does (``_best_ring``), if it lies within the box's margin of the predicted
+        ring (farther, it was found by a search of its own, not tracked); the prior then only
+        chooses between its two poses.
 
         Labeling the ellipses against the predicted edges instead took the nearest in size
         for the ring: a deep bore's rim and foot, when the ring's own faint edge was not
@@ -433,7 +435,10 @@ class EllipseEstimator:
             settings=self.settings.extractor,
             field=image.field(image.fine_sigma, box),
         )
-        return self._best_ring(image, extracted)
+        ring = self._best_ring(image, extracted)
+        if ring is None or self._ring_moved_px(ring0, ring.ring) > margin:
+            return None
+        return ring
 
     # --- acquisition ----------------------------------------------------------------------
     def _acquire(self, image: _Image, extracted: list[ExtractedEllipse]):
