@@ -1403,10 +1403,13 @@ class EllipseEstimator:
         and foot lost on the matrix: docs/any_mockup_heldout.md, "The ring's outer wall").
         The fit takes the rim; the edge may lie a fraction α ∈ [0, 1] of the band out. α is a
         consider parameter (``circle_fit.pose_shift``): the pose's shift for the whole band
-        times α's second moment about the rim, 1/3 for α uniform. A foot beyond the final
-        search's reach (window and smoothing) cannot have been found, and adds nothing.
-        (random:101 and 109 at 3 m, bore walls of 7–9 cm: the normal 2–5° off on every
-        frame of the approach path, each claiming under 0.5°.)"""
+        times α's second moment about the rim, taken at its bound, 1 — a wall as dark as the
+        ring puts the edge at the foot (random:101 at 3 m, rendered without noise: the edge
+        1.1 px out where the foot lies 1.0 px out; the normal 2.65° off claiming 0.65°, NEES
+        32 → 15 with this term). A foot beyond the final search's reach (window and
+        smoothing) cannot have been found, and adds nothing. The band is measured at the
+        fitted pose, which has already absorbed part of it (0.47 px there): the term holds
+        what is left, not all."""
         size = len(fit.result.covariance)
         outer_sets = [k for k, e in enumerate(fit.sets) if e.circle.name == self.outer.name]
         if self.outer_foot is None or not outer_sets:
@@ -1417,9 +1420,14 @@ class EllipseEstimator:
         for k, edge_set in enumerate(fit.sets):
             band = np.zeros(len(edge_set.uv))
             if k in outer_sets:
-                # (negative: the sample lies inside the foot's image, which there lies outside
-                # the rim's — the wall shows)
-                band = np.maximum(-self._signed_distances(self.outer_foot, X_CT, edge_set.uv), 0.0)
+                # How far out of the rim's image the foot's lies, along each sample's normal
+                # (the difference of the sample's signed distances to the two, wherever the
+                # sample itself lies between them; negative: the wall is hidden there).
+                uv = edge_set.uv
+                band = self._signed_distances(self.outer, X_CT, uv) - self._signed_distances(
+                    self.outer_foot, X_CT, uv
+                )
+                band = np.maximum(band, 0.0)
                 band[band > reach] = 0.0
             displacements.append(band)
         if not any(d.any() for d in displacements):
@@ -1440,7 +1448,7 @@ class EllipseEstimator:
                 )
         except (ValueError, np.linalg.LinAlgError):
             return np.zeros((size, size))
-        return np.outer(shift, shift) / 3.0
+        return np.outer(shift, shift)
 
     # --- the measurement ------------------------------------------------------------------
     def _measurement(
