@@ -1418,15 +1418,14 @@ class EllipseEstimator:
         fitted pose, which has already absorbed part of it (0.47 px there): the term holds
         what is left, not all."""
         size = len(fit.result.covariance)
-        outer_sets = [k for k, e in enumerate(fit.sets) if e.circle.name == self.outer.name]
-        if self.outer_foot is None or not outer_sets:
+        if self.outer_foot is None:
             return np.zeros((size, size))
         X_CT = fit.X_CT if fit.X_CT is not None else pose_with_roll(fit.ring, self.outer, 0.0)
         reach = self.settings.fine_half_width_px + 1.0 + fit.sigma_px
         displacements = []
-        for k, edge_set in enumerate(fit.sets):
+        for edge_set in fit.sets:
             band = np.zeros(len(edge_set.uv))
-            if k in outer_sets:
+            if edge_set.circle.name == self.outer.name:
                 # How far out of the rim's image the foot's lies, along each sample's normal
                 # (the difference of the sample's signed distances to the two, wherever the
                 # sample itself lies between them; negative: the wall is hidden there).
@@ -1439,20 +1438,17 @@ class EllipseEstimator:
             displacements.append(band)
         if not any(d.any() for d in displacements):
             return np.zeros((size, size))
-        try:
-            if fit.X_CT is not None:
-                shift = pose_shift(
-                    fit.sets, fit.result, fit.X_CT, self.camera.K, displacements, points=fit.holes
-                )
-            else:
-                shift = pose_shift(
-                    fit.sets,
-                    fit.result,
-                    fit.ring,
-                    self.camera.K,
-                    displacements,
-                    reference=self.outer,
-                )
+        pose = fit.X_CT if fit.X_CT is not None else fit.ring
+        try:  # (only a 6-DOF fit holds points; the reference serves a 5-DOF one)
+            shift = pose_shift(
+                fit.sets,
+                fit.result,
+                pose,
+                self.camera.K,
+                displacements,
+                reference=self.outer,
+                points=fit.holes,
+            )
         except (ValueError, np.linalg.LinAlgError):
             return np.zeros((size, size))
         return np.outer(shift, shift)
