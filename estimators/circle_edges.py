@@ -18,7 +18,8 @@ from estimators.edge_search import EdgeHits, search_edges
 from estimators.frame import CameraInfo
 from estimators.geometry import field_radius
 from estimators.imaging import GradientField
-from estimators.lens_distortion import project_point
+from estimators.lens_distortion import pixel_in_view, project_point
+from estimators.lens_distortion import visible_pixels as _lens_visible_pixels
 from estimators.planar_pose import ideal_pixels
 
 _MAX_SAMPLES = 2400
@@ -42,56 +43,31 @@ class CurveSamples:
 def visible_pixels(
     points_C: np.ndarray, camera: CameraInfo, margin_px: float, field_radius: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(mask, pixels) of points (N,3) in C that the camera images at least ``margin_px``
-    inside its borders; pixels are NaN where not in front or beyond the field. Same test as
-    ``geometry.in_view``, with the field radius (which rejects distortion fold-back) computed
-    once by the caller."""
-    return _visible_pixels(
+    """(mask, pixels) of points (N,3) in C more than 1 mm in front of the camera that it images
+    at least ``margin_px`` inside its borders; pixels are NaN where not in front or beyond the
+    field. ``geometry.in_view``'s test, with the field radius (which rejects distortion
+    fold-back) computed once by the caller."""
+    return _lens_visible_pixels(
         np.ascontiguousarray(points_C, dtype=float).reshape(-1, 3),
         np.array(camera.K, dtype=float),
         *camera.lens,
-        float(margin_px),
-        (1.02 * float(field_radius)) ** 2,
-        camera.width,
-        camera.height,
+        *_view_bounds(camera, margin_px, field_radius),
     )
 
 
-@compiled_inline
-def _pixel_in_view(X, Y, Z, K, d, M, tilted, distorted, margin_px, limit, width, height):
-    """(in view, u, v) of one point in C: in front (z > 1 mm), within the field (normalised
-    radius² ≤ ``limit``) and imaged ``margin_px`` inside the borders; u, v NaN unless in front
-    and within the field."""
-    if not Z > 1e-3:
-        return False, np.nan, np.nan
-    x, y = X / Z, Y / Z
-    if not x * x + y * y <= limit:
-        return False, np.nan, np.nan
-    u, v = project_point(X, Y, Z, K, d, M, tilted, distorted)
-    inside = margin_px - 0.5 <= u <= width - 0.5 - margin_px
-    return inside and margin_px - 0.5 <= v <= height - 0.5 - margin_px, u, v
-
-
-@compiled
-def _visible_pixels(points_C, K, d, M, tilted, distorted, margin_px, limit, width, height):
-    mask = np.zeros(len(points_C), np.bool_)
-    uv = np.empty((len(points_C), 2))
-    for i in range(len(points_C)):
-        mask[i], uv[i, 0], uv[i, 1] = _pixel_in_view(
-            points_C[i, 0],
-            points_C[i, 1],
-            points_C[i, 2],
-            K,
-            d,
-            M,
-            tilted,
-            distorted,
-            margin_px,
-            limit,
-            width,
-            height,
-        )
-    return mask, uv
+def _view_bounds(
+    camera: CameraInfo, margin_px: float, field_radius: float
+) -> tuple[float, float, float, float, float, float]:
+    """``lens_distortion.pixel_in_view``'s bounds for a circle's samples: more than 1 mm in
+    front, within 1.02 × the field radius, ``margin_px`` inside the pixels' outer edges."""
+    return (
+        1e-3,
+        1.02 * float(field_radius),
+        float(margin_px) - 0.5,
+        camera.width - 0.5 - float(margin_px),
+        float(margin_px) - 0.5,
+        camera.height - 0.5 - float(margin_px),
+    )
 
 
 def camera_field_radius(camera: CameraInfo) -> float:
@@ -127,10 +103,7 @@ def sample_projected_circle(
         np.array(camera.K, dtype=float),
         *camera.lens,
         float(spacing_px),
-        float(margin_px),
-        float(field_radius_xy),
-        camera.width,
-        camera.height,
+        _view_bounds(camera, margin_px, field_radius_xy),
         int(max_samples),
     )
     if not found:
@@ -150,10 +123,7 @@ def _sample_circle(
     tilted,
     distorted,
     spacing_px,
-    margin_px,
-    field_radius,
-    width,
-    height,
+    bounds,
     max_samples,
 ):
     """``sample_projected_circle``'s work, compiled (the ellipse system samples a dozen circles
@@ -167,10 +137,10 @@ def _sample_circle(
     perimeter = 0.0
     first_u = first_v = last_u = last_v = 0.0
     for i in range(32):
-        P = _circle_point(center, u, v, radius, i * (2.0 * np.pi / 32))
-        if P[2] < 0.02 or center[2] <= 0:
+        x, y, z = _circle_point(center, u, v, radius, i * (2.0 * np.pi / 32))
+        if z < 0.02 or center[2] <= 0:
             return False, empty, empty, np.zeros(0), np.zeros(2), 0.0, 0
-        pu, pv = P[0] / P[2] * K[0, 0], P[1] / P[2] * K[1, 1]
+        pu, pv = x / z * K[0, 0], y / z * K[1, 1]
         if i == 0:
             first_u, first_v = pu, pv
         else:
@@ -182,25 +152,28 @@ def _sample_circle(
     step = 2.0 * np.pi / count
     uv, normals, t_kept = np.empty((count, 2)), np.empty((count, 2)), np.empty(count)
     kept = 0
-    limit = (1.02 * field_radius) ** 2
-    seen = np.empty(3, np.bool_)
-    pixel = np.empty((3, 2))
     for i in range(count):
         t = i * step
-        for k, angle in enumerate((t, t + 1e-4, t - 1e-4)):
-            P = _circle_point(center, u, v, radius, angle)
-            seen[k], pixel[k, 0], pixel[k, 1] = _pixel_in_view(
-                P[0], P[1], P[2], K, d, M, tilted, distorted, margin_px, limit, width, height
-            )
-        if not (seen[0] and seen[1] and seen[2]):
+        seen, pu, pv = _circle_pixel(center, u, v, radius, t, K, d, M, tilted, distorted, bounds)
+        if not seen:
             continue
-        tu, tv = pixel[1, 0] - pixel[2, 0], pixel[1, 1] - pixel[2, 1]
+        ahead, au, av = _circle_pixel(
+            center, u, v, radius, t + 1e-4, K, d, M, tilted, distorted, bounds
+        )
+        if not ahead:
+            continue
+        behind, bu, bv = _circle_pixel(
+            center, u, v, radius, t - 1e-4, K, d, M, tilted, distorted, bounds
+        )
+        if not behind:
+            continue
+        tu, tv = au - bu, av - bv
         nu, nv = tv, -tu
         norm = max(math.sqrt(nu * nu + nv * nv), 1e-12)
         nu, nv = nu / norm, nv / norm
-        if nu * (pixel[0, 0] - cu) + nv * (pixel[0, 1] - cv) < 0:
+        if nu * (pu - cu) + nv * (pv - cv) < 0:
             nu, nv = -nu, -nv
-        uv[kept, 0], uv[kept, 1] = pixel[0, 0], pixel[0, 1]
+        uv[kept, 0], uv[kept, 1] = pu, pv
         normals[kept, 0], normals[kept, 1] = nu, nv
         t_kept[kept] = t
         kept += 1
@@ -220,8 +193,26 @@ def _sample_circle(
 
 @compiled_inline
 def _circle_point(center, u, v, radius, angle):
-    """The circle's point at ``angle`` in its plane's basis (u, v) (``conics.circle_points``)."""
-    return center + radius * (math.cos(angle) * u) + radius * (math.sin(angle) * v)
+    """The circle's point (x, y, z) at ``angle`` in its plane's basis (u, v)
+    (``conics.circle_points``); three scalars, not an array: this runs thrice per sample."""
+    c, s = math.cos(angle), math.sin(angle)
+    return (
+        center[0] + radius * (c * u[0]) + radius * (s * v[0]),
+        center[1] + radius * (c * u[1]) + radius * (s * v[1]),
+        center[2] + radius * (c * u[2]) + radius * (s * v[2]),
+    )
+
+
+@compiled_inline
+def _circle_pixel(center, u, v, radius, angle, K, d, M, tilted, distorted, bounds):
+    """Whether the circle's point at ``angle`` is seen within ``bounds`` (``_view_bounds``),
+    and its pixel."""
+    x, y, z = _circle_point(center, u, v, radius, angle)
+    min_depth, field_limit, u_min, u_max, v_min, v_max = bounds
+    _, seen, pu, pv = pixel_in_view(
+        x, y, z, K, d, M, tilted, distorted, min_depth, field_limit, u_min, u_max, v_min, v_max
+    )
+    return seen, pu, pv
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -29,7 +29,7 @@ from estimators.conics import (
 from estimators.edge_search import search_edges
 from estimators.ellipse_extraction import ExtractedEllipse
 from estimators.frame import CameraInfo
-from estimators.geometry import Pose
+from estimators.geometry import Pose, any_perpendicular, cross3, rotation_between
 from estimators.imaging import GradientField
 from estimators.target import Circle3D
 
@@ -186,11 +186,11 @@ def pose_with_roll(ring: CirclePose, reference: Circle3D, roll: float) -> Pose:
     helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = helper - (helper @ n) * n
     x /= np.linalg.norm(x)
-    R_CA = np.column_stack([x, np.cross(n, x), n])  # axis frame A: z along the normal
+    R_CA = np.column_stack([x, cross3(n, x), n])  # axis frame A: z along the normal
     c, s = np.cos(roll), np.sin(roll)
     R_AA = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     # Frame T: its reference normal maps to A's z.
-    R_TA = _rotation_between(np.array([0.0, 0.0, 1.0]), reference.normal_T)
+    R_TA = rotation_between(np.array([0.0, 0.0, 1.0]), reference.normal_T)
     R_CT = R_CA @ R_AA @ R_TA.T
     return Pose(R_CT, ring.center_C - R_CT @ reference.center_T)
 
@@ -201,31 +201,10 @@ def roll_of(X_CT: Pose, ring: CirclePose, reference: Circle3D) -> float:
     zero = pose_with_roll(ring, reference, 0.0)
     # Rotation about the normal taking zero's T-x axis onto X_CT's (projected on the plane).
     n = ring.normal_C
-    a = zero.R @ _any_perpendicular(reference.normal_T)
-    b = X_CT.R @ _any_perpendicular(reference.normal_T)
+    a = zero.R @ any_perpendicular(reference.normal_T)
+    b = X_CT.R @ any_perpendicular(reference.normal_T)
     b = b - (b @ n) * n
-    return float(np.arctan2(np.cross(a, b) @ n, a @ b))
-
-
-def _any_perpendicular(v: np.ndarray) -> np.ndarray:
-    helper = np.array([1.0, 0.0, 0.0]) if abs(v[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    p = helper - (helper @ v) * v
-    return p / np.linalg.norm(p)
-
-
-def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation taking unit vector a onto unit vector b."""
-    a = a / np.linalg.norm(a)
-    b = b / np.linalg.norm(b)
-    v = np.cross(a, b)
-    c = float(a @ b)
-    if np.linalg.norm(v) < 1e-12:
-        if c > 0:
-            return np.eye(3)
-        p = _any_perpendicular(a)
-        return 2.0 * np.outer(p, p) - np.eye(3)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+    return float(np.arctan2(cross3(a, b) @ n, a @ b))
 
 
 @dataclass(frozen=True, slots=True)

@@ -72,7 +72,7 @@ from estimators.ellipse_detection import (
 )
 from estimators.ellipse_extraction import ExtractedEllipse, ExtractorSettings, extract_ellipses
 from estimators.frame import CameraInfo, Frame
-from estimators.geometry import Pose, normal_angle, skew
+from estimators.geometry import Pose, normal_angle, rotation_between
 from estimators.imaging import GradientField, ImageStack, image_stack
 from estimators.measurement import Measurement, circle_covariance_from_pose
 from estimators.model_view import head_extrusion, local_affine
@@ -1375,7 +1375,7 @@ class EllipseEstimator:
         center = fit.ring.center_C
         head_on = -center / np.linalg.norm(center)
         tilt = normal_angle(fit.ring.normal_C, head_on)
-        turn = _rotation_between(fit.ring.normal_C, head_on)
+        turn = rotation_between(fit.ring.normal_C, head_on)
         try:
             if fit.X_CT is not None:
                 R = turn @ fit.X_CT.R
@@ -1589,16 +1589,6 @@ def _normal_sigma(covariance5: np.ndarray, *, weak: bool = False) -> float:
     if weak:
         return float(np.sqrt(max(np.linalg.eigvalsh(block)[-1], 0.0)))
     return float(np.sqrt(max(np.trace(block), 0.0)))
-
-
-def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The smallest rotation taking unit vector a onto unit vector b."""
-    v = np.cross(a, b)
-    c = float(a @ b)
-    if np.linalg.norm(v) < 1e-12:
-        return np.eye(3)  # (b = −a does not occur here: both face the camera)
-    vx = skew(v)
-    return np.eye(3) + vx + vx @ vx / (1.0 + c)
 
 
 def _correlation_inflation(sigma_px: float, spacing_px: float) -> float:

@@ -173,6 +173,39 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a × b of two 3-vectors — ``np.cross``'s own arithmetic without its overhead, which on a
+    single pair is ten times the product's (the ellipse system's pose algebra makes hundreds a
+    frame)."""
+    a0, a1, a2 = a
+    b0, b1, b2 = b
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
+def any_perpendicular(v: np.ndarray) -> np.ndarray:
+    """A unit vector perpendicular to the unit vector ``v`` (from x, or y when ``v`` is
+    near x)."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(v[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    p = helper - (helper @ v) * v
+    return p / np.linalg.norm(p)
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking the direction of ``a`` onto that of ``b`` (a half turn
+    about a perpendicular when they are opposite)."""
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    v = cross3(a, b)
+    c = float(a @ b)
+    if np.linalg.norm(v) < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        p = any_perpendicular(a)
+        return 2.0 * np.outer(p, p) - np.eye(3)
+    vx = skew(v)
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
 def look_at(p_AC: np.ndarray, p_A_target: np.ndarray, up_A: np.ndarray) -> Pose:
     """Pose ``X_AC`` of an optical camera frame at ``p_AC`` whose z axis points at a target.
 
@@ -350,20 +383,18 @@ def in_view(
     margin_px: float = 0.0,
 ) -> np.ndarray:
     """Boolean mask (N,) of points (N,3) in C that a camera images at least ``margin_px``
-    inside its borders: in front of it, within its field (no fold-back), inside the image."""
-    points = as_points(points_C, 3, "points_C")
-    mask = points[:, 2] > 1e-9
-    if not np.any(mask):
-        return mask
-    xy = points[mask, :2] / points[mask, 2:3]
-    inside = np.linalg.norm(xy, axis=1) <= field_radius(K, dist, width, height) * 1.02
-    uv = np.full((len(xy), 2), -1.0)
-    if np.any(inside):
-        uv[inside] = project(points[mask][inside], K, dist)
-    inside &= (uv[:, 0] >= margin_px - 0.5) & (uv[:, 0] <= width - 0.5 - margin_px)
-    inside &= (uv[:, 1] >= margin_px - 0.5) & (uv[:, 1] <= height - 0.5 - margin_px)
-    mask[np.flatnonzero(mask)] = inside
-    return mask
+    inside its borders (the pixels' outer edges): in front of it, within its field (no
+    fold-back), inside the image."""
+    from estimators.lens_distortion import visible_pixels
+
+    points = np.ascontiguousarray(as_points(points_C, 3, "points_C"))
+    dist = np.zeros(0) if dist is None else np.asarray(dist, dtype=float)
+    seen, _ = visible_pixels(
+        points, np.asarray(K, dtype=float), *lens_terms(dist), dist.size > 0,
+        1e-9, 1.02 * field_radius(K, dist, width, height),
+        margin_px - 0.5, width - 0.5 - margin_px, margin_px - 0.5, height - 0.5 - margin_px,
+    )  # fmt: skip
+    return seen
 
 
 def back_project(uv: np.ndarray, K: np.ndarray, dist: np.ndarray | None = None) -> np.ndarray:
@@ -414,4 +445,4 @@ def normal_angle(n_true: np.ndarray, n_est: np.ndarray) -> float:
     b = np.asarray(n_est, dtype=float)
     a = a / np.linalg.norm(a)
     b = b / np.linalg.norm(b)
-    return float(np.arctan2(np.linalg.norm(np.cross(a, b)), np.dot(a, b)))
+    return float(np.arctan2(np.linalg.norm(cross3(a, b)), np.dot(a, b)))

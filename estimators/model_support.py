@@ -24,17 +24,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.compiled import compiled, compiled_inline
+from estimators.compiled import compiled
 from estimators.frame import CameraInfo
 from estimators.geometry import Pose, field_radius
 from estimators.imaging import NOISE_FLOOR, GradientImage
-from estimators.lens_distortion import project_point
+from estimators.lens_distortion import pixel_in_view, visible_pixels
 from estimators.small_linalg import rigid_transform
 from estimators.target import TargetModel
 
 _SAMPLES_PER_EDGE = 24
 _SAMPLES_PER_CIRCLE = 96
 _MIN_SAMPLES = 8
+#: A model point is in front of the camera beyond this depth (m).
+_MIN_DEPTH_M = 1e-6
 #: Standard deviation of |X| for X ~ N(0, 1).
 HALF_NORMAL_SPREAD = math.sqrt(1.0 - 2.0 / math.pi)
 
@@ -181,15 +183,17 @@ class ModelSupport:
         """Pixels (N,2) and an in-view mask (N,) of model points (N,3) in the camera frame
         (``_support_pixel``'s test); pixels NaN where not in view."""
         camera = self.camera
-        return _support_pixels(
+        margin = float(margin_px)
+        seen, uv = visible_pixels(
             np.ascontiguousarray(points_C, dtype=float).reshape(-1, 3),
             np.array(camera.K, dtype=float),
             *camera.lens,
-            float(margin_px),
+            _MIN_DEPTH_M,
             1.02 * self._field_radius,
-            camera.width,
-            camera.height,
-        )
+            margin, camera.width - 1 - margin, margin, camera.height - 1 - margin,
+        )  # fmt: skip
+        uv[~seen] = np.nan
+        return uv, seen
 
     def symmetric_under(self, turn: Pose, tolerance_m: float = 1e-3) -> tuple[set[str], bool]:
         """Which contours map onto the model's own contours under ``turn`` (X_TT'), and whether
@@ -444,9 +448,10 @@ def _contour_samples(
             if not foot_seen[j, i]:
                 continue
             X, Y, Z = rigid_transform(R, p, points_T[i, 0], points_T[i, 1], points_T[i, 2])
-            ok, u, v = _support_pixel(
-                X, Y, Z, K, d, M, tilted, distorted, margin_px, field_limit, width, height
-            )
+            _, ok, u, v = pixel_in_view(
+                X, Y, Z, K, d, M, tilted, distorted, _MIN_DEPTH_M, field_limit,
+                margin_px, width - 1 - margin_px, margin_px, height - 1 - margin_px,
+            )  # fmt: skip
             if not ok:
                 continue
             step = 0.002 * max(abs(Z), 1e-3)
@@ -457,9 +462,10 @@ def _contour_samples(
                 points_T[i, 1] + step * across_T[i, 1],
                 points_T[i, 2] + step * across_T[i, 2],
             )
-            ok, au, av = _support_pixel(
-                X, Y, Z, K, d, M, tilted, distorted, 0.0, field_limit, width, height
-            )
+            _, ok, au, av = pixel_in_view(
+                X, Y, Z, K, d, M, tilted, distorted, _MIN_DEPTH_M, field_limit,
+                0.0, width - 1.0, 0.0, height - 1.0,
+            )  # fmt: skip
             nu, nv = au - u, av - v
             norm = math.sqrt(nu * nu + nv * nv)
             if not ok or not norm > 1e-9:
@@ -474,45 +480,6 @@ def _contour_samples(
             last_group, last_u, last_v = g, u, v
             seen += 1
     return uv[:seen].copy(), normal[:seen].copy(), group[:seen].copy(), counts, length
-
-
-@compiled_inline
-def _support_pixel(X, Y, Z, K, d, M, tilted, distorted, margin_px, field_limit, width, height):
-    """(seen, u, v) of a model point (X, Y, Z) in C for the support: in front, within the field
-    and imaged ``margin_px`` inside the image (pixel centres 0 … width − 1)."""
-    if not Z > 1e-6:
-        return False, 0.0, 0.0
-    x, y = X / Z, Y / Z
-    if not math.sqrt(x * x + y * y) <= field_limit:
-        return False, 0.0, 0.0
-    u, v = project_point(X, Y, Z, K, d, M, tilted, distorted)
-    inside = margin_px <= u <= width - 1 - margin_px and margin_px <= v <= height - 1 - margin_px
-    return inside, u, v
-
-
-@compiled
-def _support_pixels(points_C, K, d, M, tilted, distorted, margin_px, field_limit, width, height):
-    """``_support_pixel`` over points (N,3): pixels (N,2, NaN where not seen) and the mask."""
-    uv = np.full((len(points_C), 2), np.nan)
-    seen = np.zeros(len(points_C), np.bool_)
-    for i in range(len(points_C)):
-        ok, u, v = _support_pixel(
-            points_C[i, 0],
-            points_C[i, 1],
-            points_C[i, 2],
-            K,
-            d,
-            M,
-            tilted,
-            distorted,
-            margin_px,
-            field_limit,
-            width,
-            height,
-        )
-        if ok:
-            seen[i], uv[i, 0], uv[i, 1] = True, u, v
-    return uv, seen
 
 
 @compiled

@@ -22,7 +22,7 @@ from estimators.frame import CameraInfo
 from estimators.geometry import Pose, distort_normalized, project, undistort_pixels
 from estimators.imaging import smoothed_gradient
 from estimators.least_squares import Huber, median, robust_sigma
-from estimators.model_support import _contour_samples, _group_sums, _support_pixels
+from estimators.model_support import _contour_samples, _group_sums
 from estimators.model_view import outside_circles
 from estimators.panel_edges import strips_along_edge
 from estimators.planar_pose import (
@@ -122,9 +122,6 @@ def compile_kernels() -> None:
             1.0,
             64,
             64,
-        )
-        _support_pixels(
-            np.array([[0.0, 0.0, 1.0]]), np.array(camera.K), *camera.lens, 4.0, 1.0, 64, 64
         )
     ends = np.array([[[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]], [[0.0, 0.0, 0.0], [0.0, 0.1, 0.0]]])
     lines = EdgeObservations(ends, np.array([0, 0, 1, 1]), np.ones((4, 2)), np.ones(4))

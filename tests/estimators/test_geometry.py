@@ -9,13 +9,17 @@ from estimators.geometry import (
     Pose,
     back_project,
     check_distortion,
+    cross3,
     distort_normalized,
+    field_radius,
+    in_view,
     intrinsics_from_fov,
     look_at,
     normal_angle,
     padded_distortion,
     project,
     project_from,
+    rotation_between,
     rotation_error_geodesic,
     rotation_error_rpy_norm,
     translation_error,
@@ -236,3 +240,52 @@ def test_distortion_where_the_rational_denominator_vanishes_is_not_finite_and_do
     out = distort_normalized(np.array([[1.0, 0.0], [0.1, 0.2]]), dist)
     assert not np.all(np.isfinite(out[0]))
     assert np.allclose(out[1], np.array([0.1, 0.2]) / (1.0 - 0.05))
+
+
+def test_cross3_is_nps_cross_to_the_last_bit():
+    rng = np.random.default_rng(11)
+    for a, b in rng.normal(size=(200, 2, 3)) * 10.0 ** rng.integers(-6, 6, size=(200, 1, 1)):
+        assert np.array_equal(cross3(a, b), np.cross(a, b))
+
+
+@pytest.mark.parametrize(
+    "a, b",
+    [
+        ([0.0, 0.0, 1.0], [0.3, -0.2, 0.9]),
+        ([1.0, 2.0, 3.0], [-2.0, 0.5, 0.1]),
+        ([0.0, 0.0, 1.0], [0.0, 0.0, 1.0]),  # the same direction: no turn
+        ([0.0, 0.0, 1.0], [0.0, 0.0, -2.0]),  # opposite: a half turn
+        ([1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]),
+    ],
+)
+def test_rotation_between_turns_one_direction_onto_the_other_by_the_smallest_angle(a, b):
+    a, b = np.asarray(a), np.asarray(b)
+    R = rotation_between(a, b)
+    unit_a, unit_b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.linalg.det(R) > 0
+    assert np.allclose(R @ unit_a, unit_b, atol=1e-12)
+    angle = Rotation.from_matrix(R).magnitude()
+    assert angle == pytest.approx(np.arccos(np.clip(unit_a @ unit_b, -1, 1)), abs=1e-9)
+
+
+@pytest.mark.parametrize("dist", [None, DIST_RATIONAL, DIST_TILTED])
+@pytest.mark.parametrize("margin_px", [0.0, 3.0, -20.0])
+def test_in_view_is_in_front_within_the_field_and_inside_the_pixels_outer_edges(dist, margin_px):
+    """The test written out in NumPy, point by point, against the compiled one."""
+    rng = np.random.default_rng(5)
+    points = np.column_stack(
+        [rng.uniform(-3, 3, 4000), rng.uniform(-2, 2, 4000), rng.uniform(-0.5, 3, 4000)]
+    )
+    K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])
+    width, height = 640, 480
+    limit = 1.02 * field_radius(K, dist, width, height)
+    expected = np.zeros(len(points), bool)
+    for i, (x, y, z) in enumerate(points):
+        if z > 1e-9 and np.hypot(x / z, y / z) <= limit:
+            u, v = project(np.array([[x, y, z]]), K, dist)[0]
+            expected[i] = (margin_px - 0.5 <= u <= width - 0.5 - margin_px) and (
+                margin_px - 0.5 <= v <= height - 0.5 - margin_px
+            )
+    got = in_view(points, K, dist, width, height, margin_px=margin_px)
+    assert 100 < expected.sum() < len(points) - 100
+    assert np.array_equal(got, expected)

@@ -18,7 +18,6 @@ from estimators.warmup import compile_kernels
 #: The compiled functions NumPy code calls (the others are compiled into these).
 ENTRY_POINTS = [
     circle_edges._sample_circle,
-    circle_edges._visible_pixels,
     circle_fit._sampson_distances,
     clipped_noise._terms_array,
     corners._extrema_near,
@@ -27,9 +26,9 @@ ENTRY_POINTS = [
     lens_distortion.distort,
     lens_distortion.refine_undistorted,
     lens_distortion.project_distorted,
+    lens_distortion.visible_pixels,
     model_support._contour_samples,
     model_support._group_sums,
-    model_support._support_pixels,
     model_view._outside_circles,
     panel_edges._strip_places,
     edge_fit._coarse_steps,
