@@ -3,7 +3,7 @@ import pytest
 
 from configuration.camera import load_camera
 from estimators.frame import Frame
-from estimators.imaging import ImageStack, estimate_noise_sigma, image_stack
+from estimators.imaging import ImageStack, estimate_noise_sigma, image_stack, percentile
 
 CAMERA = load_camera("reference").camera_info()
 
@@ -85,3 +85,15 @@ def test_image_stack_rejects_a_tiny_image_of_a_tiny_camera():
     tiny = load_camera("reference").model_copy(update={"width": 16, "height": 16}).camera_info()
     result = image_stack(Frame(np.zeros((16, 16), np.uint8), 0.0, tiny, 0))
     assert isinstance(result, str) and "too small" in result
+
+
+def test_percentile_is_numpys_to_the_last_bit():
+    rng = np.random.default_rng(7)
+    for trial in range(400):
+        dtype = (np.float32, np.float64)[trial % 2]
+        values = (rng.normal(size=int(rng.integers(1, 2000))) * rng.uniform(1e-3, 10)).astype(dtype)
+        if trial % 3 == 0:  # ties
+            values = np.round(values, 1).astype(dtype)
+        for q in (0.0, 1.0, 50.0, 90.0, 99.0, 100.0):
+            expected, got = np.percentile(values, q), percentile(values, q)
+            assert got == expected and np.asarray(got).dtype == np.asarray(expected).dtype
