@@ -183,9 +183,7 @@ def pose_with_roll(ring: CirclePose, reference: Circle3D, roll: float) -> Pose:
     """``X_CT`` placing ``reference`` at the ring pose, turned by ``roll`` (rad) about its axis
     from a fixed zero (the roll at which T's x axis is as close as possible to C's x axis)."""
     n = ring.normal_C
-    helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = helper - (helper @ n) * n
-    x /= np.linalg.norm(x)
+    x = any_perpendicular(n)
     R_CA = np.column_stack([x, cross3(n, x), n])  # axis frame A: z along the normal
     c, s = np.cos(roll), np.sin(roll)
     R_AA = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
