@@ -13,6 +13,7 @@ from __future__ import annotations
 import functools
 import math
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -301,7 +302,7 @@ def _prepare(frame: Frame) -> ImageStack | str:
             pixels = cv2.cvtColor(pixels, cv2.COLOR_BGR2GRAY)
         pixels = np.clip(pixels, 0.0, 1.0)
     local_mean = cv2.blur(pixels, (5, 5))
-    low, high = np.percentile(local_mean[::4, ::4], [1.0, 99.0])
+    low, high = percentile(local_mean[::4, ::4], [1.0, 99.0])
     if high - low < MIN_INTENSITY_SPREAD:
         level = "black" if high < 0.1 else "saturated" if low > 0.9 else "uniform"
         return f"image has no contrast ({level}: 1–99 % intensities {low:.2f}–{high:.2f})"
@@ -377,23 +378,33 @@ def noise_levels(pixels: np.ndarray, local_mean: np.ndarray | None = None) -> tu
     return float(measured), float(sigma)
 
 
-def percentile(values: np.ndarray, q: float) -> np.floating:
-    """``np.percentile(values, q)`` for one ``q`` (linear interpolation, result in the values'
-    dtype), equal to the last bit, from one introselect: NumPy's partitions at its two
-    neighbouring indices and at the end at once, ten times slower on a frame's 30 000 noise
-    responses. ``values``: finite, not empty."""
+def percentile(values: np.ndarray, q: float | Sequence[float]) -> np.floating | np.ndarray:
+    """``np.percentile(values, q)`` equal to the last bit (linear interpolation), from one
+    introselect per ``q``: NumPy partitions at every neighbouring index and at the end at once,
+    ten times slower on a frame's 30 000 noise responses. For one ``q`` the result is in the
+    values' dtype, for a sequence a float64 array — as NumPy gives them. ``values``: finite,
+    not empty."""
     flat = np.ravel(values)
+    if np.ndim(q) == 0:
+        return _interpolated(flat, float(q), wide=False)
+    return np.array([_interpolated(flat, float(p), wide=True) for p in q])
+
+
+def _interpolated(flat: np.ndarray, q: float, *, wide: bool) -> np.floating:
+    """The ``q`` th percentile of ``flat`` between its two neighbouring order statistics, with
+    NumPy's lerp (from the nearer end, so that t = 1 gives the upper value exactly); ``wide``:
+    in float64 after the difference is taken in the values' dtype (NumPy's for a sequence of
+    q)."""
     n = flat.size
     index = (n - 1) * (q / 100.0)
     k = min(math.floor(index), n - 1)
     ordered = np.partition(flat, k)
     low = ordered[k]
-    if k + 1 >= n:
-        return low
-    high = ordered[k + 1 :].min()
+    high = ordered[k + 1 :].min() if k + 1 < n else low
     t = index - k
     diff = high - low
-    # (NumPy's lerp: from the nearer end, so that t = 1 gives the upper value exactly)
+    if wide:
+        low, high, diff = np.float64(low), np.float64(high), np.float64(diff)
     return high - diff * (1 - t) if t >= 0.5 else low + diff * t
 
 

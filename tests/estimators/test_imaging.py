@@ -97,3 +97,8 @@ def test_percentile_is_numpys_to_the_last_bit():
         for q in (0.0, 1.0, 50.0, 90.0, 99.0, 100.0):
             expected, got = np.percentile(values, q), percentile(values, q)
             assert got == expected and np.asarray(got).dtype == np.asarray(expected).dtype
+        expected, got = np.percentile(values, [1.0, 99.0]), percentile(values, [1.0, 99.0])
+        assert np.array_equal(got, expected) and got.dtype == expected.dtype
+        two_d = values[: len(values) // 4 * 4].reshape(4, -1)
+        if two_d.size:
+            assert np.array_equal(percentile(two_d, [1.0, 99.0]), np.percentile(two_d, [1.0, 99.0]))
