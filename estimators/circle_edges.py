@@ -209,10 +209,9 @@ def _circle_pixel(center, u, v, radius, angle, K, d, M, tilted, distorted, bound
     and its pixel."""
     x, y, z = _circle_point(center, u, v, radius, angle)
     min_depth, field_limit, u_min, u_max, v_min, v_max = bounds
-    _, seen, pu, pv = pixel_in_view(
+    return pixel_in_view(
         x, y, z, K, d, M, tilted, distorted, min_depth, field_limit, u_min, u_max, v_min, v_max
     )
-    return seen, pu, pv
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -99,17 +99,17 @@ def refine_undistorted(xy, xy_d, d, M, tilted, steps):
 def pixel_in_view(
     X, Y, Z, K, d, M, tilted, distorted, min_depth, field_limit, u_min, u_max, v_min, v_max
 ):
-    """(projected, seen, u, v) of one point in C: ``projected`` when it is in front
-    (z > ``min_depth``) and within the field (normalised radius ≤ ``field_limit``, which rejects
-    a lens's fold-back beyond its calibrated field); ``seen`` when it is also imaged within
-    [``u_min``, ``u_max``] × [``v_min``, ``v_max``]; u, v NaN unless projected."""
+    """(seen, u, v) of one point in C: seen when it is in front (z > ``min_depth``), within
+    the field (normalised radius ≤ ``field_limit``, which rejects a lens's fold-back beyond its
+    calibrated field) and imaged within [``u_min``, ``u_max``] × [``v_min``, ``v_max``]; u, v
+    its pixel, NaN unless in front and within the field."""
     if not min_depth < Z:
-        return False, False, np.nan, np.nan
+        return False, np.nan, np.nan
     x, y = X / Z, Y / Z
     if not math.sqrt(x * x + y * y) <= field_limit:
-        return False, False, np.nan, np.nan
+        return False, np.nan, np.nan
     u, v = project_point(X, Y, Z, K, d, M, tilted, distorted)
-    return True, u_min <= u <= u_max and v_min <= v <= v_max, u, v
+    return u_min <= u <= u_max and v_min <= v <= v_max, u, v
 
 
 @compiled
@@ -117,12 +117,12 @@ def visible_pixels(
     points_C, K, d, M, tilted, distorted, min_depth, field_limit, u_min, u_max, v_min, v_max
 ):
     """``pixel_in_view`` over points (N,3): whether each is seen (N,) and its pixel (N,2, NaN
-    unless projected) — the one visibility test of every system (``geometry.in_view``, the
+    where not in front or beyond the field) — the one visibility test of every system (``geometry.in_view``, the
     circle samples', the model support's), each with its own depth and border conventions."""
     seen = np.zeros(len(points_C), np.bool_)
     uv = np.empty((len(points_C), 2))
     for i in range(len(points_C)):
-        _, seen[i], uv[i, 0], uv[i, 1] = pixel_in_view(
+        seen[i], uv[i, 0], uv[i, 1] = pixel_in_view(
             points_C[i, 0], points_C[i, 1], points_C[i, 2], K, d, M, tilted, distorted,
             min_depth, field_limit, u_min, u_max, v_min, v_max,
         )  # fmt: skip

@@ -448,7 +448,7 @@ def _contour_samples(
             if not foot_seen[j, i]:
                 continue
             X, Y, Z = rigid_transform(R, p, points_T[i, 0], points_T[i, 1], points_T[i, 2])
-            _, ok, u, v = pixel_in_view(
+            ok, u, v = pixel_in_view(
                 X, Y, Z, K, d, M, tilted, distorted, _MIN_DEPTH_M, field_limit,
                 margin_px, width - 1 - margin_px, margin_px, height - 1 - margin_px,
             )  # fmt: skip
@@ -462,7 +462,7 @@ def _contour_samples(
                 points_T[i, 1] + step * across_T[i, 1],
                 points_T[i, 2] + step * across_T[i, 2],
             )
-            _, ok, au, av = pixel_in_view(
+            ok, au, av = pixel_in_view(
                 X, Y, Z, K, d, M, tilted, distorted, _MIN_DEPTH_M, field_limit,
                 0.0, width - 1.0, 0.0, height - 1.0,
             )  # fmt: skip
