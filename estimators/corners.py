@@ -67,6 +67,7 @@ from estimators.planar_pose import (
     MIN_SCALE2,
     POSE_METHODS,
     PointObservations,
+    against_flip,
     choose_pose,
     fit_from_starts,
     ippe_poses,
@@ -577,7 +578,8 @@ class CornerEstimator:
         from ``X_start`` tolerates a good share of wrong labels; features with χ²ᵢ > 16
         (p ≈ 3·10⁻⁴) times a robust variance factor (median χ² / 1.386, within [1, 4]) are then
         dropped and the pose refitted on the inliers by plain least squares (covariance) —
-        from both IPPE poses too in the final round (the planar two-fold ambiguity)."""
+        in the final round from both IPPE poses too (the planar two-fold ambiguity), or, from a
+        ``prior``, weighed against them once (``against_flip``)."""
         if not self._enough(index):
             return None
         K = self.camera.K
@@ -596,7 +598,7 @@ class CornerEstimator:
                 obs_all.points_T[keep], obs_all.uv[keep], obs_all.covariance[keep]
             )
             starts = [X]
-            if final:
+            if final and prior is None:
                 starts += ippe_poses(obs.points_T, obs.uv, K)
             fits = fit_from_starts([obs], starts, K, method=method)  # type: ignore[arg-type]
             if not fits:
@@ -611,6 +613,8 @@ class CornerEstimator:
             keep = new_keep
         if choice is None or not self._enough(index[keep]):
             return None
+        if final and prior is not None:
+            choice = against_flip(choice, obs, K, prior, method=method)
         return choice, keep
 
     def _solve(
@@ -679,9 +683,7 @@ class CornerEstimator:
             index = np.array(sorted(measured), int)
             uv = np.array([measured[i][0] for i in index])
             cov = np.array([measured[i][1] for i in index])
-            attempt = self._fit_pose(
-                index, uv, cov, X, X0 if tracking else None, final=final and not tracking
-            )
+            attempt = self._fit_pose(index, uv, cov, X, X0 if tracking else None, final=final)
             if attempt is None:
                 if not final:
                     measured.clear()  # start the next round afresh from the current pose

@@ -10,11 +10,13 @@ from estimators.planar_pose import (
     CorrelatedEdgeObservations,
     EdgeObservations,
     PointObservations,
+    against_flip,
     choose_pose,
     fit_from_starts,
     ideal_pixels,
     ippe_poses,
     orthogonal_iteration,
+    planar_flip,
     profile_widened,
     project_ideal,
     refine_pose,
@@ -227,6 +229,47 @@ def test_choose_pose_decides_by_residual_then_prior():
     both = choose_pose(fit_from_starts([all_obs], [fits[0].X_CT, fits[1].X_CT], K))
     assert not both.ambiguous
     assert rotation_error_geodesic(X_tilted, both.fit.X_CT) < 1e-6
+
+
+def test_planar_flip_is_the_other_ippe_pose_as_a_start():
+    # The panel tilted 15° at 3 m: the flip of the true pose lies next to IPPE's other pose
+    # (the two differ by the weak-perspective approximation) and images the corners alike;
+    # flipping twice gives the pose back.
+    X_tilted = Pose.from_rpy(
+        math.radians(165), math.radians(3), math.radians(10), np.array([0.1, 0.05, 3.0])
+    )
+    corners = TARGET.panel_corners_T
+    flipped = planar_flip(X_tilted, corners)
+    other = max(
+        ippe_poses(corners, project_ideal(X_tilted, corners, K), K),
+        key=lambda X: rotation_error_geodesic(X_tilted, X),
+    )
+    assert rotation_error_geodesic(X_tilted, flipped) > math.radians(20)
+    assert rotation_error_geodesic(other, flipped) < math.radians(2)
+    moved = project_ideal(flipped, corners, K) - project_ideal(X_tilted, corners, K)
+    assert np.abs(moved).max() < 2.0
+    assert rotation_error_geodesic(X_tilted, planar_flip(flipped, corners)) < 1e-9
+    assert translation_error(X_tilted, planar_flip(flipped, corners)) < 1e-9
+
+
+def test_against_flip_says_when_only_the_prior_kept_the_flip():
+    # A fit from the prior alone stays in the prior's minimum. Weighed against the flip, the
+    # choice says so where the residuals cannot decide (σ = 1 px) and turns to the true pose
+    # where they can (σ = 0.3 px).
+    X_tilted = Pose.from_rpy(
+        math.radians(165), math.radians(3), math.radians(10), np.array([0.1, 0.05, 3.0])
+    )
+    corners = TARGET.panel_corners_T
+    uv = project_ideal(X_tilted, corners, K)
+    wrong = planar_flip(X_tilted, corners)
+    for sigma, decided_by in ((1.0, "prior"), (0.3, "residual")):
+        obs = PointObservations(corners, uv, _isotropic(4, sigma))
+        alone = choose_pose(fit_from_starts([obs], [wrong], K), wrong)
+        assert alone.decided_by == "only"
+        assert rotation_error_geodesic(X_tilted, alone.fit.X_CT) > math.radians(20)
+        weighed = against_flip(alone, obs, K, wrong)
+        assert weighed.decided_by == decided_by
+    assert rotation_error_geodesic(X_tilted, weighed.fit.X_CT) < 1e-6
 
 
 def test_observations_reject_mismatched_shapes():
