@@ -114,16 +114,18 @@ def render_approach(
     light: Lighting | None = None,
     auto_exposure: bool = False,
     supersample: int = 1,
+    start: int = 0,
 ) -> Iterator[PathFrame]:
     """Render the approach ``path`` in ``frames`` frames (seeded sensor noise, the camera's
     auto-exposure if asked) under ``light`` (the default light when None), ``supersample``²
-    samples a pixel (as ``RenderConfig``), frame ``i`` stamped ``i / fps``."""
+    samples a pixel (as ``RenderConfig``), frame ``i`` stamped ``i / fps``; from frame ``start``
+    on (each frame is rendered as in the whole path: one can be looked at alone)."""
     path = path or ApproachPath()
     noise_config = NoiseConfig(preset=noise, auto_exposure=auto_exposure)
     render = RenderConfig(supersample=supersample, lighting=light or Lighting())
     with MockupScene(mockup_config) as scene:
         renderer = make_renderer(scene, info, render)
-        for i in range(frames):
+        for i in range(start, frames):
             distance, offset = path.offset(i / max(frames - 1, 1))
             X_WC, _ = camera_pose_for(distance, offset)
             rendering = renderer.render(X_WC)
