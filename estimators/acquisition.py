@@ -45,7 +45,7 @@ from estimators.model_support import (
     summed_support,
 )
 from estimators.panel_edges import fit_panel_edges, strips_from_quad
-from estimators.planar_pose import ippe_poses, project_ideal
+from estimators.planar_pose import ippe_poses, planar_flip, project_ideal
 from estimators.target import Circle3D, TargetModel
 
 _log = logging.getLogger(__name__)
@@ -195,19 +195,6 @@ def judge_turn(turn: TurnCheck, turn_margin: float, confirm_margin: float) -> st
 FLIP_MARGIN = 6.0
 
 
-def planar_flip(X_CT: Pose, target: TargetModel, camera: CameraInfo) -> Pose | None:
-    """The panel's other planar pose (IPPE, Collins & Bartoli 2014): the one that images the
-    panel's corners where ``X_CT`` does, when it differs from ``X_CT`` by more than a degree
-    (near head-on the two are one)."""
-    uv = project_ideal(X_CT, target.panel_corners_T, camera.K)
-    others = [
-        X
-        for X in ippe_poses(target.panel_corners_T, uv, camera.K)
-        if rotation_error_geodesic(X, X_CT) > math.radians(1.0)
-    ]
-    return max(others, key=lambda X: rotation_error_geodesic(X, X_CT)) if others else None
-
-
 def rotation_beyond(X_other: Pose, X_CT: Pose, covariance: np.ndarray, sigmas: float = 5.0) -> bool:
     """Whether ``X_other``'s rotation lies beyond ``sigmas``σ of ``X_CT``'s rotation
     ``covariance`` (6×6, rotation first): the two are then different answers, not one answer
@@ -232,7 +219,7 @@ def judge_flip(
     was fitted: ``kept`` (or no flip beyond 5σ of the pose's own rotation ``covariance``,
     6×6: the two are then one answer), ``other`` (the flip, returned, is clearly better) or
     ``undecided`` (within ``FLIP_MARGIN``)."""
-    flip = planar_flip(X_CT, target, support.camera)
+    flip = planar_flip(X_CT, target.panel_corners_T, support.camera.K)
     if flip is None:
         return "kept", None
     if not rotation_beyond(flip, X_CT, covariance):

@@ -736,14 +736,28 @@ def plane_frame(points_T: np.ndarray) -> Pose:
     return Pose(np.column_stack([x, y, z]), centre)
 
 
-def planar_flip(X_CT: Pose, points_T: np.ndarray) -> Pose:
-    """The other pose of the planar two-fold ambiguity, as a start: the points' plane turned
-    about its centre so that its normal is mirrored about the line of sight to the centre —
-    under weak perspective both normals project the plane alike (D. Oberkampf, D. DeMenthon and
-    L. Davis, "Iterative pose estimation using coplanar feature points", CVIU 63(3), 1996;
-    G. Schweighofer and A. Pinz, "Robust pose estimation from a planar target", PAMI 28(12),
-    2006). Cheaper than ``ippe_poses`` when a pose is at hand, and unlike them it keeps the
-    points' offsets from their plane."""
+def planar_flip(X_CT: Pose, points_T: np.ndarray, K: np.ndarray) -> Pose | None:
+    """The other pose of the planar two-fold ambiguity of the coplanar ``points_T`` (N ≥ 4,
+    e.g. the panel's corners), exactly: the IPPE pose (``ippe_poses``) that images them where
+    ``X_CT`` does, when it differs from ``X_CT`` by more than a degree (near head-on the two are
+    one); None otherwise. For judging the flip as it is, unrefined."""
+    uv = project_ideal(X_CT, points_T, K)
+    others = [
+        X
+        for X in ippe_poses(points_T, uv, K)
+        if rotation_error_geodesic(X, X_CT) > math.radians(1.0)
+    ]
+    return max(others, key=lambda X: rotation_error_geodesic(X, X_CT)) if others else None
+
+
+def weak_perspective_flip(X_CT: Pose, points_T: np.ndarray) -> Pose:
+    """The other pose of the planar two-fold ambiguity, as a start to refine: the points'
+    plane turned about its centre so that its normal is mirrored about the line of sight to the
+    centre — under weak perspective both normals project the plane alike (D. Oberkampf,
+    D. DeMenthon and L. Davis, "Iterative pose estimation using coplanar feature points", CVIU
+    63(3), 1996; G. Schweighofer and A. Pinz, "Robust pose estimation from a planar target",
+    PAMI 28(12), 2006). Cheaper than ``planar_flip``, and it keeps the points' offsets from their
+    plane (a disc on the ring, a head's height), which IPPE ignores."""
     X_TP = plane_frame(points_T)
     centre_C = X_CT.apply(X_TP.p)
     normal_C = X_CT.R @ X_TP.R[:, 2]
@@ -933,12 +947,12 @@ def against_flip(
     """``choice``, a fit from the prior alone, weighed against the planar flip of its points.
 
     A track that starts on the wrong flip of a small or distant plate stays in that minimum: a
-    fit from the prior never sees the other one. The flip of the fit (``planar_flip``) is
-    refined, and ``choose_pose`` decides with the prior: by the residuals, or by the prior,
+    fit from the prior never sees the other one. The flip of the fit
+    (``weak_perspective_flip``) is refined, and ``choose_pose`` decides with the prior: by the residuals, or by the prior,
     which the answer must then say (``decided_by == "prior"``) so that a prior that had not
     decided the flip either is not taken for evidence. (The start is refined even when it lies
     within the fit's own covariance: a wide one may hold both minima of a bent valley.)"""
-    flipped = planar_flip(choice.fit.X_CT, observations.points_T)
+    flipped = weak_perspective_flip(choice.fit.X_CT, observations.points_T)
     fits = fit_from_starts([observations], [flipped], K, method=method)
     return choose_pose([choice.fit, *fits], prior_X_CT, same_mahalanobis2=same_mahalanobis2)
 

@@ -9,7 +9,7 @@ from estimators.corners import CornerOptions, build
 from estimators.frame import Frame
 from estimators.geometry import rotation_error_rpy_norm, translation_error
 from estimators.measurement import Tracker, honest
-from estimators.planar_pose import planar_flip, retract
+from estimators.planar_pose import retract, weak_perspective_flip
 from hil.evaluation.errors import pose_nees
 from tests.estimators import rendered
 
@@ -163,14 +163,18 @@ def test_tracking_from_the_wrong_planar_flip_says_the_prior_kept_it():
     frame = rendered.frame(3.0, tilt, mockup="random:104", seq=7)
     target = rendered.target("random:104")
     truth = frame.truth.X_CT
-    m = build(target, frame.info).estimate(frame, planar_flip(truth, target.panel_corners_T))
+    m = build(target, frame.info).estimate(
+        frame, weak_perspective_flip(truth, target.panel_corners_T)
+    )
     assert m.valid, m.reason
     assert m.from_prior
     assert honest(m, roll_decided=False, circle_decided=False).ambiguous
     frame = rendered.frame(3.0, tilt, seq=7)
     truth = frame.truth.X_CT
     target = rendered.target()
-    m = build(target, frame.info).estimate(frame, planar_flip(truth, target.panel_corners_T))
+    m = build(target, frame.info).estimate(
+        frame, weak_perspective_flip(truth, target.panel_corners_T)
+    )
     assert m.valid, m.reason
     assert not m.from_prior and not m.ambiguous
     assert rotation_error_rpy_norm(truth, m.X_CT) < math.radians(1)

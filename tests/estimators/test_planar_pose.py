@@ -22,6 +22,7 @@ from estimators.planar_pose import (
     refine_pose,
     refine_pose_robust,
     retract,
+    weak_perspective_flip,
     with_min_scale2,
 )
 from estimators.so3 import pose_error_C
@@ -231,25 +232,23 @@ def test_choose_pose_decides_by_residual_then_prior():
     assert rotation_error_geodesic(X_tilted, both.fit.X_CT) < 1e-6
 
 
-def test_planar_flip_is_the_other_ippe_pose_as_a_start():
-    # The panel tilted 15° at 3 m: the flip of the true pose lies next to IPPE's other pose
-    # (the two differ by the weak-perspective approximation) and images the corners alike;
+def test_weak_perspective_flip_is_the_other_ippe_pose_as_a_start():
+    # The panel tilted 15° at 3 m: the flip of the true pose lies next to the exact flip
+    # (``planar_flip``, IPPE's other pose; the two differ by the weak-perspective approximation) and images the corners alike;
     # flipping twice gives the pose back.
     X_tilted = Pose.from_rpy(
         math.radians(165), math.radians(3), math.radians(10), np.array([0.1, 0.05, 3.0])
     )
     corners = TARGET.panel_corners_T
-    flipped = planar_flip(X_tilted, corners)
-    other = max(
-        ippe_poses(corners, project_ideal(X_tilted, corners, K), K),
-        key=lambda X: rotation_error_geodesic(X_tilted, X),
-    )
+    flipped = weak_perspective_flip(X_tilted, corners)
+    other = planar_flip(X_tilted, corners, K)  # the exact flip: IPPE's other pose
+    assert other is not None
     assert rotation_error_geodesic(X_tilted, flipped) > math.radians(20)
     assert rotation_error_geodesic(other, flipped) < math.radians(2)
     moved = project_ideal(flipped, corners, K) - project_ideal(X_tilted, corners, K)
     assert np.abs(moved).max() < 2.0
-    assert rotation_error_geodesic(X_tilted, planar_flip(flipped, corners)) < 1e-9
-    assert translation_error(X_tilted, planar_flip(flipped, corners)) < 1e-9
+    assert rotation_error_geodesic(X_tilted, weak_perspective_flip(flipped, corners)) < 1e-9
+    assert translation_error(X_tilted, weak_perspective_flip(flipped, corners)) < 1e-9
 
 
 def test_against_flip_says_when_only_the_prior_kept_the_flip():
@@ -261,7 +260,7 @@ def test_against_flip_says_when_only_the_prior_kept_the_flip():
     )
     corners = TARGET.panel_corners_T
     uv = project_ideal(X_tilted, corners, K)
-    wrong = planar_flip(X_tilted, corners)
+    wrong = weak_perspective_flip(X_tilted, corners)
     for sigma, decided_by in ((1.0, "prior"), (0.3, "residual")):
         obs = PointObservations(corners, uv, _isotropic(4, sigma))
         alone = choose_pose(fit_from_starts([obs], [wrong], K), wrong)
