@@ -625,10 +625,15 @@ class CornerEstimator:
         *,
         tracking: bool,
         retry: bool = True,
+        turn_retry: bool = True,
     ) -> _Solution:
         """Label, refine and fit from the pose guess ``X0`` (the prior when ``tracking``, an
         acquisition hypothesis otherwise), in rounds with shrinking gates; a disc refined in
-        one round keeps its measurement, later rounds add the ones now predicted better."""
+        one round keeps its measurement, later rounds add the ones now predicted better.
+        Without a prior, a flip or tilt that the whole model judges better is measured again
+        from there once (``retry``), and so is a better quarter turn (``turn_retry``), also
+        after a flip's: at the wrong quarter turn of a face that is not square the outline
+        fits neither flip, and the flip is misjudged (held-out random:117 at 1.2 m)."""
         options = self.options
         X = X0
         # Gates in metres at the target: how far the features may be from their prediction.
@@ -711,7 +716,9 @@ class CornerEstimator:
                 self.support, gradients, fit.X_CT, self.target, fit.covariance
             )
             if flip == "other" and retry:
-                return self._solve(image, gradients, flipped, tracking=False, retry=False)
+                return self._solve(
+                    image, gradients, flipped, tracking=False, retry=False, turn_retry=turn_retry
+                )
             if flip != "kept":
                 ambiguous = True
         if not reason:
@@ -720,7 +727,7 @@ class CornerEstimator:
             # wrong lock cannot survive.
             turn = self.turns.check(gradients, fit.X_CT)
             if turn.best != 0 and turn.margin >= options.turn_margin:
-                if tracking or not retry:
+                if tracking or not turn_retry:
                     return self._failure(
                         "a quarter turn of the pose fits the image better", candidates
                     )
@@ -730,6 +737,7 @@ class CornerEstimator:
                     fit.X_CT @ self.turns.turns[turn.best],
                     tracking=False,
                     retry=False,
+                    turn_retry=False,
                 )
             # The hypothesis came with its turn already chosen: confirming it needs less margin.
             # Undecided (nothing asymmetric in view, or too faint): in tracking the turn is the

@@ -432,7 +432,14 @@ class LineEstimator:
         *,
         tracking: bool,
         retry: bool = True,
+        turn_retry: bool = True,
     ) -> _Solution:
+        """Fit the panel's edges (and the outline's) from the pose guess ``X0`` (the prior when
+        ``tracking``, an acquisition hypothesis otherwise). Without a prior, a flip that the
+        whole model judges better is measured again from there once (``retry``), and so is a
+        better quarter turn (``turn_retry``), also after a flip's: at the wrong quarter turn
+        of a face that is not square the outline fits neither flip, and the flip is
+        misjudged."""
         options = self.options
         strips = strips_from_pose(X0, self.camera, self.target, options.strip_px)
         if strips is None:
@@ -508,7 +515,9 @@ class LineEstimator:
             # judges the pose against its flip.
             flip, flipped = judge_flip(self.support, gradients, X, self.target, fit.covariance)
             if flip == "other" and retry:
-                return self._solve(image, gradients, flipped, tracking=False, retry=False)
+                return self._solve(
+                    image, gradients, flipped, tracking=False, retry=False, turn_retry=turn_retry
+                )
             if flip != "kept":
                 ambiguous = True
         if not reason:
@@ -528,7 +537,7 @@ class LineEstimator:
             if judged == "other":
                 if tracking:
                     reason = "a quarter turn of the pose fits the image better"
-                elif retry:
+                elif turn_retry:
                     # Measured again from the turned pose: a face that is not square, fitted
                     # at the wrong turn, does not fit at the right one.
                     return self._solve(
@@ -537,6 +546,7 @@ class LineEstimator:
                         X @ self.turns.turns[turn.best],
                         tracking=False,
                         retry=False,
+                        turn_retry=False,
                     )
                 else:
                     reason = "a quarter turn of the pose fits the image better"

@@ -61,6 +61,25 @@ def test_a_short_panel_edge_is_found_with_two_of_its_strips_lost():
     _assert_acquired("lines", "random:107", 3.0, "none", 4, auto_exposure=True)
 
 
+def test_a_face_that_is_not_square_overturns_a_wrong_quarter_turn():
+    # Nothing asymmetric but a 1.50 × 1.41 m face: a pose a quarter turn off, judged against
+    # the right turn's half-turned twin (tied with it), was "undecided", and the tilt search
+    # bent it to lay the outline on an edge (2 of 4 frames acquired).
+    _assert_acquired("corners", "random:102", 1.2, "none", 4, auto_exposure=True)
+
+
+def test_a_quarter_turn_is_retried_after_a_flip():
+    # A face 1.41 × 1.73 m, the held-out matrix's second frame of the turn at 1.2 m, low
+    # noise: at the wrong quarter turn the outline fits neither flip, so the flip was judged
+    # wrong and retried, and that retry used up the one the quarter turn then needed — the
+    # pose was reported with its flip undecided, or lost.
+    spec = replace(HELD_OUT, systems=("corners",), frames=3, noises=("low",), auto_exposure=True)
+    rows = run_case_group(spec, 1.2, "turn_y_10deg", "random:117")
+    second = next(r for r in rows if r.mode == "acquisition" and r.index == 1)
+    assert second.status == "acquired" and not second.ambiguous, second.reason
+    assert wrong_locks([second], 1.2) == []
+
+
 def _assert_acquired(
     system: str,
     mockup: str,
