@@ -272,7 +272,9 @@ def search_tilt(
 ) -> TiltSearch:
     """Grid search (``TILT_SEARCH_RANGE_DEG``, ``TILT_SEARCH_STEP_DEG``) over the two tilts
     across the line of sight to the panel's centre, about that centre (the panel's image
-    barely moves), for the summed support of the contours ``names``."""
+    barely moves), for the summed support of the contours ``names``, every pose's measured
+    in no less than the frame's noise (``ModelSupport.contour_scores``): a tilt is credited for
+    moving a contour onto an edge, not into a quieter place beside it."""
     centre_C = X_CT.apply(target.panel_corners_T.mean(axis=0)[None])[0]
     axes = np.linalg.svd(centre_C[None] / np.linalg.norm(centre_C))[2][1:]
 
@@ -282,9 +284,14 @@ def search_tilt(
         return R @ X_CT.R, centre_C + R @ (X_CT.p - centre_C)
 
     def summed(tilts_deg: np.ndarray) -> np.ndarray:
-        return summed_support(support.contour_scores(gradients, *tilted(tilts_deg), only=names))
+        R_CT, p_CT = tilted(tilts_deg)
+        return summed_support(
+            support.contour_scores(gradients, R_CT, p_CT, only=names, frame_noise=True)
+        )
 
-    own = support.contour_scores(gradients, X_CT.R[None], X_CT.p[None], only=names)
+    own = support.contour_scores(
+        gradients, X_CT.R[None], X_CT.p[None], only=names, frame_noise=True
+    )
     if not np.isfinite(own).any():
         return TiltSearch(None, 0.0)
     best, own_score = np.zeros(2), float(summed_support(own)[0])

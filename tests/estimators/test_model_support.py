@@ -5,7 +5,7 @@ from configuration.camera import load_camera
 from estimators.acquisition import TurnChecker, coarse_gradients, quarter_turns, search_tilt
 from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import GradientImage, ImageStack, image_stack
-from estimators.model_support import ModelSupport, Support, search_gain_under_noise
+from estimators.model_support import ModelSupport, Support, search_gain_under_noise, summed_support
 from estimators.planar_pose import retract
 from estimators.target import facing_camera
 from tests.estimators import rendered
@@ -196,3 +196,25 @@ def test_a_searchs_gain_on_noise_alone_is_what_the_turn_check_takes_off():
         assert abs(np.mean(contour_z[shift]) - contour_gain) < 0.25, (shift, contour_gain)
         assert abs(np.mean(disc_z[shift]) - disc_gain) < 0.2, (shift, disc_gain)
     assert search_gain_under_noise(0.0) == (0.0, 0.0)
+
+
+def test_a_search_measures_contours_in_the_frames_noise():
+    """The face's outline against black space: measured in the spread of the derivative along
+    it, where it lies, the outline scores more pushed 2 px out (the pose 1 % nearer), into the
+    sensor's clipped black, than at the true pose; measured in no less than the frame's noise,
+    the true pose scores best."""
+    f = rendered.frame(2.0, noise="high")
+    support = ModelSupport(rendered.target(), f.info)
+    gradients = coarse_gradients(image_stack(f))
+    outline = frozenset(n for n in support.names if n.startswith("outline"))
+    X = f.truth.X_CT
+    poses = [X, Pose(X.R, 0.99 * X.p), Pose(X.R, 1.01 * X.p)]
+    R_CT, p_CT = np.stack([Y.R for Y in poses]), np.stack([Y.p for Y in poses])
+
+    def summed(**kw):
+        return summed_support(support.contour_scores(gradients, R_CT, p_CT, only=outline, **kw))
+
+    local = summed()
+    assert local[1] > local[0]  # the pull into the dark that the frame's noise removes
+    measured = summed(frame_noise=True)
+    assert measured[0] > max(measured[1], measured[2])
