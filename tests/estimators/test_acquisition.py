@@ -326,3 +326,34 @@ def test_a_rectangular_face_overturns_a_quarter_turn_it_cannot_tell_from_its_twi
         wrong = checker.check(gradients, f.truth.X_CT @ turns[k])
         assert judge_turn(wrong, 6.0, 3.0) == "other"
         assert (wrong.best + k) % 2 == 0  # the true turn or its twin
+
+
+class _EdgeAtTheBorder(ModelSupport):
+    """Model support in an image where one contour (the outline's side) is out of view at the
+    pose and shows, on an edge, at every tilt of it; the others score the same everywhere."""
+
+    def __init__(self, target, camera, X_CT):
+        super().__init__(target, camera)
+        self.X_CT = X_CT
+
+    def contour_scores(self, gradients, R_CT, p_CT, *, only=None, **_):
+        z = np.full((len(R_CT), len(self.names)), np.nan)
+        named = [i for i, name in enumerate(self.names) if name in (only or ())]
+        z[:, named] = 10.0
+        side = self.names.index("outline_edge_1")
+        at_pose = np.all(np.isclose(R_CT, self.X_CT.R), axis=(1, 2))
+        z[:, side] = np.where(at_pose, np.nan, 44.0)
+        return z
+
+
+def test_a_tilt_search_on_shared_contours_takes_no_credit_for_one_only_the_tilt_sees():
+    """What a tilt brings into view cannot be weighed against the pose, which has no term for
+    it: compared on the contours both see, no tilt beats the pose; compared on their sums,
+    any tilt does, by the newcomer's whole score."""
+    f = rendered.frame(1.2)
+    support = _EdgeAtTheBorder(TARGET, f.info, f.truth.X_CT)
+    names = frozenset(n for n in support.names if not n.startswith("panel_edge"))
+    summed = acquisition.search_tilt(support, None, f.truth.X_CT, TARGET, names)
+    assert summed.X_CT is not None and summed.gain == pytest.approx(44.0)
+    shared = acquisition.search_tilt(support, None, f.truth.X_CT, TARGET, names, shared=True)
+    assert shared.X_CT is None and shared.gain == 0.0

@@ -107,3 +107,15 @@ def test_a_tilt_is_not_credited_for_moving_an_outline_edge_into_the_dark():
     third = next(r for r in rows if r.mode == "acquisition" and r.index == 2)
     assert third.status == "acquired", third.reason
     assert wrong_locks([third], 2.0) == []
+
+
+def test_a_tilt_is_not_credited_for_a_contour_only_it_brings_into_view():
+    # The face's side lies at the image's left border, just outside the support's margin at
+    # the pose (0.2° off, the matrix's second frame of the turn at 1.2 m, low noise); a tilt
+    # 2.7° off brought it 3 px in, onto the smoothed edge, and scored 44 z units that the pose
+    # had no term to answer: the right pose was refused for a tilt.
+    spec = replace(HELD_OUT, systems=("corners",), frames=3, noises=("low",), auto_exposure=True)
+    rows = run_case_group(spec, 1.2, "turn_y_10deg", "random:110")
+    second = next(r for r in rows if r.mode == "acquisition" and r.index == 1)
+    assert second.status == "acquired", second.reason
+    assert wrong_locks([second], 1.2) == []
