@@ -68,18 +68,6 @@ def test_a_face_that_is_not_square_overturns_a_wrong_quarter_turn():
     _assert_acquired("corners", "random:102", 1.2, "none", 4, auto_exposure=True)
 
 
-def test_a_quarter_turn_is_retried_after_a_flip():
-    # A face 1.41 × 1.73 m, the held-out matrix's second frame of the turn at 1.2 m, low
-    # noise: at the wrong quarter turn the outline fits neither flip, so the flip was judged
-    # wrong and retried, and that retry used up the one the quarter turn then needed — the
-    # pose was reported with its flip undecided, or lost.
-    spec = replace(HELD_OUT, systems=("corners",), frames=3, noises=("low",), auto_exposure=True)
-    rows = run_case_group(spec, 1.2, "turn_y_10deg", "random:117")
-    second = next(r for r in rows if r.mode == "acquisition" and r.index == 1)
-    assert second.status == "acquired" and not second.ambiguous, second.reason
-    assert wrong_locks([second], 1.2) == []
-
-
 def _assert_acquired(
     system: str,
     mockup: str,
@@ -97,16 +85,21 @@ def _assert_acquired(
     assert wrong_locks(acquired, distance) == []
 
 
+def test_a_quarter_turn_is_retried_after_a_flip():
+    # A face 1.41 × 1.73 m, the held-out matrix's second frame of the turn at 1.2 m, low
+    # noise: at the wrong quarter turn the outline fits neither flip, so the flip was judged
+    # wrong and retried, and that retry used up the one the quarter turn then needed — the
+    # pose was reported with its flip undecided, or lost.
+    second = _matrix_frame_acquired("random:117", 1.2, index=1)
+    assert not second.ambiguous
+
+
 def test_a_tilt_is_not_credited_for_moving_an_outline_edge_into_the_dark():
     # A 1.30 × 1.84 m face against black space, exposed, the matrix's third frame of the turn
     # at 2 m, low noise: the pose was right (0.2°), and a tilt 4° off that moved the outline's
     # side edges 2–4 px off their edges, into the sensor's clipped black where the noise a
     # contour is measured in is lowest, scored 41 z units more; the pose was rejected.
-    spec = replace(HELD_OUT, systems=("corners",), frames=3, noises=("low",), auto_exposure=True)
-    rows = run_case_group(spec, 2.0, "turn_y_10deg", "random:119")
-    third = next(r for r in rows if r.mode == "acquisition" and r.index == 2)
-    assert third.status == "acquired", third.reason
-    assert wrong_locks([third], 2.0) == []
+    _matrix_frame_acquired("random:119", 2.0, index=2)
 
 
 def test_a_tilt_is_not_credited_for_a_contour_only_it_brings_into_view():
@@ -114,8 +107,15 @@ def test_a_tilt_is_not_credited_for_a_contour_only_it_brings_into_view():
     # the pose (0.2° off, the matrix's second frame of the turn at 1.2 m, low noise); a tilt
     # 2.7° off brought it 3 px in, onto the smoothed edge, and scored 44 z units that the pose
     # had no term to answer: the right pose was refused for a tilt.
+    _matrix_frame_acquired("random:110", 1.2, index=1)
+
+
+def _matrix_frame_acquired(mockup: str, distance: float, *, index: int):
+    """One frame of the held-out matrix's corner acquisitions (``--frames 3``, the turn, low
+    noise, exposed), asserted acquired and not a wrong lock; returned."""
     spec = replace(HELD_OUT, systems=("corners",), frames=3, noises=("low",), auto_exposure=True)
-    rows = run_case_group(spec, 1.2, "turn_y_10deg", "random:110")
-    second = next(r for r in rows if r.mode == "acquisition" and r.index == 1)
-    assert second.status == "acquired", second.reason
-    assert wrong_locks([second], 1.2) == []
+    rows = run_case_group(spec, distance, "turn_y_10deg", mockup)
+    frame = next(r for r in rows if r.mode == "acquisition" and r.index == index)
+    assert frame.status == "acquired", frame.reason
+    assert wrong_locks([frame], distance) == []
+    return frame
