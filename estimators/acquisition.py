@@ -270,21 +270,20 @@ def search_tilt(
     target: TargetModel,
     names: frozenset[str],
     *,
-    frame_noise: bool = False,
-    shared: bool = False,
+    judging: bool = False,
 ) -> TiltSearch:
     """Grid search (``TILT_SEARCH_RANGE_DEG``, ``TILT_SEARCH_STEP_DEG``) over the two tilts
     across the line of sight to the panel's centre, about that centre (the panel's image
     barely moves), for the summed support of the contours ``names``.
 
-    A search that judges the pose (``judge_tilt``) compares like with like. With
-    ``frame_noise`` every pose's contours are measured in no less than the frame's noise
+    A search that judges the pose (``judging``, ``judge_tilt``) compares like with like. Every
+    pose's contours are measured in no less than the frame's noise
     (``ModelSupport.contour_scores``): a tilt is credited for moving a contour onto an edge,
-    not into a quieter place beside it. With ``shared`` a tilt and the pose are compared on
-    the contours both have in view: a contour that only the tilt brings into view, at the
-    image's border beside an edge just outside it, is no evidence against the pose
-    (held-out random:110 at 1.2 m: the face's side, out of view at a pose 0.2° off, brought
-    in 3 px at a tilt 2.7° off, scored 44 on the smoothed edge)."""
+    not into a quieter place beside it. And a tilt and the pose are compared on the contours
+    both have in view: a contour that only the tilt brings into view, at the image's border
+    beside an edge just outside it, is no evidence against the pose (held-out random:110 at
+    1.2 m: the face's side, out of view at a pose 0.2° off, brought in 3 px at a tilt 2.7°
+    off, scored 44 on the smoothed edge)."""
     centre_C = X_CT.apply(target.panel_corners_T.mean(axis=0)[None])[0]
     axes = np.linalg.svd(centre_C[None] / np.linalg.norm(centre_C))[2][1:]
 
@@ -294,17 +293,18 @@ def search_tilt(
         return R @ X_CT.R, centre_C + R @ (X_CT.p - centre_C)
 
     own = support.contour_scores(
-        gradients, X_CT.R[None], X_CT.p[None], only=names, frame_noise=frame_noise
+        gradients, X_CT.R[None], X_CT.p[None], only=names, frame_noise=judging
     )
     if not np.isfinite(own).any():
         return TiltSearch(None, 0.0)
+    own_total = summed_support(own)[0]
 
     def gains(tilts_deg: np.ndarray) -> np.ndarray:
         """Each tilt's summed support less the pose's."""
         R_CT, p_CT = tilted(tilts_deg)
-        z = support.contour_scores(gradients, R_CT, p_CT, only=names, frame_noise=frame_noise)
-        if not shared:
-            return summed_support(z) - summed_support(own)[0]
+        z = support.contour_scores(gradients, R_CT, p_CT, only=names, frame_noise=judging)
+        if not judging:
+            return summed_support(z) - own_total
         both = np.isfinite(z) & np.isfinite(own)
         return summed_support(np.where(both, z, np.nan)) - summed_support(
             np.where(both, own, np.nan)
@@ -347,8 +347,7 @@ def judge_tilt(
         X_CT,
         target,
         _beyond_panel(support),
-        frame_noise=True,
-        shared=True,
+        judging=True,
     )
     if found.X_CT is None or found.gain < TILT_MARGIN:
         return TiltSearch(None, found.gain)

@@ -318,7 +318,8 @@ def test_a_rectangular_face_overturns_a_quarter_turn_it_cannot_tell_from_its_twi
     support = ModelSupport(target, f.info)
     checker = TurnChecker(target, support)
     assert checker.parts == {f"outline_edge_{i}" for i in range(4)}
-    gradients = GradientImage.of(image_stack(f).pixels, 2.0, image_stack(f).noise_sigma)
+    image = image_stack(f)
+    gradients = GradientImage.of(image.pixels, 2.0, image.noise_sigma)
     turns = quarter_turns(target)
     own = checker.check(gradients, f.truth.X_CT)
     assert judge_turn(own, 6.0, 3.0) == "undecided" and own.best in (0, 2)
@@ -346,7 +347,7 @@ class _EdgeAtTheBorder(ModelSupport):
         return z
 
 
-def test_a_tilt_search_on_shared_contours_takes_no_credit_for_one_only_the_tilt_sees():
+def test_a_judging_tilt_search_takes_no_credit_for_a_contour_only_the_tilt_sees():
     """What a tilt brings into view cannot be weighed against the pose, which has no term for
     it: compared on the contours both see, no tilt beats the pose; compared on their sums,
     any tilt does, by the newcomer's whole score."""
@@ -355,5 +356,5 @@ def test_a_tilt_search_on_shared_contours_takes_no_credit_for_one_only_the_tilt_
     names = frozenset(n for n in support.names if not n.startswith("panel_edge"))
     summed = acquisition.search_tilt(support, None, f.truth.X_CT, TARGET, names)
     assert summed.X_CT is not None and summed.gain == pytest.approx(44.0)
-    shared = acquisition.search_tilt(support, None, f.truth.X_CT, TARGET, names, shared=True)
+    shared = acquisition.search_tilt(support, None, f.truth.X_CT, TARGET, names, judging=True)
     assert shared.X_CT is None and shared.gain == 0.0

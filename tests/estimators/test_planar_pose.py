@@ -234,8 +234,8 @@ def test_choose_pose_decides_by_residual_then_prior():
 
 def test_weak_perspective_flip_is_the_other_ippe_pose_as_a_start():
     # The panel tilted 15° at 3 m: the flip of the true pose lies next to the exact flip
-    # (``planar_flip``, IPPE's other pose; the two differ by the weak-perspective approximation) and images the corners alike;
-    # flipping twice gives the pose back.
+    # (``planar_flip``, IPPE's other pose; the two differ by the weak-perspective
+    # approximation) and images the corners alike; flipping twice gives the pose back.
     X_tilted = Pose.from_rpy(
         math.radians(165), math.radians(3), math.radians(10), np.array([0.1, 0.05, 3.0])
     )
