@@ -73,6 +73,21 @@ def clipped_terms(value: float, intensity: float, sigma: float) -> tuple[float, 
 
 
 @compiled
+def clipped_log_likelihood(value: float, intensity: float, sigma: float) -> float:
+    """One pixel's log-likelihood ℓ given its intensity I, up to a constant, whose score and
+    information ``clipped_terms`` gives: −(v − I)²/2σ² where the pixel is not clipped,
+    log Φ(−I/σ) at black and log Φ((I − 1)/σ) at white; σ = 0: −(v − I)²/2."""
+    if sigma <= 0.0:
+        return -0.5 * (value - intensity) * (value - intensity)
+    if value <= CLIP_TOLERANCE:
+        return math.log(max(normal_cdf(-intensity / sigma), 1e-300))
+    if value >= 1.0 - CLIP_TOLERANCE:
+        return math.log(max(normal_cdf((intensity - 1.0) / sigma), 1e-300))
+    r = (value - intensity) / sigma
+    return -0.5 * r * r
+
+
+@compiled
 def clipped_moment(intensity: float, sigma: float) -> tuple[float, float, float]:
     """Mean, variance and ∂mean/∂I of clip(I + n, 0, 1) for one intensity I (see
     ``clipped_moments``)."""

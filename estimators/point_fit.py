@@ -34,7 +34,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from estimators.clipped_noise import clipped_moment, clipped_terms, edge_coverage
+from estimators.clipped_noise import (
+    clipped_log_likelihood,
+    clipped_moment,
+    clipped_terms,
+    edge_coverage,
+)
 from estimators.compiled import compiled
 from estimators.small_linalg import at_least, solve_small
 
@@ -532,6 +537,7 @@ def _fit_wedges_kernel(values, x, y, owner, n, side, params, noise_sigma, schedu
     params = params.copy()
     H = np.empty((n, 4, 4))
     grad = np.empty((n, 4))
+    steps = np.empty((n, 4))
     for s, count in schedule:
         for _ in range(count):
             inside, g = _wedge_model(x, y, owner, side, params, s)
@@ -557,6 +563,54 @@ def _fit_wedges_kernel(values, x, y, owner, n, side, params, noise_sigma, schedu
                     ratio = max(ratio, abs(step[i]) / max_step[i])
                 if ratio > 1.0:
                     step /= ratio
-                params[o] += step
-                last_step[o] = math.sqrt(step[0] * step[0] + step[1] * step[1])
+                steps[o] = step
+            _backtrack(values, x, y, owner, side, params, inside, steps, s, a, b, noise_sigma)
+            for o in range(n):
+                params[o] += steps[o]
+                last_step[o] = math.sqrt(steps[o, 0] ** 2 + steps[o, 1] ** 2)
     return params, a, b, last_step
+
+
+#: How many times a wedge's scoring step is halved before it is dropped (1/64 of it is left).
+MAX_HALVINGS = 6
+
+
+@compiled
+def _backtrack(values, x, y, owner, side, params, inside, steps, s, a, b, noise_sigma):
+    """Halve in place each wedge's step (N,4) that would lower its likelihood, up to
+    ``MAX_HALVINGS`` times, then drop it: a backtracking line search (Nocedal & Wright,
+    "Numerical Optimization", 2006, §3.1). Fisher scoring alone can overshoot — the expected
+    information is not the curvature where noise clips many pixels, and a wedge with an edge
+    along the pixel rows then swung about its optimum with a growing step (held-out random:109
+    at 0.5 m: 0.2 px from the truth and never declared converged). ``inside``: the coverage
+    at ``params``."""
+    n = len(steps)
+    before = _log_likelihoods(values, owner, n, inside, a, b, noise_sigma)
+    pending = np.ones(n, dtype=np.bool_)
+    for halving in range(MAX_HALVINGS + 1):
+        moved, _ = _wedge_model(x, y, owner, side, params + steps, s)
+        after = _log_likelihoods(values, owner, n, moved, a, b, noise_sigma)
+        lowered = False
+        for o in range(n):
+            if pending[o] and after[o] < before[o]:
+                if halving == MAX_HALVINGS:
+                    steps[o] = 0.0
+                else:
+                    steps[o] *= 0.5
+                    lowered = True
+            else:
+                pending[o] = False
+        if not lowered:
+            return
+
+
+@compiled
+def _log_likelihoods(values, owner, n, inside, a, b, noise_sigma):
+    """Each wedge's log-likelihood of its pixels (``clipped_log_likelihood``) given their
+    coverage ``inside`` and its grey levels ``a`` inside and ``b`` outside."""
+    total = np.zeros(n)
+    for p in range(len(values)):
+        o = owner[p]
+        intensity = b[o] + (a[o] - b[o]) * inside[p]
+        total[o] += clipped_log_likelihood(values[p], intensity, noise_sigma)
+    return total

@@ -2,7 +2,11 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from estimators.clipped_noise import clipped_likelihood_terms, clipped_moments
+from estimators.clipped_noise import (
+    clipped_likelihood_terms,
+    clipped_log_likelihood,
+    clipped_moments,
+)
 
 
 def _log_likelihood(value: float, intensity: float, sigma: float) -> float:
@@ -22,6 +26,17 @@ def test_score_and_information_are_the_derivatives_of_the_log_likelihood(value, 
     ll = [_log_likelihood(value, intensity + k * h, sigma) for k in (-1, 0, 1)]
     assert score[0] == pytest.approx((ll[2] - ll[0]) / (2 * h), rel=1e-5, abs=1e-6)
     assert info[0] == pytest.approx(-(ll[2] - 2 * ll[1] + ll[0]) / h**2, rel=1e-3, abs=1e-3)
+
+
+@pytest.mark.parametrize("value", [0.0, 0.3, 1.0])
+@pytest.mark.parametrize("intensity", [-0.1, 0.05, 0.5, 0.97])
+def test_the_compiled_log_likelihood_differs_from_the_tobit_one_by_a_constant(value, intensity):
+    # A line search compares it between intensities: only differences matter.
+    sigma = 0.2
+    reference = _log_likelihood(value, 0.4, sigma) - clipped_log_likelihood(value, 0.4, sigma)
+    assert _log_likelihood(value, intensity, sigma) - clipped_log_likelihood(
+        value, intensity, sigma
+    ) == pytest.approx(reference, abs=1e-9)
 
 
 def test_without_noise_the_terms_are_least_squares():
