@@ -123,8 +123,8 @@ def _matrix_frame_acquired(mockup: str, distance: float, *, index: int):
 
 def test_a_square_on_panel_corner_settles_under_clipped_noise():
     # A 0.39 m panel at the stand-off under a low side light, the matrix's first frame of the
-    # turn at 0.5 m, low noise: one corner's wedge fit, 0.5 px from the truth at contrast SNR
-    # 67, swung about its optimum with a growing step and was never declared converged; with
-    # three corners and one fastener the pose had too few features.
+    # turn at 0.5 m (square on), low noise: one corner's wedge fit, 0.3 px from the truth at
+    # contrast SNR 65, swung about its optimum with a growing step and was never declared
+    # converged, and the three corners and one fastener left gave no consistent pose.
     frame = _matrix_frame_acquired("random:118", 0.5, index=0)
     assert frame.error.position_m < 0.003
