@@ -127,10 +127,12 @@ def ring_hypotheses(
     r_outer / r_inner, tried first. Taken for the ring's two edges, such a pair put the ring
     15 % too far, at 0.5 m and 1.2 m, with its normal right (random mock-ups, issue 13).
 
-    A lone ellipse is taken for the outer edge and for the inner edge; with a deep bore the
-    largest-supported one is also taken, last, for the bore's foot alone: a wall as dark as
+    A lone ellipse is taken for the outer edge and for the inner edge; with a deep bore the two
+    with the most points are also taken, last, for the bore's foot alone: a wall as dark as
     the ring's front shows no rim, and close up, the outer edge out of view, the foot may be
-    all of the ring the image holds."""
+    all of the ring the image holds — and two fits of it may be extracted, the one with more
+    points the worse (held-out random:109 at 0.5 m, high noise: 383 points 14° off, 372 points
+    3° off)."""
     hypotheses: list[RingHypothesis] = []
     if inner is not None:
         ratio = inner.radius / outer.radius
@@ -163,7 +165,8 @@ def ring_hypotheses(
     hypotheses = hypotheses[:max_count]
     if inner is not None and bore_depth_m > 0.0 and singles:
         # Last and beyond the count: the likelier readings keep their places.
-        hypotheses.append(RingHypothesis(None, None, np.inf, bore_foot=singles[0]))
+        for e in singles[:2]:
+            hypotheses.append(RingHypothesis(None, None, np.inf, bore_foot=e))
     return hypotheses
 
 
