@@ -950,8 +950,9 @@ def against_flip(
     fit from the prior never sees the other one. The flip of the fit
     (``weak_perspective_flip``) is refined, and ``choose_pose`` decides with the prior: by the
     residuals, or by the prior, which the answer must then say (``decided_by == "prior"``) so
-    that a prior that had not decided the flip either is not taken for evidence. (The start is refined even when it lies
-    within the fit's own covariance: a wide one may hold both minima of a bent valley.)"""
+    that a prior that had not decided the flip either is not taken for evidence. (The start is
+    refined even when it lies within the fit's own covariance: a wide one may hold both minima
+    of a bent valley.)"""
     flipped = weak_perspective_flip(choice.fit.X_CT, observations.points_T)
     fits = fit_from_starts([observations], [flipped], K, method=method)
     return choose_pose([choice.fit, *fits], prior_X_CT, same_mahalanobis2=same_mahalanobis2)

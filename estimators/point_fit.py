@@ -44,6 +44,8 @@ from estimators.compiled import compiled
 from estimators.small_linalg import at_least, solve_small
 
 EDGE_WIDTH_PX = 0.45
+#: How many times a wedge's scoring step is halved before it is dropped (1/64 of it is left).
+MAX_HALVINGS = 6
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -569,10 +571,6 @@ def _fit_wedges_kernel(values, x, y, owner, n, side, params, noise_sigma, schedu
                 params[o] += steps[o]
                 last_step[o] = math.sqrt(steps[o, 0] ** 2 + steps[o, 1] ** 2)
     return params, a, b, last_step
-
-
-#: How many times a wedge's scoring step is halved before it is dropped (1/64 of it is left).
-MAX_HALVINGS = 6
 
 
 @compiled
