@@ -27,7 +27,7 @@ The loop (Nocedal & Wright, "Numerical Optimization", 2006, §10.3):
   less than 10⁻⁶·(1 + cost) or no step lowers it (Marquardt 1963).
 
 Covariance (one recipe, ``covariance``): s²·H⁻¹ with H the weighted information Jᵀ·W·J of the
-last linearisation and s² the caller's variance factor — 1 for the Huber fits, whose weights
+last linearisation (a direction H leaves unobserved taken as barely measured, never as known) and s² the caller's variance factor — 1 for the Huber fits, whose weights
 already carry 1/σ_g², and χ²/dof for the whitened reprojection fits (``planar_pose``) —
 symmetrised, with the marginal block of the first ``keep`` parameters (nuisances such as free
 radii marginalised out).
@@ -329,15 +329,32 @@ def solve(
     return Solution(state, information, tuple(final), tuple(sigmas), done, converged)
 
 
+#: Information below this fraction of the strongest direction's is taken as none: such a
+#: direction's variance is capped at 1 / (UNOBSERVED_INFORMATION · λ_max).
+UNOBSERVED_INFORMATION = 1e-10
+
+
 def covariance(
     information: np.ndarray, *, keep: int | None = None, scale2: float = 1.0
 ) -> np.ndarray:
-    """s²·H⁻¹ (pseudo-inverse if H is singular), symmetrised; the block of the first ``keep``
-    parameters — the others (nuisances) marginalised out."""
-    try:
+    """s²·H⁻¹, symmetrised; the block of the first ``keep`` parameters — the others
+    (nuisances) marginalised out.
+
+    A direction H leaves unobserved (a circle's tilt seen head-on enters its image only to
+    second order) holds nothing but round-off, of either sign: its plain inverse has
+    eigenvalues of ±10¹⁰ and a pseudo-inverse's zero claims it known exactly. There the
+    eigenvalues of H are floored at ``UNOBSERVED_INFORMATION`` of the largest — a large
+    positive variance: "not measured", and the covariance stays positive definite."""
+    information = np.asarray(information, dtype=float)
+    spectrum = np.linalg.eigvalsh(0.5 * (information + information.T))
+    floor = UNOBSERVED_INFORMATION * max(float(spectrum[-1]), 0.0)
+    if spectrum[0] > floor:
         cov = np.linalg.inv(information)
-    except np.linalg.LinAlgError:
-        cov = np.linalg.pinv(information)
+    else:
+        if floor <= 0.0:
+            raise np.linalg.LinAlgError("the information holds nothing: no covariance")
+        values, vectors = np.linalg.eigh(0.5 * (information + information.T))
+        cov = (vectors / np.maximum(values, floor)) @ vectors.T
     if keep is not None:
         cov = cov[:keep, :keep]
     cov = cov * scale2

@@ -182,3 +182,50 @@ def test_solve_cauchy_weights_blocks_and_restricted_steps():
     basis[3:, :] = np.eye(3)
     fixed = solve(PoseProblem([observations], K), start, loss=NoLoss(), levenberg=True, basis=basis)
     np.testing.assert_allclose(fixed.state.R, start.R, atol=1e-12)
+
+
+def test_covariance_of_an_unobserved_direction_is_large_and_positive_not_round_off():
+    """A direction the information does not constrain (a circle's tilt seen head-on enters its
+    image only to second order) must come out as a large positive variance: an inverse of the
+    round-off left in that direction has eigenvalues of either sign (±10¹⁰ on a ring at 3 m,
+    which a tracked random mock-up then reported), and a pseudo-inverse's zero claims it
+    known exactly."""
+    rng = np.random.default_rng(8)
+    basis, _ = np.linalg.qr(rng.normal(size=(5, 5)))
+    for weak in (-2e-8, 0.0, 4e-10):  # round-off of either sign, and an exact null direction
+        information = basis @ np.diag([weak, 3e-9, 5.6e6, 2.8e8, 2.8e8]) @ basis.T
+        cov = covariance(information)
+        eigenvalues = np.linalg.eigvalsh(cov)
+        assert eigenvalues.min() > 0.0
+        # both weak directions unconstrained: variance at least that of 1e-10 of the best
+        assert eigenvalues[-2] >= 0.99 / (1e-10 * 2.8e8)
+        np.testing.assert_allclose(cov, cov.T)
+    # A well-conditioned information is inverted as it was.
+    information = basis @ np.diag([1.0, 2.0, 5.6e6, 2.8e8, 2.8e8]) @ basis.T
+    np.testing.assert_array_equal(covariance(information, keep=3), _plain_inverse(information, 3))
+
+
+def _plain_inverse(information: np.ndarray, keep: int) -> np.ndarray:
+    cov = np.linalg.inv(information)[:keep, :keep]
+    return 0.5 * (cov + cov.T)
+
+
+def test_the_head_on_covariance_of_a_lone_circle_is_positive_definite():
+    """``circle_fit.covariance_at`` the head-on pose — the ellipse system's honest covariance
+    near head-on — of a ring whose edges alone were fitted: both tilt directions unobserved to
+    first order, reported as large and positive (it was ±10¹⁰, and fusion refused it)."""
+    from estimators.circle_fit import EdgeSet, covariance_at, fit_circle_pose
+    from estimators.circle_pose import CirclePose
+
+    outer = TARGET.circle("ring_outer")
+    center = np.array([0.0, 0.0, 3.0])
+    tilted = np.array([0.0, math.sin(0.05), -math.cos(0.05)])
+    points = circle_points(center, tilted, outer.radius, 200)
+    uv = project(points, K) + np.random.default_rng(9).normal(0, 0.1, (200, 2))
+    sets = [EdgeSet(outer, uv)]
+    fit = fit_circle_pose(sets, CirclePose(center, tilted), outer, K)
+    head_on = covariance_at(sets, fit, CirclePose(center, np.array([0.0, 0.0, -1.0])), K,
+                            reference=outer)  # fmt: skip
+    eigenvalues = np.linalg.eigvalsh(head_on)
+    assert eigenvalues.min() > 0.0
+    assert np.sqrt(eigenvalues[-1]) > 1.0  # a tilt sd beyond a radian: unknown
