@@ -562,19 +562,19 @@ def covariance_at(
     return covariance(J.T @ (J * w[:, None]), keep=keep)
 
 
-def pose_shift(
+def pose_response(
     edge_sets: Sequence[EdgeSet],
     fit: FitResult,
     pose: CirclePose | Pose,
     K: np.ndarray,
-    displacements: Sequence[np.ndarray],
     *,
     reference: Circle3D | None = None,
     points: PointObservations | None = None,
 ) -> np.ndarray:
-    """How far the fit's pose parameters (5 or 6, as ``covariance_at``'s) move when each edge
-    sample's residual moves by ``displacements`` (px; one array per edge set): the weighted
-    least-squares response −(JᵀWJ)⁻¹JᵀW·b at ``pose``, nuisance radii refitted.
+    """The fit's linear response at ``pose``: how far its pose parameters (5 or 6, as
+    ``covariance_at``'s) move when the residuals move by b (px) is this matrix times b,
+    −(JᵀWJ)⁻¹JᵀW·b with the nuisance radii refitted; (5 or 6) × (residuals), edge samples in
+    set order then the points' residuals (``stacked_displacements`` builds b).
 
     A systematic error of known shape and unknown size — an unmodelled feature that can pull
     the edges by up to b — enters the covariance as shift·shiftᵀ times its size's second
@@ -582,12 +582,30 @@ def pose_shift(
     Determination*, 2004, §6.3), estimated by no one and accounted for.
     """
     J, w, keep = _weighted_jacobian(edge_sets, fit, pose, K, reference, points)
-    b = np.concatenate([np.asarray(d, dtype=float) for d in displacements])
-    if len(b) > len(w):
-        raise ValueError(f"{len(b)} displacements for {len(w)} residuals")
-    b = np.concatenate([b, np.zeros(len(w) - len(b))])  # (the points' residuals: unmoved)
     information = J.T @ (J * w[:, None])
-    return -np.linalg.solve(information, J.T @ (w * b))[:keep]
+    return -np.linalg.solve(information, (J * w[:, None]).T)[:keep]
+
+
+def stacked_displacements(response: np.ndarray, displacements: Sequence[np.ndarray]) -> np.ndarray:
+    """Per-set displacements (px) as one vector for ``response``, the points' residuals
+    (after the edge samples) unmoved."""
+    b = np.concatenate([np.asarray(d, dtype=float) for d in displacements])
+    size = response.shape[1]
+    if len(b) > size:
+        raise ValueError(f"{len(b)} displacements for {size} residuals")
+    return np.concatenate([b, np.zeros(size - len(b))])
+
+
+def moved(pose: CirclePose | Pose, delta: np.ndarray) -> CirclePose | Pose:
+    """``pose`` moved by an increment of the fit's parameters (``covariance_at``'s: 5-DOF
+    [δc, α, β], 6-DOF [δθ, δp]), by the retractions the fits use."""
+    delta = np.asarray(delta, dtype=float)
+    if isinstance(pose, Pose):
+        raw = retract_raw(pose, delta[:6])
+        return Pose(raw.R, raw.p)
+    u, v = circle_plane_basis(pose.normal_C)
+    normal = pose.normal_C + delta[3] * u + delta[4] * v
+    return CirclePose(pose.center_C + delta[:3], normal / np.linalg.norm(normal))
 
 
 def _weighted_jacobian(

@@ -13,7 +13,8 @@ from estimators.circle_fit import (
     covariance_at,
     fit_circle_pose,
     fit_target_pose,
-    pose_shift,
+    pose_response,
+    stacked_displacements,
 )
 from estimators.circle_pose import CirclePose
 from estimators.conics import circle_plane_basis, circle_points
@@ -47,8 +48,8 @@ def test_fit_circle_pose_recovers_ring_from_a_perturbed_start():
     assert fit.sigma_px == pytest.approx((0.3, 0.3), rel=0.25)
 
 
-def test_pose_shift_predicts_the_refit_after_a_systematic_edge_displacement():
-    """``pose_shift`` is the fit's linear response: noise-free ring edges pushed outward on
+def test_pose_response_predicts_the_refit_after_a_systematic_edge_displacement():
+    """``pose_response`` is the fit's linear response: noise-free ring edges pushed outward on
     one side (as an unresolved wall would), refitted, move the 5-DOF pose as predicted. (The
     push stays within the Huber loss's quadratic zone, whose noise floor is 0.05 px.)"""
     rng = np.random.default_rng(2)
@@ -71,9 +72,8 @@ def test_pose_shift_predicts_the_refit_after_a_systematic_edge_displacement():
     displacement = problem_moved.residuals(state)[0] - before
     assert np.all(np.abs(displacement[~side]) < 1e-9) and np.all(np.abs(displacement[side]) > 0.02)
 
-    predicted = pose_shift(
-        sets, fit, fit.pose, K, [displacement, np.zeros(len(clean[1]))], reference=outer
-    )
+    response = pose_response(sets, fit, fit.pose, K, reference=outer)
+    predicted = response @ stacked_displacements(response, [displacement, np.zeros(len(clean[1]))])
     refit = fit_circle_pose([EdgeSet(outer, moved), sets[1]], fit.pose, outer, K)
     u, v = circle_plane_basis(fit.pose.normal_C)
     dn = refit.pose.normal_C - fit.pose.normal_C
