@@ -1470,11 +1470,10 @@ class EllipseEstimator:
         size = len(fit.result.covariance)
         if self.outer_foot is None:
             return np.zeros((size, size))
-        X_CT = fit.X_CT if fit.X_CT is not None else pose_with_roll(fit.ring, self.outer, 0.0)
-        displacements = self._wall_band(fit, X_CT)
+        pose = fit.X_CT if fit.X_CT is not None else fit.ring
+        displacements = self._wall_band(fit, pose)
         if not any(d.any() for d in displacements):
             return np.zeros((size, size))
-        pose = fit.X_CT if fit.X_CT is not None else fit.ring
         try:  # (only a 6-DOF fit holds points; the reference serves a 5-DOF one)
             response = pose_response(
                 fit.sets, fit.result, pose, self.camera.K, reference=self.outer, points=fit.holes
@@ -1483,19 +1482,18 @@ class EllipseEstimator:
             return np.zeros((size, size))
         shift = response @ stacked_displacements(response, displacements)
         for _ in range(_WALL_STEPS):
-            without_wall = moved(pose, -shift)
-            if isinstance(without_wall, CirclePose):
-                without_wall = pose_with_roll(without_wall, self.outer, 0.0)
-            displacements = self._wall_band(fit, without_wall)
+            displacements = self._wall_band(fit, moved(pose, -shift))
             previous, shift = shift, response @ stacked_displacements(response, displacements)
             if np.linalg.norm(shift - previous) <= _WALL_TOLERANCE * np.linalg.norm(previous):
                 break
         return np.outer(shift, shift)
 
-    def _wall_band(self, fit: _Fit, X_CT: Pose) -> list[np.ndarray]:
+    def _wall_band(self, fit: _Fit, pose: Pose | CirclePose) -> list[np.ndarray]:
         """Per edge set of ``fit``, how far out of the rim's image the outer wall's foot lies
-        under ``X_CT`` along each outer-edge sample's normal (px; zero on other sets, where
-        the wall is hidden, and beyond the final search's reach)."""
+        at ``pose`` (X_CT, or the ring's 5-DOF pose) along each outer-edge sample's normal
+        (px; zero on other sets, where the wall is hidden, and beyond the final search's
+        reach)."""
+        X_CT = pose if isinstance(pose, Pose) else pose_with_roll(pose, self.outer, 0.0)
         reach = self.settings.fine_half_width_px + 1.0 + fit.sigma_px
         displacements = []
         for edge_set in fit.sets:

@@ -27,10 +27,11 @@ The loop (Nocedal & Wright, "Numerical Optimization", 2006, §10.3):
   less than 10⁻⁶·(1 + cost) or no step lowers it (Marquardt 1963).
 
 Covariance (one recipe, ``covariance``): s²·H⁻¹ with H the weighted information Jᵀ·W·J of the
-last linearisation (a direction H leaves unobserved taken as barely measured, never as known) and s² the caller's variance factor — 1 for the Huber fits, whose weights
-already carry 1/σ_g², and χ²/dof for the whitened reprojection fits (``planar_pose``) —
-symmetrised, with the marginal block of the first ``keep`` parameters (nuisances such as free
-radii marginalised out).
+last linearisation (a direction H leaves unobserved taken as barely measured, never as known)
+and s² the caller's variance factor — 1 for the Huber fits, whose weights already carry
+1/σ_g², and χ²/dof for the whitened reprojection fits (``planar_pose``) — symmetrised, with
+the marginal block of the first ``keep`` parameters (nuisances such as free radii
+marginalised out).
 """
 
 from __future__ import annotations
@@ -346,14 +347,15 @@ def covariance(
     eigenvalues of H are floored at ``UNOBSERVED_INFORMATION`` of the largest — a large
     positive variance: "not measured", and the covariance stays positive definite."""
     information = np.asarray(information, dtype=float)
-    spectrum = np.linalg.eigvalsh(0.5 * (information + information.T))
+    symmetric = 0.5 * (information + information.T)
+    spectrum = np.linalg.eigvalsh(symmetric)
     floor = UNOBSERVED_INFORMATION * max(float(spectrum[-1]), 0.0)
     if spectrum[0] > floor:
         cov = np.linalg.inv(information)
     else:
         if floor <= 0.0:
             raise np.linalg.LinAlgError("the information holds nothing: no covariance")
-        values, vectors = np.linalg.eigh(0.5 * (information + information.T))
+        values, vectors = np.linalg.eigh(symmetric)
         cov = (vectors / np.maximum(values, floor)) @ vectors.T
     if keep is not None:
         cov = cov[:keep, :keep]
