@@ -425,7 +425,9 @@ class EllipseEstimator:
         fine in ``width``."""
         mirror_pose = self._mirror_pose(ring)
         other = (
-            None if mirror_pose is None else self._other_full(image, ring, full, mirror_pose, width)
+            None
+            if mirror_pose is None
+            else self._other_full(image, ring, full, mirror_pose, width, near_roll=True)
         )
         if other is None:
             return full, False, False
@@ -441,13 +443,19 @@ class EllipseEstimator:
         full: _Fit,
         mirror_pose: CirclePose,
         coarse_half_width: float | None,
+        *,
+        near_roll: bool = False,
     ) -> _Fit | None:
         """The 6-DOF fit at the ring's other pose ``mirror_pose``, given the fit ``full`` of
         the thruster found on ``ring``'s: started from the other normal with the roll the
         thruster fixed (coarse to fine in ``coarse_half_width`` when given, else one fine
         stage), or, where that roll does not suit it (its thruster then lies elsewhere), with
-        the thruster searched round the other ring. None when there is none, or it converges
-        back to ``full``'s normal (the thruster pulls it: no ambiguity)."""
+        the thruster searched round the other ring — within 12° of that roll only when
+        ``near_roll`` (a track: the thruster's image is where ``full`` found it, so the other
+        pose holds it near the roll carried over — 0.9° and 3.6° from it on the two held-out
+        frames that needed this search — and a whole turn is 10–20 ms at 1.2 m). None when
+        there is none, or it converges back to ``full``'s normal (the thruster pulls it: no
+        ambiguity)."""
         X0 = pose_with_roll(mirror_pose, self.outer, roll_of(full.X_CT, mirror_pose, self.outer))
         other = self._refine_full(
             image, X0, self._visible_off_axis(X0), full.polarities, coarse_half_width
@@ -455,7 +463,8 @@ class EllipseEstimator:
         if other is None:
             mirror = self._mirror(image, ring, mirror_pose)
             if mirror is not None:
-                other = self._find_thruster(image, mirror, None)
+                near = full.X_CT if near_roll else None
+                other = self._find_thruster(image, mirror, near, whole_turn=not near_roll)
         if other is None or self._same_normal(full, other):
             return None
         return other
@@ -1233,10 +1242,13 @@ class EllipseEstimator:
         return out
 
     # --- the thruster -----------------------------------------------------------------------
-    def _find_thruster(self, image: _Image, ring: _Fit, prior: Pose | None) -> _Fit | None:
+    def _find_thruster(
+        self, image: _Image, ring: _Fit, prior: Pose | None, *, whole_turn: bool = True
+    ) -> _Fit | None:
         """Search the roll about the ring's axis for the off-axis circles, largest first (near
-        the prior's roll first when there is a prior), refine the best roll to a 6-DOF pose
-        and verify it; the first circle that verifies settles it."""
+        the prior's roll first when there is a prior, and only there unless ``whole_turn``),
+        refine the best roll to a 6-DOF pose and verify it; the first circle that verifies
+        settles it."""
         zero = pose_with_roll(ring.ring, self.outer, 0.0)
         for probe in sorted(self.off_axis, key=lambda c: -c.radius):
             radius_px = self._radius_px(zero, probe)
@@ -1256,7 +1268,7 @@ class EllipseEstimator:
                 local = roll_of(prior, ring.ring, self.outer) + np.radians(
                     np.arange(-12.0, 12.5, 1.0)
                 )
-                roll_sets.insert(0, local)
+                roll_sets = [local] + (roll_sets if whole_turn else [])
             found = None
             for rolls in roll_sets:
                 found = search_roll(
