@@ -407,14 +407,13 @@ class EllipseEstimator:
             # The ring alone settled on the pose nearer the prior; a prior far off (a turn
             # since) may have chosen its mirror, and the thruster is found there too.
             return self._against_mirror(image, ring, fit, prior, width)
-        if fit.X_CT is None:
-            return self._choose_mirror(image, fit, prior)
         return fit, False, False
 
     def _against_mirror(self, image: _Image, ring: _Fit, full: _Fit, prior: Pose, width: float):
-        """A track's 6-DOF fit ``full``, found far from its prior, weighed against the ring's
-        other pose (``ring``: the ring's fit it came from, or ``full`` itself): the image
-        decides between the two fits, or else the prior does (``_by_prior``). Returns (fit,
+        """A track's 6-DOF fit ``full``, not found within the fine window of its prior (or
+        its thruster out of view there), weighed against the ring's other pose (``ring``: the
+        ring's fit it came from, or ``full`` itself): the image decides between the two fits,
+        or the answer — the pose nearer the prior — says it is ambiguous. Returns (fit,
         ambiguous, from_prior).
 
         Near head-on the ring's two poses lie on either side of the line of sight, and a prior
@@ -434,7 +433,11 @@ class EllipseEstimator:
         best, decided = self._better_of(full, other)
         if decided:
             return best, False, False
-        return self._by_prior(full, other, prior)
+        # The prior did not predict ring and thruster within the fine window (and the ring's
+        # image is the same at both poses): which side of the line of sight the ring turned to
+        # is not the prior's to say.
+        nearer, _, _ = self._by_prior(full, other, prior)
+        return nearer, True, False
 
     def _other_full(
         self,

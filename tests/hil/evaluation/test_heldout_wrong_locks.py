@@ -188,3 +188,15 @@ def test_ellipses_weigh_a_track_far_from_its_prior_against_the_rings_other_pose(
     rows = run_case_group(spec, distance, "turn_y_10deg", mockup)
     assert len(rows) == 12
     assert wrong_locks(rows, distance) == []
+
+
+def test_ellipses_flag_a_track_far_from_its_prior_where_the_image_ties_the_rings_two_poses():
+    # random:107 at 3 m: after the matrix's turns the ring's two fits, each with its thruster,
+    # cost within 7 % of each other and the likelihood-ratio test does not separate them; the
+    # prior, 12-17° off the truth, lay on the wrong pose's side and picked it (15-17° off,
+    # reported as the prior's choice and locked because the previous frame was decided). A
+    # prior too far off for the fine window cannot say which side the ring turned to.
+    spec = replace(HELD_OUT, systems=("ellipses",), frames=3, auto_exposure=True)
+    rows = run_case_group(spec, 3.0, "turn_y_10deg", "random:107")
+    assert len(rows) == 12
+    assert wrong_locks(rows, 3.0) == []
