@@ -326,6 +326,27 @@ class CircleState:
     dr: np.ndarray
 
 
+def _circle_state(center, normal, radius_offsets: np.ndarray) -> CircleState:
+    """The 5-DOF state at a centre and normal, the normal turned to the camera side (so a fit
+    stays there)."""
+    c = np.asarray(center, dtype=float).copy()
+    n = np.asarray(normal, dtype=float)
+    n = n / np.linalg.norm(n)
+    if n @ c > 0:
+        n = -n
+    return CircleState(c, n, np.array(circle_plane_basis(n)), radius_offsets)
+
+
+def _retract_circle(state: CircleState, delta: np.ndarray) -> CircleState:
+    """``state`` moved by an increment [δc, α, β, δr…]: the normal turned within its tangent
+    basis."""
+    n = state.n + delta[3:5] @ state.basis
+    n = n / np.linalg.norm(n)
+    return CircleState(
+        state.c + delta[:3], n, np.array(circle_plane_basis(n)), state.dr + delta[5:]
+    )
+
+
 def _coaxial_heights(edge_sets: Sequence[EdgeSet], reference: Circle3D) -> np.ndarray:
     heights = []
     for s in edge_sets:
@@ -359,15 +380,8 @@ class CircleProblem:
         return 5 + self.observations.free_count
 
     def state(self, center, normal, radius_offsets=None) -> CircleState:
-        """The state at a centre and normal (turned to the camera side, so the fit stays
-        there)."""
-        c = np.asarray(center, dtype=float).copy()
-        n = np.asarray(normal, dtype=float)
-        n = n / np.linalg.norm(n)
-        if n @ c > 0:
-            n = -n
-        dr = self.observations.offsets(radius_offsets)
-        return CircleState(c, n, np.array(circle_plane_basis(n)), dr)
+        """The state at a centre and normal (``_circle_state``)."""
+        return _circle_state(center, normal, self.observations.offsets(radius_offsets))
 
     def _geometry(self, state: CircleState):
         radii = self.observations.radii(state.dr)
@@ -388,11 +402,7 @@ class CircleProblem:
         )
 
     def retract(self, state: CircleState, delta: np.ndarray) -> CircleState:
-        n = state.n + delta[3:5] @ state.basis
-        n = n / np.linalg.norm(n)
-        return CircleState(
-            state.c + delta[:3], n, np.array(circle_plane_basis(n)), state.dr + delta[5:]
-        )
+        return _retract_circle(state, delta)
 
 
 def fit_circle_pose(
@@ -603,9 +613,8 @@ def moved(pose: CirclePose | Pose, delta: np.ndarray) -> CirclePose | Pose:
     if isinstance(pose, Pose):
         raw = retract_raw(pose, delta[:6])
         return Pose(raw.R, raw.p)
-    u, v = circle_plane_basis(pose.normal_C)
-    normal = pose.normal_C + delta[3] * u + delta[4] * v
-    return CirclePose(pose.center_C + delta[:3], normal / np.linalg.norm(normal))
+    state = _retract_circle(_circle_state(pose.center_C, pose.normal_C, np.zeros(0)), delta[:5])
+    return CirclePose(state.c, state.n)
 
 
 def _weighted_jacobian(
