@@ -525,9 +525,11 @@ class LineEstimator:
             # parts (the thruster) decide — in tracking too, so that a wrong lock cannot last.
             # A pose from the panel's edges alone may be degrees off in tilt, which moves the
             # asymmetric parts (far from the panel) by pixels: out of tracking, let them search
-            # — unless the outline fixed the tilt (then a search only lets noise compete).
+            # as far as the pose's covariance places them (at most 6 px) — unless the outline
+            # fixed the tilt (then a search only lets noise compete).
             rough = not tracking and outline is None
-            turn = self.turns.check(gradients, X, search_px=6.0 if rough else 0.0)
+            search = self.turns.search_px(X, fit.covariance, 6.0) if rough else 0.0
+            turn = self.turns.check(gradients, X, search_px=search)
             # The hypothesis came with its turn already chosen (on smoother gradients, from the
             # quad): confirming it needs less margin than overturning it. Undecided (nothing
             # asymmetric in view, or too faint): in tracking the turn is the prior's (a lock
