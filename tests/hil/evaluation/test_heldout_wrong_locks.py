@@ -140,6 +140,17 @@ def test_lines_search_when_a_track_leaves_the_rest_of_the_mockup_unsupported(moc
     assert wrong_locks(rows, distance) == []
 
 
+def test_lines_measure_the_flip_of_a_pose_fitted_to_the_outline_before_judging_it():
+    # random:107 at 1.2 m with auto-exposure, high noise, the second frame (tilted 8.7°): the
+    # panel's edges and the outline settled on the pose mirrored about the line of sight (14°
+    # off, reported as a roll-free circle); the whole model kept it by 64 z units over its
+    # planar flip as predicted, whose outline lay pixels off. Measured, the flip wins.
+    spec = replace(HELD_OUT, frames=3, auto_exposure=True)
+    rows = run_case_group(spec, 1.2, "turn_y_10deg", "random:107")
+    assert len(rows) == 12
+    assert wrong_locks(rows, 1.2) == []
+
+
 @pytest.mark.parametrize("auto_exposure", [False, True])
 def test_lines_do_not_decide_a_quarter_turn_on_a_searchs_gain(auto_exposure):
     # random:115 at 0.5 m: the thruster out of view at three of the four turns and, at the
