@@ -272,6 +272,33 @@ def judge_flip(
     return "undecided", flip
 
 
+def flip_overturning_track(
+    support: ModelSupport,
+    gradients: GradientImage,
+    X_CT: Pose,
+    target: TargetModel,
+    covariance: np.ndarray,
+) -> Pose | None:
+    """A track's planar flip where the whole model judges it clearly better than the track
+    (``judge_flip``: ``other``), else None. A prior on the wrong side of the line of sight —
+    the target turned by about twice its tilt since the last frame — holds the fit on the
+    pose mirrored about it, which the panel's own features fit nearly as well (held-out
+    random:114 at 1.2 m: a track 18° off after the matrix's 17° turn between frames; its flip,
+    as predicted, scored 91 z units more on the ring and thruster)."""
+    flipped = planar_flip(X_CT, target.panel_corners_T, support.camera.K)
+    if flipped is None or not rotation_beyond(flipped, X_CT, covariance):
+        return None
+    z = support.contour_scores(
+        gradients,
+        np.stack([X_CT.R, flipped.R]),
+        np.stack([X_CT.p, flipped.p]),
+        only=_beyond_panel(support),
+        shift_px=2.0,
+    )
+    own, other = summed_support(z)
+    return flipped if other - own >= FLIP_MARGIN else None
+
+
 #: The tilts searched about the panel's centre: ±16° in steps of 4°, then steps of 1° around
 #: the best (the coarse gradients meet an edge a few pixels off).
 TILT_SEARCH_RANGE_DEG = 16.0

@@ -35,6 +35,7 @@ import numpy as np
 from estimators.acquisition import (
     TurnChecker,
     first_solved,
+    flip_overturning_track,
     judge_flip,
     judge_tilt,
     judge_turn,
@@ -763,6 +764,17 @@ class CornerEstimator:
             )
         ):
             reason = "the prior's tilt fits the ring and outline better than the pose's"
+        if not reason and tracking:
+            flipped = flip_overturning_track(
+                self.support, gradients, fit.X_CT, self.target, fit.covariance
+            )
+            if flipped is not None:
+                # Measured afresh from the flip, free of the prior that held the fit on this
+                # side; where that fails the track stands, flagged: frame and prior disagree.
+                other = self._solve(image, gradients, flipped, tracking=False, retry=False)
+                if not other.reason:
+                    return other
+                ambiguous = True
         if not reason and not tracking:
             # The tilt of a pose from a few faint features may be 10–20° off with a covariance
             # that claims a degree: the ring and the outline judge it (``judge_tilt``).

@@ -39,6 +39,7 @@ from estimators.acquisition import (
     TurnChecker,
     coarse_gradients,
     first_solved,
+    flip_overturning_track,
     judge_flip,
     judge_turn,
     prior_tilt_fits_better,
@@ -510,6 +511,17 @@ class LineEstimator:
             and prior_tilt_fits_better(self.support, gradients, X, X0, self.target, fit.covariance)
         ):
             reason = "the prior's tilt fits the ring and outline better than the pose's"
+        if not reason and tracking:
+            flipped = flip_overturning_track(
+                self.support, gradients, X, self.target, fit.covariance
+            )
+            if flipped is not None:
+                # Measured afresh from the flip, free of the prior that held the fit on this
+                # side; where that fails the track stands, flagged: frame and prior disagree.
+                other = self._solve(image, gradients, flipped, tracking=False, retry=False)
+                if not other.reason:
+                    return other
+                ambiguous = True
         roll_undecided = False
         if not reason and not tracking:
             # Without the outline the panel's edges alone may favour the wrong flip (a small
