@@ -112,10 +112,15 @@ class TurnChecker:
         self.support = support
         symmetric, _ = support.symmetric_under(self.turns[1])
         self.parts = frozenset(n for n in support.names if n not in symmetric)
-        self._part_index = np.array(
-            [i for i, n in enumerate(support.names) if n in self.parts], int
-        )
         self.discs = _informative_discs(support, self.turns)
+        # Where the informative parts lie on the model (contour samples and disc centres).
+        parts = [i for i, name in enumerate(support.names) if name in self.parts]
+        self._informative_T = np.concatenate(
+            [
+                support.points_T[np.isin(support.contour_of, parts)],
+                support.disc_centres_T[self.discs],
+            ]
+        )
 
     @property
     def decidable(self) -> bool:
@@ -131,17 +136,11 @@ class TurnChecker:
         0.5 m with auto-exposure: a thruster at a wrong turn, a sliver at the image's border,
         scored z −0.9 and 0.5 where predicted and 3.0 and 6.5 within 6 px — a 3σ of 4.8 px —
         and decided the turn 90° off)."""
-        points_T = np.concatenate(
-            [
-                self.support.points_T[np.isin(self.support.contour_of, self._part_index)],
-                self.support.disc_centres_T[self.discs],
-            ]
-        )
-        if len(points_T) == 0:
+        if len(self._informative_T) == 0:
             return 0.0
         if not np.all(np.isfinite(covariance)):
             return largest_px
-        turned_T = np.concatenate([turn.apply(points_T) for turn in self.turns])
+        turned_T = np.concatenate([turn.apply(self._informative_T) for turn in self.turns])
         _, J, depth = projection_jacobian(X_CT, turned_T, self.support.camera.K)
         J = J[depth > 1e-9]
         if len(J) == 0:
@@ -279,24 +278,19 @@ def flip_overturning_track(
     target: TargetModel,
     covariance: np.ndarray,
 ) -> Pose | None:
-    """A track's planar flip where the whole model judges it clearly better than the track
-    (``judge_flip``: ``other``), else None. A prior on the wrong side of the line of sight —
-    the target turned by about twice its tilt since the last frame — holds the fit on the
-    pose mirrored about it, which the panel's own features fit nearly as well (held-out
-    random:114 at 1.2 m: a track 18° off after the matrix's 17° turn between frames; its flip,
-    as predicted, scored 91 z units more on the ring and thruster)."""
+    """A track's planar flip where the model's parts beyond the panel (ring, outline,
+    thruster), scored over both poses in one pass with a 2 px tolerance as tracking's time
+    allows, support it by ``FLIP_MARGIN`` more than the track; else None. A prior on the wrong
+    side of the line of sight — the target turned by about twice its tilt since the last frame
+    — holds the fit on the pose mirrored about it, which the panel's own features fit nearly
+    as well (held-out random:114 at 1.2 m: a track 18° off after the matrix's 17° turn between
+    frames; its flip, as predicted, scored 91 z units more with the whole model, most of it on
+    the ring and thruster)."""
     flipped = planar_flip(X_CT, target.panel_corners_T, support.camera.K)
     if flipped is None or not rotation_beyond(flipped, X_CT, covariance):
         return None
-    z = support.contour_scores(
-        gradients,
-        np.stack([X_CT.R, flipped.R]),
-        np.stack([X_CT.p, flipped.p]),
-        only=_beyond_panel(support),
-        shift_px=2.0,
-    )
-    own, other = summed_support(z)
-    return flipped if other - own >= FLIP_MARGIN else None
+    gain = _gain_beyond_panel(support, gradients, X_CT, flipped, shift_px=2.0)
+    return flipped if gain >= FLIP_MARGIN else None
 
 
 #: The tilts searched about the panel's centre: ±16° in steps of 4°, then steps of 1° around
@@ -434,14 +428,28 @@ def prior_tilt_fits_better(
     X_alt = Pose(R_alt, X_CT.apply(centre_T[None])[0] - R_alt @ centre_T)
     if not rotation_beyond(X_alt, X_CT, covariance):
         return False
+    return _gain_beyond_panel(support, gradients, X_CT, X_alt) >= TILT_MARGIN
+
+
+def _gain_beyond_panel(
+    support: ModelSupport,
+    gradients: GradientImage,
+    X_CT: Pose,
+    X_other: Pose,
+    *,
+    shift_px: float = 0.0,
+) -> float:
+    """By how much ``X_other`` is better supported than ``X_CT`` by the model's contours
+    beyond the panel (summed z-scores, both poses in one pass)."""
     z = support.contour_scores(
         gradients,
-        np.stack([X_CT.R, X_alt.R]),
-        np.stack([X_CT.p, X_alt.p]),
+        np.stack([X_CT.R, X_other.R]),
+        np.stack([X_CT.p, X_other.p]),
         only=_beyond_panel(support),
+        shift_px=shift_px,
     )
-    own, alternative = summed_support(z)
-    return bool(alternative - own >= TILT_MARGIN)
+    own, other = summed_support(z)
+    return float(other - own)
 
 
 def _beyond_panel(support: ModelSupport) -> frozenset[str]:
