@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -47,7 +47,7 @@ from estimators.acquisition import (
 from estimators.compiled import compiled, compiled_inline
 from estimators.deadline import NO_TIME_FOR_SEARCH, search_allowed
 from estimators.frame import CameraInfo, Frame
-from estimators.geometry import Pose
+from estimators.geometry import Pose, rotation_error_geodesic
 from estimators.imaging import (
     GradientImage,
     ImageStack,
@@ -97,7 +97,10 @@ class CornerOptions:
     the disc and wedge models depart from a real head's or corner's image by a few hundredths of
     a pixel (relief, rendering) even where the noise is nil — the pose fits' residuals are
     0.023–0.036 px RMS at 0.5–3 m on noise-free frames and under a camera's own noise, where
-    the features' own σ is a tenth of that and, without the floor, the pose's NEES was 18–60.
+    the features' own σ is a tenth of that and, without the floor, the pose's NEES was 18–60;
+    ``judge_tilt_beyond_deg``: a track whose attitude moved more than this from its prior was
+    not held by the prior, and its tilt is judged by the ring and outline as an acquisition's
+    is (``judge_tilt``) — far above a loop's frame-to-frame motion and the bench's 1° prior.
     """
 
     gate_m: float = 0.04
@@ -111,10 +114,13 @@ class CornerOptions:
     turn_margin: float = 6.0
     confirm_margin: float = 3.0
     feature_floor_px: float = 0.03
+    judge_tilt_beyond_deg: float = 5.0
 
     def __post_init__(self) -> None:
         if not self.feature_floor_px >= 0:
             raise ValueError(f"feature_floor_px must be >= 0; got {self.feature_floor_px}")
+        if not self.judge_tilt_beyond_deg > 0:
+            raise ValueError(f"judge_tilt_beyond_deg must be > 0; got {self.judge_tilt_beyond_deg}")
         if self.pose_method not in POSE_METHODS:
             raise ValueError(
                 f"pose_method must be one of {', '.join(POSE_METHODS)}; got {self.pose_method!r}"
@@ -775,14 +781,23 @@ class CornerEstimator:
                 if not other.reason:
                     return other
                 ambiguous = True
-        if not reason and not tracking:
+        if not reason and (
+            not tracking
+            or rotation_error_geodesic(fit.X_CT, X0) > math.radians(options.judge_tilt_beyond_deg)
+        ):
             # The tilt of a pose from a few faint features may be 10–20° off with a covariance
-            # that claims a degree: the ring and the outline judge it (``judge_tilt``).
+            # that claims a degree: the ring and the outline judge it (``judge_tilt``). So may
+            # a track's that moved far from its prior (held-out random:104 at 1.2 m after the
+            # matrix's 9° turn: 13° off about the other axis, NEES 27; the ring's tilt 1.9°).
             tilt = judge_tilt(self.support, image, fit.X_CT, self.target, fit.covariance)
             if tilt.X_CT is not None:
-                if retry:
-                    return self._solve(image, gradients, tilt.X_CT, tracking=False, retry=False)
                 reason = f"a tilt of the pose fits the ring and outline better (by {tilt.gain:.0f})"
+                if retry:
+                    # Measured afresh from that tilt, without the prior.
+                    other = self._solve(image, gradients, tilt.X_CT, tracking=False, retry=False)
+                    if not tracking or not other.reason:
+                        return other
+                    return replace(other, reason=f"{reason}; measured from there: {other.reason}")
         if not reason:
             # The covariance reported (the judges above test against the fit's own, the
             # stricter): its variance factor no lower than 1 (``MIN_SCALE2``), and widened where

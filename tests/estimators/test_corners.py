@@ -120,6 +120,8 @@ def test_corner_estimator_lhm_pose_method_and_bad_options():
     assert position <= LIMITS[2.0][0] and attitude <= LIMITS[2.0][1]
     with pytest.raises(ValueError, match="pose_method"):
         CornerOptions(pose_method="dlt")
+    with pytest.raises(ValueError, match="judge_tilt_beyond_deg"):
+        CornerOptions(judge_tilt_beyond_deg=0.0)
     with pytest.raises(TypeError):
         build(TARGET, f.info, gate=3)
 
@@ -152,20 +154,27 @@ def test_corner_estimator_tracks_a_mockup_with_a_marker_inside_the_ring(tmp_path
         assert np.min(np.linalg.norm(m.features["labeled"] - seen, axis=1)) < 1.0
 
 
-def test_tracking_from_the_wrong_planar_flip_says_the_prior_kept_it():
+def test_tracking_from_the_wrong_planar_flip_is_not_reported_as_measured():
     """Random mock-up 104 at 3 m: a faint panel, 55 px wide, and faint small discs. A track on
     the wrong planar flip (20° off) stayed there and reported the flip as measured (33° off,
-    NEES 34, not flagged) — after an ambiguous acquisition, a confident wrong track. The flip
-    is now weighed in tracking too: undecided by the frame, it is the prior's (``from_prior``),
-    which the Tracker reports as ambiguous when the prior had not decided it either. Where the
+    NEES 34, not flagged) — after an ambiguous acquisition, a confident wrong track. Then the
+    flip was weighed in tracking too (undecided by the frame: the prior's, reported as
+    ambiguous). Now a track that moved far from its prior (16° here) also has its tilt judged:
+    the ring and the outline refute this one's by 131 z units, and measured afresh from the
+    better tilt without the prior the frame cannot decide the panel's quarter turn — the
+    frame is lost, and says why (without the tilt judge: the prior's flip, flagged). Where the
     frame decides (the default mock-up), the track turns back to the true pose."""
     tilt = (0.05, -0.03, 0.0, math.radians(8), math.radians(-6), math.radians(10))
     frame = rendered.frame(3.0, tilt, mockup="random:104", seq=7)
     target = rendered.target("random:104")
     truth = frame.truth.X_CT
-    m = build(target, frame.info).estimate(
-        frame, weak_perspective_flip(truth, target.panel_corners_T)
-    )
+    prior = weak_perspective_flip(truth, target.panel_corners_T)
+    m = build(target, frame.info).estimate(frame, prior)
+    assert not m.valid
+    assert "a tilt of the pose fits the ring and outline better" in m.reason
+    # With the tilt judge kept out of tracking, the flip that the frame does not decide is the
+    # prior's, which the Tracker reports as ambiguous when the prior had not decided it either.
+    m = build(target, frame.info, judge_tilt_beyond_deg=90.0).estimate(frame, prior)
     assert m.valid, m.reason
     assert m.from_prior
     assert honest(m, roll_decided=False, circle_decided=False).ambiguous

@@ -164,6 +164,20 @@ def test_a_track_on_the_wrong_side_of_the_line_of_sight_gives_way_to_its_flip(sy
     assert wrong_locks(rows, 1.2) == []
 
 
+@pytest.mark.parametrize("distance", [1.2, 2.0])
+def test_corners_judge_the_tilt_of_a_track_that_moved_far_from_its_prior(distance):
+    # random:104 with auto-exposure, its panel off the ring's axis and faint: after the
+    # matrix's turn between frames the track settled 13° (1.2 m, high noise, second frame)
+    # and 10° (2 m, low noise, third frame) off about the other axis, claiming far less (NEES
+    # 27 and 90) — not the planar flip, which the track's flip check weighs, but a tilt that
+    # the ring and outline refuse by 70 and 97 z units. A track that moved that far from its
+    # prior is judged as an acquisition is. Run with the held-out matrix's three frames.
+    spec = replace(HELD_OUT, systems=("corners",), frames=3, auto_exposure=True)
+    rows = run_case_group(spec, distance, "turn_y_10deg", "random:104")
+    assert len(rows) == 12
+    assert wrong_locks(rows, distance) == []
+
+
 @pytest.mark.parametrize("auto_exposure", [False, True])
 def test_lines_do_not_decide_a_quarter_turn_on_a_searchs_gain(auto_exposure):
     # random:115 at 0.5 m: the thruster out of view at three of the four turns and, at the
