@@ -36,6 +36,7 @@ import numpy as np
 
 from estimators.acquisition import (
     FLIP_MARGIN,
+    TurnCheck,
     TurnChecker,
     coarse_gradients,
     first_solved,
@@ -502,7 +503,18 @@ class LineEstimator:
             if other.total > support.total:
                 fit, support = choice.alternative, other
         X = fit.X_CT
-        reason, confirmed_by_prior = self._validate(fit.reduced_chi2, support, tracking)
+        reason, confirmed_by_prior = self._unfit(fit.reduced_chi2, support), False
+        if not reason:
+            reason, confirmed_by_prior = support.confirmation(
+                options.min_edge_support, tracking=tracking
+            )
+            if reason and not tracking and turn_retry:
+                # A panel off the ring's axis taken at a wrong quarter turn puts the ring off
+                # its edges too: the turns judge the hypothesis before the ring refuses it
+                # (held-out random:101 at 0.5 m: a half turn off, the ring at z −1.3).
+                turn, judged = self._check_turn(gradients, X, fit.covariance, outline is None)
+                if judged == "other":
+                    return self._solve_turned(image, gradients, X, turn)
         from_prior = from_prior or confirmed_by_prior
         unconfirmed = confirmed_by_prior and bool(support.others())
         if (
@@ -544,33 +556,20 @@ class LineEstimator:
         if not reason:
             # The square panel looks the same after a quarter turn: the model's asymmetric
             # parts (the thruster) decide — in tracking too, so that a wrong lock cannot last.
-            # A pose from the panel's edges alone may be degrees off in tilt, which moves the
-            # asymmetric parts (far from the panel) by pixels: out of tracking, let them search
-            # as far as the pose's covariance places them (at most 6 px) — unless the outline
-            # fixed the tilt (then a search only lets noise compete).
-            rough = not tracking and outline is None
-            search = self.turns.search_px(X, fit.covariance, 6.0) if rough else 0.0
-            turn = self.turns.check(gradients, X, search_px=search)
+            rough = not tracking and outline is None  # (a pose from the panel's edges alone)
+            turn, judged = self._check_turn(gradients, X, fit.covariance, rough)
             # The hypothesis came with its turn already chosen (on smoother gradients, from the
             # quad): confirming it needs less margin than overturning it. Undecided (nothing
             # asymmetric in view, or too faint): in tracking the turn is the prior's (a lock
             # only if the prior's was decided: the Tracker knows); without a prior the pose is
             # reported without its roll.
-            judged = judge_turn(turn, options.turn_margin, options.confirm_margin)
             if judged == "other":
                 if tracking:
                     reason = "a quarter turn of the pose fits the image better"
                 elif turn_retry:
                     # Measured again from the turned pose: a face that is not square, fitted
                     # at the wrong turn, does not fit at the right one.
-                    return self._solve(
-                        image,
-                        gradients,
-                        X @ self.turns.turns[turn.best],
-                        tracking=False,
-                        retry=False,
-                        turn_retry=False,
-                    )
+                    return self._solve_turned(image, gradients, X, turn)
                 else:
                     reason = "a quarter turn of the pose fits the image better"
             elif judged == "undecided":
@@ -603,6 +602,24 @@ class LineEstimator:
             from_prior,
             unconfirmed,
         )
+
+    def _check_turn(
+        self, gradients: GradientImage, X_CT: Pose, covariance: np.ndarray, rough: bool
+    ) -> tuple[TurnCheck, str]:
+        """The quarter turns of ``X_CT`` compared by the model's asymmetric parts, and the
+        verdict (``judge_turn``). A rough pose (fitted without the outline or a prior: degrees
+        off in tilt, which moves the parts far from the panel by pixels) lets them search as far
+        as its ``covariance`` places them, at most 6 px; else a search only lets noise compete."""
+        search = self.turns.search_px(X_CT, covariance, 6.0) if rough else 0.0
+        turn = self.turns.check(gradients, X_CT, search_px=search)
+        return turn, judge_turn(turn, self.options.turn_margin, self.options.confirm_margin)
+
+    def _solve_turned(
+        self, image: ImageStack, gradients: GradientImage, X_CT: Pose, turn: TurnCheck
+    ) -> _Solution:
+        """Measured again, without a prior, from the better quarter turn of ``X_CT``."""
+        turned = X_CT @ self.turns.turns[turn.best]
+        return self._solve(image, gradients, turned, tracking=False, retry=False, turn_retry=False)
 
     def _measured_flip(
         self,
@@ -951,18 +968,14 @@ class LineEstimator:
             return None
         return choose_pose(fits, X0 if tracking else None)
 
-    def _validate(self, reduced_chi2: float, support: Support, tracking: bool) -> tuple[str, bool]:
-        """Why the fit is not a valid pose ('' if it is), and whether the prior stood in for
-        the mock-up's other contours (``Support.confirmation``)."""
+    def _unfit(self, reduced_chi2: float, support: Support) -> str:
+        """Why the fit is not a pose of the panel ('' if it is): its edge points disagree, or
+        the reprojected panel does not stand out of the noise. (Whether the mock-up's other
+        parts confirm it is ``Support.confirmation``'s to say.)"""
         options = self.options
         if reduced_chi2 > options.max_reduced_chi2:
-            return f"edge points disagree with the model (χ²/dof {reduced_chi2:.1f})", False
-        unsupported = support.panel_unsupported(
-            options.min_edge_support, options.min_panel_edge_support
-        )
-        if unsupported:
-            return unsupported, False
-        return support.confirmation(options.min_edge_support, tracking=tracking)
+            return f"edge points disagree with the model (χ²/dof {reduced_chi2:.1f})"
+        return support.panel_unsupported(options.min_edge_support, options.min_panel_edge_support)
 
 
 def _integer_median(values: np.ndarray) -> float:
