@@ -156,3 +156,10 @@ def test_a_wrong_quarter_turn_is_judged_before_the_ring_refuses_it(system):
     # (z -1.3) — refused for that before its turn was checked (5 of 6 frames acquired). Run
     # with the held-out matrix's three frames per case.
     _assert_acquired(system, "random:101", 0.5, "turn_y_10deg", 6, auto_exposure=True, frames=3)
+
+
+def test_a_wrong_quarter_turn_is_judged_before_its_features_refuse_it():
+    # random:108 at 2 m, turned, exposed, low noise, the third frame: a hypothesis a quarter
+    # turn off (35 mm / 91°), its fasteners labeled on the wrong ones, was refused for their
+    # disagreement (χ²/dof 7.4) before its turn was checked (5 of 6 frames acquired).
+    _assert_acquired("corners", "random:108", 2.0, "turn_y_10deg", 6, auto_exposure=True, frames=3)
