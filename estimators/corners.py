@@ -751,7 +751,8 @@ class CornerEstimator:
             # the model's asymmetric parts (the thruster) decide, in tracking too, so that a
             # wrong lock cannot survive.
             turn = self.turns.check(gradients, fit.X_CT)
-            if turn.best != 0 and turn.margin >= options.turn_margin:
+            judged = judge_turn(turn, options.turn_margin, options.confirm_margin)
+            if judged == "other":
                 if tracking or not turn_retry:
                     return self._failure(
                         "a quarter turn of the pose fits the image better", candidates
@@ -761,7 +762,7 @@ class CornerEstimator:
             # Undecided (nothing asymmetric in view, or too faint): in tracking the turn is the
             # prior's (a lock only if the prior's was decided: the Tracker knows); without a
             # prior the pose is reported without its roll.
-            if judge_turn(turn, options.turn_margin, options.confirm_margin) == "undecided":
+            if judged == "undecided":
                 if tracking:
                     from_prior = True
                 elif self.axis_circle is not None:
