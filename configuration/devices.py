@@ -15,6 +15,7 @@ from pydantic import Field, model_validator
 
 from configuration.base import Positive, Strict
 from configuration.rig import ModbusEndpoint
+from drivers.threaded_io import TRACK_COMMAND_TIMEOUT_S
 from drivers.ur_rtde import URArm, URArmOptions
 
 if TYPE_CHECKING:
@@ -162,9 +163,12 @@ class ModbusDevice(Strict):
 
 
 class ModbusTrackDevice(ModbusDevice):
-    """The track's axis controller on Modbus TCP (``ModbusTrack``, docs/track_modbus.md)."""
+    """The track's axis controller on Modbus TCP (``ModbusTrack``, docs/track_modbus.md).
+    ``command_timeout_s``: the host-side watchdog — a moving track the control loop has not
+    commanded for this long is stopped by the I/O thread (``ThreadedTrack``)."""
 
     device_id: Annotated[int, Field(ge=0, le=247)] = 1
+    command_timeout_s: Annotated[float, Field(gt=0.0, le=2.0)] = TRACK_COMMAND_TIMEOUT_S
 
 
 class RobotiqGripperDevice(ModbusDevice):

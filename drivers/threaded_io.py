@@ -47,6 +47,10 @@ StateT = TypeVar("StateT")
 #: How long ``close()`` waits for the I/O thread's round trip in flight (s).
 _JOIN_S = 2.0
 
+#: The track's host-side watchdog by default (s): a moving track the control loop has not
+#: commanded for this long is stopped.
+TRACK_COMMAND_TIMEOUT_S = 0.1
+
 
 class DeviceIo(Generic[StateT]):
     """One device's I/O thread: the newest posted command, then a status read, every
@@ -190,7 +194,7 @@ class ThreadedTrack:
         *,
         period_s: float,
         stale_after_s: float,
-        command_timeout_s: float = 0.1,
+        command_timeout_s: float = TRACK_COMMAND_TIMEOUT_S,
         resend_s: float = 0.05,
         clock: Callable[[], float] = time.monotonic,
     ):

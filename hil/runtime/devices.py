@@ -90,6 +90,7 @@ class RealDevices:
                 ),
                 period_s=track.io_period_s,
                 stale_after_s=stale_after(track.timeout_s, track.io_period_s),
+                command_timeout_s=track.command_timeout_s,
             ),
             gripper=ThreadedGripper(
                 RobotiqGripper.over_tcp(

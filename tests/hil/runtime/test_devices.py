@@ -14,6 +14,7 @@ from configuration.devices import DevicesConfig, OakCameraDevice
 from configuration.rig import load_rig
 from drivers.base import DeviceTimeout
 from drivers.oak import write_calibration
+from hil.analysis.bench_rig import short_trial
 from hil.runtime.devices import RealDevices, device_camera_main
 from hil.runtime.processes import stop_process
 from sim_backends.remote import RemoteCamera
@@ -25,13 +26,19 @@ def test_real_devices_from_config_carry_addresses_and_options():
         {
             "arm": {"backend": "ur_rtde", "host": "192.168.1.10", "state_timeout_s": 0.2},
             "camera": {"backend": "oak"},
-            "track": {"backend": "modbus", "host": "192.168.1.20", "timeout_s": 0.05},
+            "track": {
+                "backend": "modbus",
+                "host": "192.168.1.20",
+                "timeout_s": 0.05,
+                "command_timeout_s": 0.2,
+            },
             "gripper": {"backend": "modbus", "host": "192.168.1.21", "activation_timeout_s": 4},
         }
     )
     rig = load_rig("rig")
     real = RealDevices.from_config(devices, rig)
     assert real.arm.host == "192.168.1.10" and real.arm.options.state_timeout_s == 0.2
+    assert real.track.command_timeout_s == 0.2
     track, gripper = real.track.link, real.gripper.link
     assert (track.host, track.port, track.device_id, track.timeout_s) == (
         "192.168.1.20",
@@ -42,6 +49,25 @@ def test_real_devices_from_config_carry_addresses_and_options():
     assert (gripper.host, gripper.device_id, real.gripper_activation_s) == ("192.168.1.21", 9, 4)
     with pytest.raises(ValueError, match="real devices need"):
         RealDevices.from_config(DevicesConfig(), rig)
+
+
+def test_the_short_trials_track_forgives_the_stall_its_tick_deadline_forgives(tmp_path):
+    # A control loop late by less than its tick deadline must not stop the track either (CI
+    # once saw the short trial end on the track's 0.1 s command watchdog, 0.104 s late).
+    sim = short_trial(tmp_path)
+    track = RealDevices.from_config(sim.devices, load_rig("rig")).track
+    assert track.command_timeout_s >= sim.approach.supervisor.max_tick_s
+    assert RealDevices.from_config(
+        DevicesConfig.model_validate(
+            {
+                "arm": {"backend": "ur_rtde", "host": "192.168.1.10"},
+                "camera": {"backend": "oak"},
+                "track": {"backend": "modbus", "host": "192.168.1.20"},
+                "gripper": {"backend": "modbus", "host": "192.168.1.21"},
+            }
+        ),
+        load_rig("rig"),
+    ).track.command_timeout_s == pytest.approx(0.1)
 
 
 def test_device_camera_process_hands_over_replayed_frames_with_their_calibration(tmp_path):
