@@ -317,15 +317,58 @@ def refine_ellipse(
     """
     uv = as_points(uv, 2, "uv")
     start = np.array([initial.cx, initial.cy, np.log(initial.a), np.log(initial.b), initial.angle])
-
-    def conic(state: np.ndarray) -> np.ndarray:
-        cx, cy, log_a, log_b, angle = state
-        # A trial step on a short, noisy arc may ask for absurd axes: keep them finite (the
-        # step is then refused for its cost, not for an overflow).
-        a, b = np.exp(np.clip([log_a, log_b], _LOG_AXIS_MIN, _LOG_AXIS_MAX))
-        return conic_from_parameters(cx, cy, a, b, angle)
-
-    problem = VectorProblem(lambda state: [sampson_distances(conic(state), uv)], 5)
+    problem = VectorProblem(
+        lambda state: [ellipse_sampson_distances(state, uv)[0]],
+        5,
+        jacobian=lambda state: ellipse_sampson_distances(state, uv)[1],
+    )
     solution = solve(problem, start, loss=Huber(floor=0.02), iterations=iterations)
-    ellipse = ellipse_from_conic(conic(solution.state))
+    cx, cy, a, b, angle = _ellipse_parameters(solution.state)
+    ellipse = ellipse_from_conic(conic_from_parameters(cx, cy, a, b, angle))
     return ellipse, solution.residuals[0], solution.sigmas[0]
+
+
+def _ellipse_parameters(state: np.ndarray) -> tuple[float, float, float, float, float]:
+    """(cx, cy, a, b, angle) of a refinement state (cx, cy, log a, log b, angle). A trial step
+    on a short, noisy arc may ask for absurd axes: they are kept finite (the step is then
+    refused for its cost, not for an overflow)."""
+    cx, cy, log_a, log_b, angle = (float(x) for x in state)
+    a, b = np.exp(np.clip([log_a, log_b], _LOG_AXIS_MIN, _LOG_AXIS_MAX))
+    return cx, cy, float(a), float(b), angle
+
+
+def ellipse_sampson_distances(state: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed Sampson distances (N,) of points (N,2) to the ellipse of ``state`` (cx, cy,
+    log a, log b, angle), as ``sampson_distances`` of its conic, and their Jacobian (N,5).
+
+    In the ellipse's own axes — x = Rᵀ(p − c) with R the rotation by the angle — the conic's
+    value is F = x₁²/a² + x₂²/b² − 1 and its gradient's norm 2‖k‖ with k = (x₁/a², x₂/b²), so
+    d = F / (2‖k‖): the derivatives follow by the chain rule through x (centre and angle:
+    ∂x/∂c = −Rᵀ, ∂x/∂angle = (x₂, −x₁)) and through 1/a² = e^(−2 log a). An axis held at its
+    bound (``_ellipse_parameters``) does not move with its state."""
+    cx, cy, a, b, angle = _ellipse_parameters(state)
+    cos, sin = np.cos(angle), np.sin(angle)
+    px, py = uv[:, 0] - cx, uv[:, 1] - cy
+    x1, x2 = cos * px + sin * py, -sin * px + cos * py
+    k1, k2 = x1 / a**2, x2 / b**2
+    norm = np.maximum(np.hypot(k1, k2), 1e-300)
+    F = x1 * k1 + x2 * k2 - 1.0
+    d = F / (2.0 * norm)
+    # ∂d/∂x₁, ∂d/∂x₂: F's gradient is 2k, the norm's (k₁/a², k₂/b²)/‖k‖
+    scale = F / (2.0 * norm**3)
+    d_x1 = k1 / norm - scale * k1 / a**2
+    d_x2 = k2 / norm - scale * k2 / b**2
+    # through 1/a² and 1/b²: ∂F/∂log a = −2 x₁k₁, ∂‖k‖/∂log a = −2 k₁²/‖k‖ (b alike)
+    d_log_a = -x1 * k1 / norm + 2.0 * scale * k1**2
+    d_log_b = -x2 * k2 / norm + 2.0 * scale * k2**2
+    held = np.clip(state[2:4], _LOG_AXIS_MIN, _LOG_AXIS_MAX) != state[2:4]
+    J = np.column_stack(
+        [
+            -cos * d_x1 + sin * d_x2,
+            -sin * d_x1 - cos * d_x2,
+            np.zeros_like(d) if held[0] else d_log_a,
+            np.zeros_like(d) if held[1] else d_log_b,
+            x2 * d_x1 - x1 * d_x2,
+        ]
+    )
+    return d, J

@@ -365,33 +365,21 @@ def covariance(
 
 # --- problems built from functions -----------------------------------------------------------
 
-_JACOBIAN_STEP = 1e-6
-
 
 @dataclass(frozen=True, slots=True, eq=False)
 class VectorProblem:
-    """A problem on a plain parameter vector (state + δ) with residuals from a function and,
-    without ``jacobian``, a forward-difference Jacobian (step 10⁻⁶) — for small fits without
-    an analytic model (``conics.refine_ellipse``)."""
+    """A problem on a plain parameter vector (state + δ): residuals from ``function`` and their
+    analytic Jacobian from ``jacobian`` (``conics.refine_ellipse``)."""
 
     function: Callable[[np.ndarray], list[np.ndarray]]
     n_params: int
-    jacobian: Callable[[np.ndarray], np.ndarray] | None = None
+    jacobian: Callable[[np.ndarray], np.ndarray]
 
     def residuals(self, state: np.ndarray) -> list[np.ndarray]:
         return self.function(state)
 
     def linearize(self, state: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
-        groups = self.function(state)
-        if self.jacobian is not None:
-            return groups, self.jacobian(state)
-        flat = _flatten(groups)
-        J = np.empty((len(flat), self.n_params))
-        for j in range(self.n_params):
-            moved = state.copy()
-            moved[j] += _JACOBIAN_STEP
-            J[:, j] = (_flatten(self.function(moved)) - flat) / _JACOBIAN_STEP
-        return groups, J
+        return self.function(state), self.jacobian(state)
 
     def retract(self, state: np.ndarray, delta: np.ndarray) -> np.ndarray:
         return state + delta

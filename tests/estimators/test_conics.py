@@ -8,10 +8,13 @@ from estimators.conics import (
     circle_image_conic,
     circle_points,
     conic_from_ellipse,
+    conic_from_parameters,
     conic_residuals,
     ellipse_from_conic,
+    ellipse_sampson_distances,
     fit_ellipse_direct,
     fit_ellipse_leaving_out_an_arc,
+    sampson_distances,
 )
 from estimators.geometry import intrinsics_from_fov, project
 
@@ -114,3 +117,44 @@ def test_an_ellipse_fit_leaves_out_one_wrong_arc(start, share, ratio, seed):
     )
     plain = ellipse_from_conic(fit_ellipse_direct(wrong))
     assert max(abs(plain.cx - e.cx), abs(plain.cy - e.cy), abs(plain.a - e.a)) > 0.5
+
+
+@given(
+    st.floats(50.0, 600.0),
+    st.floats(50.0, 400.0),
+    st.floats(np.log(5.0), np.log(400.0)),
+    st.floats(0.3, 3.0),
+    st.floats(-np.pi, np.pi),
+    st.integers(0, 10**6),
+)
+def test_the_ellipse_refinements_jacobian_is_the_derivative_of_its_sampson_distances(
+    cx, cy, log_a, ratio, angle, seed
+):
+    """Analytic (``ellipse_sampson_distances``) against central differences, on points within
+    a third of its size of the curve (either axis the longer, circles' images seen up to 73°
+    off their axis); the distances are ``sampson_distances`` of the state's conic."""
+    rng = np.random.default_rng(seed)
+    state = np.array([cx, cy, log_a, log_a + np.log(ratio), angle])
+    a, b = np.exp(state[2]), np.exp(state[3])
+    t = rng.uniform(0.0, 2.0 * np.pi, 40)
+    c, s = np.cos(angle), np.sin(angle)
+    local = np.column_stack([a * np.cos(t), b * np.sin(t)]) * rng.uniform(0.67, 1.33, (40, 1))
+    uv = np.array([cx, cy]) + local @ np.array([[c, s], [-s, c]])
+    d, J = ellipse_sampson_distances(state, uv)
+    np.testing.assert_allclose(
+        d, sampson_distances(conic_from_parameters(cx, cy, a, b, angle), uv), atol=1e-9
+    )
+    numeric = np.empty_like(J)
+    for j in range(5):
+        step = np.zeros(5)
+        step[j] = 1e-6
+        plus, minus = (ellipse_sampson_distances(state + k * step, uv)[0] for k in (1, -1))
+        numeric[:, j] = (plus - minus) / 2e-6
+    np.testing.assert_allclose(J, numeric, rtol=1e-5, atol=1e-6 * max(1.0, np.abs(numeric).max()))
+
+
+def test_an_axis_held_at_its_bound_does_not_move_the_distances():
+    uv = np.array([[320.0, 200.0], [380.0, 260.0], [300.0, 300.0]])
+    state = np.array([320.0, 240.0, np.log(1e7), np.log(40.0), 0.2])  # a beyond 10⁶ px
+    _, J = ellipse_sampson_distances(state, uv)
+    assert np.all(J[:, 2] == 0.0) and np.any(J[:, 3] != 0.0)
