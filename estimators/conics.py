@@ -320,7 +320,7 @@ def refine_ellipse(
     problem = VectorProblem(
         lambda state: [ellipse_sampson_distances(state, uv)[0]],
         5,
-        jacobian=lambda state: ellipse_sampson_distances(state, uv)[1],
+        linearized=lambda state: _as_groups(ellipse_sampson_distances(state, uv, jacobian=True)),
     )
     solution = solve(problem, start, loss=Huber(floor=0.02), iterations=iterations)
     cx, cy, a, b, angle = _ellipse_parameters(solution.state)
@@ -337,9 +337,20 @@ def _ellipse_parameters(state: np.ndarray) -> tuple[float, float, float, float, 
     return cx, cy, float(a), float(b), angle
 
 
-def ellipse_sampson_distances(state: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _as_groups(
+    distances: tuple[np.ndarray, np.ndarray | None],
+) -> tuple[list[np.ndarray], np.ndarray]:
+    d, J = distances
+    assert J is not None
+    return [d], J
+
+
+def ellipse_sampson_distances(
+    state: np.ndarray, uv: np.ndarray, *, jacobian: bool = False
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Signed Sampson distances (N,) of points (N,2) to the ellipse of ``state`` (cx, cy,
-    log a, log b, angle), as ``sampson_distances`` of its conic, and their Jacobian (N,5).
+    log a, log b, angle), as ``sampson_distances`` of its conic, and, if asked (``jacobian``),
+    their Jacobian (N,5; else None).
 
     In the ellipse's own axes — x = Rᵀ(p − c) with R the rotation by the angle — the conic's
     value is F = x₁²/a² + x₂²/b² − 1 and its gradient's norm 2‖k‖ with k = (x₁/a², x₂/b²), so
@@ -354,6 +365,8 @@ def ellipse_sampson_distances(state: np.ndarray, uv: np.ndarray) -> tuple[np.nda
     norm = np.maximum(np.hypot(k1, k2), 1e-300)
     F = x1 * k1 + x2 * k2 - 1.0
     d = F / (2.0 * norm)
+    if not jacobian:
+        return d, None
     # ∂d/∂x₁, ∂d/∂x₂: F's gradient is 2k, the norm's (k₁/a², k₂/b²)/‖k‖
     scale = F / (2.0 * norm**3)
     d_x1 = k1 / norm - scale * k1 / a**2

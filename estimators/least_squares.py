@@ -368,18 +368,19 @@ def covariance(
 
 @dataclass(frozen=True, slots=True, eq=False)
 class VectorProblem:
-    """A problem on a plain parameter vector (state + δ): residuals from ``function`` and their
-    analytic Jacobian from ``jacobian`` (``conics.refine_ellipse``)."""
+    """A problem on a plain parameter vector (state + δ): residuals from ``function``, and
+    residuals with their analytic Jacobian from ``linearized``, in one pass where they share
+    their work (``conics.refine_ellipse``)."""
 
     function: Callable[[np.ndarray], list[np.ndarray]]
     n_params: int
-    jacobian: Callable[[np.ndarray], np.ndarray]
+    linearized: Callable[[np.ndarray], tuple[list[np.ndarray], np.ndarray]]
 
     def residuals(self, state: np.ndarray) -> list[np.ndarray]:
         return self.function(state)
 
     def linearize(self, state: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
-        return self.function(state), self.jacobian(state)
+        return self.linearized(state)
 
     def retract(self, state: np.ndarray, delta: np.ndarray) -> np.ndarray:
         return state + delta

@@ -131,7 +131,9 @@ def test_robust_sigma_is_the_scaled_median_absolute_deviation():
 def _line_problem(x, y):
     """y ≈ a + b·x as a VectorProblem with an analytic Jacobian."""
     design = np.column_stack([np.ones_like(x), x])
-    return VectorProblem(lambda s: [design @ s - y], 2, jacobian=lambda s: design)
+    return VectorProblem(
+        lambda s: [design @ s - y], 2, linearized=lambda s: ([design @ s - y], design)
+    )
 
 
 def test_solve_huber_ignores_gross_outliers():
