@@ -233,6 +233,10 @@ class _Fit:
     roll_known: bool = (
         True  # X_CT's roll is measured (False: the holes' pattern's, up to its symmetry)
     )
+    #: Its edges passed the support checks. An unverified fit — the ring's other pose, whose
+    #: edges were found too sparsely to verify it — can leave a choice undecided (``_better_of``)
+    #: but never wins one: failing a support threshold is not evidence that a pose is wrong.
+    verified: bool = True
 
     @property
     def polarities(self) -> dict[str, int]:
@@ -390,6 +394,7 @@ class EllipseEstimator:
             )
             if ring is not None and self._ring_moved_px(ring0, ring.ring) > fine_width:
                 ring = None
+            held = ring is not None  # found within the fine window of the prior
             if ring is None:
                 ring = self._refine_ring(image, ring0, None, coarse_half_width=width)
             if ring is None or off_axis or self._ring_moved_px(ring0, ring.ring) > width:
@@ -398,12 +403,12 @@ class EllipseEstimator:
                 # The extraction around the prediction does not depend on the window.
                 extracted = self._track_by_extraction(image, ring0, predicted)
                 if ring is None or (extracted is not None and extracted.cost < ring.cost):
-                    ring = extracted
+                    ring, held = extracted, False
             if ring is None:
                 return None
             fit = self._find_thruster(image, ring, prior)
             if fit is None:
-                return self._choose_mirror(image, ring, prior)
+                return self._choose_mirror(image, ring, prior, held=held)
             # The ring alone settled on the pose nearer the prior; a prior far off (a turn
             # since) may have chosen its mirror, and the thruster is found there too.
             return self._against_mirror(image, ring, fit, prior, width)
@@ -456,18 +461,27 @@ class EllipseEstimator:
         the thruster searched round the other ring — within 12° of that roll only when
         ``near_roll`` (a track: the thruster's image is where ``full`` found it, so the other
         pose holds it near the roll carried over — 0.9° and 3.6° from it on the two held-out
-        frames that needed this search — and a whole turn is 10–20 ms at 1.2 m). None when
-        there is none, or it converges back to ``full``'s normal (the thruster pulls it: no
-        ambiguity)."""
+        frames that needed this search — and a whole turn is 10–20 ms at 1.2 m). Failing
+        those, the fit started from the other normal whose thruster did not verify
+        (``verified`` False: a faint thruster a pixel or two from where ``full`` found it is
+        not found "missing" at the other pose — random:112 at 2 m, 17° turned since the prior:
+        support 0.36 at the true pose, and the wrong one was taken as decided, NEES 2750).
+        None when there is none, or it converges back to ``full``'s normal (the thruster pulls
+        it: no ambiguity)."""
         X0 = pose_with_roll(mirror_pose, self.outer, roll_of(full.X_CT, mirror_pose, self.outer))
         other = self._refine_full(
-            image, X0, self._visible_off_axis(X0), full.polarities, coarse_half_width
+            image,
+            X0,
+            self._visible_off_axis(X0),
+            full.polarities,
+            coarse_half_width,
+            verify=False,
         )
-        if other is None:
+        if other is None or not other.verified:
             mirror = self._mirror(image, ring, mirror_pose)
-            if mirror is not None:
+            if mirror is not None and mirror.verified:
                 near = full.X_CT if near_roll else None
-                other = self._find_thruster(image, mirror, near, whole_turn=not near_roll)
+                other = self._find_thruster(image, mirror, near, whole_turn=not near_roll) or other
         if other is None or self._same_normal(full, other):
             return None
         return other
@@ -481,28 +495,52 @@ class EllipseEstimator:
             ((normal_angle(f.ring.normal_C, prior_normal), f) for f in (a, b)),
             key=lambda pair: pair[0],
         )
+        if not nearer.verified:  # the prior does not pick a pose the image did not verify
+            return (b if nearer is a else a), True, False
         if near > _PRIOR_DECIDES_RATIO * far:
             return nearer, True, False
         return nearer, False, True
 
-    def _choose_mirror(self, image: _Image, fit: _Fit, prior: Pose):
+    def _choose_mirror(self, image: _Image, fit: _Fit, prior: Pose, *, held: bool):
         """The ring alone while tracking: its two poses, and which the frame supports. The
         image decides when the other pose does not fit it (or is the same pose, near head-on),
-        shows the thruster, or costs clearly more (15 %); otherwise the pose nearer the prior's
-        normal is kept *because of the prior* (``from_prior``: a lock only if the prior's
-        choice was itself decided, which the Tracker knows — issue 13: a mirror taken at
-        acquisition must not become a confident track) — where the prior sides with it
-        (``_by_prior``). Returns (fit, ambiguous, from_prior)."""
+        shows the thruster, or costs clearly more (15 %); otherwise, where the ring ``held``
+        within the fine window of its prior, the pose nearer the prior's normal is kept
+        *because of the prior* (``from_prior``: a lock only if the prior's choice was itself
+        decided, which the Tracker knows — issue 13: a mirror taken at acquisition must not
+        become a confident track) — where the prior sides with it (``_by_prior``). A ring
+        found beyond that window says the prior is off, and which side of the line of sight
+        the ring turned to is then not the prior's to say (as in ``_against_mirror``): random:107
+        at 0.5 m, 17° turned since the prior, the ring found by extraction, its other pose
+        unverified (the bore's rim at 0.14 of its length), the wrong pose kept as decided 13°
+        and 35 mm off. Returns (fit, ambiguous, from_prior)."""
         mirror = self._mirror(image, fit)
         if mirror is None:
             return fit, False, False
-        mirror = self._find_thruster(image, mirror, None) or mirror
-        if mirror.X_CT is not None:  # the thruster found on the other pose decides
-            return mirror, False, False
-        best, decided = self._better_of(fit, mirror)
+        mirror_full = self._find_thruster(image, mirror, None) if mirror.verified else None
+        if mirror_full is not None:
+            best, decided = self._thruster_found_on(image, mirror, mirror_full, fit)
+        else:
+            best, decided = self._better_of(fit, mirror)
         if decided:
             return best, False, False
-        return self._by_prior(fit, mirror, prior)
+        nearer, ambiguous, from_prior = self._by_prior(fit, mirror_full or mirror, prior)
+        return nearer, ambiguous or not held, from_prior and held
+
+    def _thruster_found_on(
+        self, image: _Image, mirror: _Fit, mirror_full: _Fit, ring: _Fit
+    ) -> tuple[_Fit, bool]:
+        """The thruster found at the ring's other pose (``mirror_full``, on ``mirror``) and
+        not at ``ring``'s: the 6-DOF fit at ``ring``'s normal with the thruster where
+        ``mirror_full`` found it (``_other_full``) is weighed against it (``_better_of``);
+        decided for ``mirror_full`` when there is no such fit. A thruster found a pixel or two
+        from where the other pose puts it is no decision: random:112 at 3 m, 9° turned, high
+        noise, the thruster verified at 0.46 of its length (0.45 needed) on the pose 14° off
+        and not at the true one. Returns (fit, decided)."""
+        other = self._other_full(image, mirror, mirror_full, ring.ring, None, near_roll=True)
+        if other is None:
+            return mirror_full, True
+        return self._better_of(mirror_full, other)
 
     def _track_by_extraction(self, image: _Image, ring0: CirclePose, predicted) -> _Fit | None:
         """Extract ellipses around the prediction and keep the best ring they verify, as
@@ -615,9 +653,10 @@ class EllipseEstimator:
         mirror = self._mirror(image, ring, mirror_pose)
         if mirror is None:
             return ring, False
-        mirror_full = self._find_thruster(image, mirror, None)
-        if mirror_full is not None:  # the thruster decides
-            return mirror_full, False
+        mirror_full = self._find_thruster(image, mirror, None) if mirror.verified else None
+        if mirror_full is not None:
+            best, decided = self._thruster_found_on(image, mirror, mirror_full, ring)
+            return best, not decided
         best, decided = self._better_of(ring, mirror)
         return best, not decided
 
@@ -635,21 +674,36 @@ class EllipseEstimator:
         trusts the edge model; where the model is off (shading, a bore wall, bolts on the
         edge), low noise makes a model error look significant. So the image decides only when
         both tests — this one and the costs 15 % apart — name the same pose; otherwise the
-        answer says it is undecided (held-out random mock-ups, acquisition: docs/any_mockup.md)."""
-        names = [n for n in a.edges if n in b.edges]
-        points = {n: (a.edges[n].uv_ideal, b.edges[n].uv_ideal) for n in names}
+        answer says it is undecided (held-out random mock-ups, acquisition: docs/any_mockup.md).
+
+        The ring's own edges count where either fit found them (an unverified fit may lack
+        the inner one: near the camera the inner edge's offset from the outer is what tells
+        the two poses apart — random:114 at 0.5 m, 9° turned: 129 samples at the true pose,
+        none at the other); an off-axis circle only where both found it (a 5-DOF fit's roll
+        says nothing about where it lies)."""
+        ring_names = {c.name for c in self._ring_circles()}
+        points = {
+            n: tuple(f.edges[n].uv_ideal for f in (a, b) if n in f.edges)
+            for n in {**a.edges, **b.edges}
+            if n in ring_names or (n in a.edges and n in b.edges)
+        }
         residuals = [self._edge_residuals(points, self._pose_of(f)) for f in (a, b)]
         sq_a, sq_b = (np.concatenate([r**2 for r in pair]) for pair in residuals)
         weights = np.concatenate([np.full(len(r), 0.5) for r in residuals[0]])
         if not len(weights):
-            return (a if a.cost <= b.cost else b), False
+            return (a if (a.verified, -a.cost) >= (b.verified, -b.cost) else b), False
         # the noise scale from the better pose at each point (MAD of a half-normal: 0.455)
         spread = max(float(np.median(np.minimum(sq_a, sq_b))) / 0.455, 0.05**2)
         chi2_a, chi2_b = (float(weights @ np.minimum(sq / spread, 9.0)) for sq in (sq_a, sq_b))
         gap = abs(chi2_a - chi2_b) / _correlation_inflation(a.sigma_px, a.spacing_px)
         best = a if chi2_a <= chi2_b else b
         other = b if best is a else a
-        costs_agree = other.cost > _POSES_DECIDE_COST_RATIO * best.cost
+        if not best.verified:  # it may leave the choice open, not win it
+            return other, False
+        # An unverified fit's own cost covers the few edges it found (the inner one may be
+        # missing altogether): there the test on the same points decides alone — where before
+        # such a fit was taken as absent, and the verified pose as decided without a test.
+        costs_agree = not other.verified or other.cost > _POSES_DECIDE_COST_RATIO * best.cost
         return best, gap > _POSES_DECIDE_CHI2 and costs_agree
 
     def _pose_of(self, fit: _Fit) -> Pose:
@@ -695,13 +749,13 @@ class EllipseEstimator:
         return other
 
     def _mirror(self, image: _Image, ring: _Fit, pose: CirclePose | None = None) -> _Fit | None:
-        """The ring's other pose (``pose`` when already known), refined, when distinct and
-        verified; None otherwise."""
+        """The ring's other pose (``pose`` when already known), refined, when distinct —
+        ``verified`` or not; None otherwise."""
         if pose is None:
             pose = self._mirror_pose(ring)
         if pose is None:
             return None
-        mirror = self._refine_ring(image, pose, ring.polarities)
+        mirror = self._refine_ring(image, pose, ring.polarities, verify=False)
         if mirror is None or self._same_normal(ring, mirror):
             return None
         return mirror
@@ -719,11 +773,13 @@ class EllipseEstimator:
         coarse_half_width: float | None = None,
         inner_always: bool = False,
         abandon_beyond_px: float | None = None,
+        verify: bool = True,
     ) -> _Fit | None:
         """5-DOF: edge search around the projected ring edges and fit, coarse-to-fine when the
-        start may be several pixels off; None unless both edges are supported. ``inner_always``
-        fits the inner edge whatever its distance from the outer one; ``abandon_beyond_px`` as
-        in ``_refine``."""
+        start may be several pixels off; None unless both edges are supported (without
+        ``verify``: the fit regardless, marked ``verified`` or not). ``inner_always`` fits the
+        inner edge whatever its distance from the outer one; ``abandon_beyond_px`` as in
+        ``_refine``."""
         s = self.settings
         if coarse_half_width is None:  # a start from a fitted ellipse: within a pixel or two
             stages = ((image.fine_sigma, s.fine_half_width_px + 1.0),)
@@ -743,9 +799,9 @@ class EllipseEstimator:
             inner_always=inner_always,
             abandon_beyond_px=abandon_beyond_px,
         )
-        if refined is None or not self._ring_supported(refined.edges):
-            return None
-        return refined
+        if refined is None or self._ring_supported(refined.edges):
+            return refined
+        return replace(refined, verified=False) if not verify else None
 
     def _refine_full(
         self,
@@ -757,12 +813,14 @@ class EllipseEstimator:
         off_axis_width: float | None = None,
         *,
         abandon_beyond_px: float | None = None,
+        verify: bool = True,
     ) -> _Fit | None:
         """6-DOF: ring and off-axis circles searched coarse then fine around ``X_CT`` (fine
         only, in a slightly wider window, when ``coarse_half_width`` is None; the off-axis
         circles in ``off_axis_width`` when given) and fitted together; None unless the ring and
         an off-axis circle are supported and the off-axis circles' nuisance radii are
-        plausible. ``abandon_beyond_px`` as in ``_refine``."""
+        plausible (without ``verify``: a fit with an off-axis circle's edges, supported or not,
+        marked ``verified`` or not). ``abandon_beyond_px`` as in ``_refine``."""
         s = self.settings
         if not off_axis:
             return None
@@ -783,20 +841,28 @@ class EllipseEstimator:
             off_axis_width=off_axis_width,
             abandon_beyond_px=abandon_beyond_px,
         )
-        if refined is None or not self._ring_supported(refined.edges):
+        if refined is None or not any(c.name in refined.edges for c in off_axis):
             return None
-        supported = [
-            c.name
+        if self._full_supported(refined, off_axis):
+            return refined
+        return replace(refined, verified=False) if not verify else None
+
+    def _full_supported(self, refined: _Fit, off_axis: list[Circle3D]) -> bool:
+        """Whether a 6-DOF fit's ring and one of its off-axis circles are supported and the
+        off-axis circles' nuisance radii plausible."""
+        s = self.settings
+        if not self._ring_supported(refined.edges):
+            return False
+        if not any(
+            c.name in refined.edges and refined.edges[c.name].support >= s.min_thruster_support
             for c in off_axis
-            if c.name in refined.edges and refined.edges[c.name].support >= s.min_thruster_support
-        ]
-        if not supported:
-            return None
+        ):
+            return False
         free = [e.circle.name for e in refined.sets if e.free_radius]
-        for name, offset in zip(free, refined.result.radius_offsets, strict=True):
-            if abs(offset) > 0.3 * self._circles[name].radius:
-                return None
-        return refined
+        return all(
+            abs(offset) <= 0.3 * self._circles[name].radius
+            for name, offset in zip(free, refined.result.radius_offsets, strict=True)
+        )
 
     def _refine(
         self,
