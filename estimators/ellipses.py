@@ -532,15 +532,21 @@ class EllipseEstimator:
     ) -> tuple[_Fit, bool]:
         """The thruster found at the ring's other pose (``mirror_full``, on ``mirror``) and
         not at ``ring``'s: the 6-DOF fit at ``ring``'s normal with the thruster where
-        ``mirror_full`` found it (``_other_full``) is weighed against it (``_better_of``);
-        decided for ``mirror_full`` when there is no such fit. A thruster found a pixel or two
-        from where the other pose puts it is no decision: random:112 at 3 m, 9° turned, high
-        noise, the thruster verified at 0.46 of its length (0.45 needed) on the pose 14° off
-        and not at the true one. Returns (fit, decided)."""
+        ``mirror_full`` found it (``_other_full``) is weighed against it (``_better_of``). A
+        thruster found a pixel or two from where the other pose puts it is no decision:
+        random:112 at 3 m, 9° turned, high noise, the thruster verified at 0.46 of its length
+        (0.45 needed) on the pose 14° off and not at the true one. Without such a fit the
+        thruster decides — unless the ring's own edges clearly refute the pose it was found
+        on: what a roll search finds there may be anything of its size (random:116 at 1.2 m,
+        its thruster out of view: a bolt 96° round taken for it on the pose 16° off, whose
+        ring edges cost ten times the true pose's). Returns (fit, decided)."""
         other = self._other_full(image, mirror, mirror_full, ring.ring, None, near_roll=True)
-        if other is None:
-            return mirror_full, True
-        return self._better_of(mirror_full, other)
+        if other is not None:
+            return self._better_of(mirror_full, other)
+        by_ring, decided = self._better_of(mirror_full, ring)
+        if decided and by_ring is ring:
+            return ring, True
+        return mirror_full, True
 
     def _track_by_extraction(self, image: _Image, ring0: CirclePose, predicted) -> _Fit | None:
         """Extract ellipses around the prediction and keep the best ring they verify, as

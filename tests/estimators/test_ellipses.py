@@ -200,6 +200,23 @@ def test_ellipses_track_a_turn_across_the_line_of_sight_right_or_ambiguous(
     assert alternative_deg < normal_bound_deg, alternative_deg
 
 
+@pytest.mark.parametrize("seed", [0, 3])
+def test_ellipses_do_not_take_a_thruster_found_on_a_pose_the_rings_edges_refute(seed):
+    """random:116 at 1.2 m turned 8.66°, no prior: its thruster is out of view, and the roll
+    search round the ring's other pose (16° off) took a bolt 96° round for it; "the thruster
+    found on the other pose decides" answered that pose, though its ring edges cost ten times
+    the true pose's (NEES 5·10⁴–1.6·10⁵ on half of the noise draws). The ring's own edges now
+    outweigh such a find."""
+    name = "random:116"
+    target = load_mockup(name).target_model()
+    offset = target_offset(0.0, 0.0, 0.0, 0.0, math.radians(8.66), 0.0)
+    frame = _lit_random_frame(name, 1.2, offset, seed)
+    m = build(target, REFERENCE).estimate(frame, None)
+    assert m.valid, m.reason
+    error = _errors(m, frame, target)
+    assert math.degrees(error.normal_rad) < 1.0 and error.center_m < 0.005, error
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_ellipses_covariance_holds_what_an_unresolved_outer_wall_may_do(seed):
     """The deep, dark ring (``rendered.DEEP_RING_MOCKUP``, 8.5 cm proud) at 3 m turned 12°:
