@@ -38,7 +38,7 @@ from estimators.acquisition import (
     first_solved,
     flip_overturning_track,
     judge_flip,
-    judge_tilt,
+    judge_tilt_and_range,
     judge_turn,
     prior_tilt_fits_better,
     roll_free_measurement,
@@ -804,12 +804,16 @@ class CornerEstimator:
             or rotation_error_geodesic(fit.X_CT, X0) > math.radians(options.judge_tilt_beyond_deg)
         ):
             # The tilt of a pose from a few faint features may be 10–20° off with a covariance
-            # that claims a degree: the ring and the outline judge it (``judge_tilt``). So may
-            # a track's that moved far from its prior (held-out random:104 at 1.2 m after the
-            # matrix's 9° turn: 13° off about the other axis, NEES 27; the ring's tilt 1.9°).
-            tilt = judge_tilt(self.support, image, fit.X_CT, self.target, fit.covariance)
+            # that claims a degree, and its range several per cent: the ring and the outline
+            # judge them (``judge_tilt_and_range``). So may a track's that moved far from its
+            # prior (held-out random:104 at 1.2 m after the matrix's 9° turn: 13° off about the
+            # other axis, NEES 27; the ring's tilt 1.9°).
+            tilt = judge_tilt_and_range(self.support, image, fit.X_CT, self.target, fit.covariance)
             if tilt.X_CT is not None:
-                reason = f"a tilt of the pose fits the ring and outline better (by {tilt.gain:.0f})"
+                reason = (
+                    "a tilt or range of the pose fits the ring and outline better "
+                    f"(by {tilt.gain:.0f})"
+                )
                 if retry:
                     # Measured afresh from that tilt, without the prior.
                     other = self._solve(image, gradients, tilt.X_CT, tracking=False, retry=False)
