@@ -8,6 +8,7 @@ the ellipse's interior negative.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -326,6 +327,24 @@ def refine_ellipse(
     cx, cy, a, b, angle = _ellipse_parameters(solution.state)
     ellipse = ellipse_from_conic(conic_from_parameters(cx, cy, a, b, angle))
     return ellipse, solution.residuals[0], solution.sigmas[0]
+
+
+def major_axis_log_sd(uv: np.ndarray, ellipse: Ellipse, sigma_px: float) -> float:
+    """Standard deviation of log a — the major axis's relative uncertainty — of ``ellipse``
+    fitted to points ``uv`` (N,2) with residual noise ``sigma_px``: from the Sampson
+    distances' Jacobian on (centre, log-axes, angle), σ²·(JᵀJ)⁻¹ (inf when singular). Short
+    arcs on opposite sides of a thin ellipse — the curvature barely seen — fit its length
+    loosely."""
+    uv = as_points(uv, 2, "uv")
+    state = np.array([ellipse.cx, ellipse.cy, np.log(ellipse.a), np.log(ellipse.b), ellipse.angle])
+    _, J = ellipse_sampson_distances(state, uv, jacobian=True)
+    assert J is not None
+    try:
+        covariance = sigma_px**2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return math.inf
+    variance = float(covariance[2, 2])
+    return math.sqrt(variance) if math.isfinite(variance) and variance >= 0.0 else math.inf
 
 
 def _ellipse_parameters(state: np.ndarray) -> tuple[float, float, float, float, float]:

@@ -217,6 +217,20 @@ def test_ellipses_do_not_take_a_thruster_found_on_a_pose_the_rings_edges_refute(
     assert math.degrees(error.normal_rad) < 1.0 and error.center_m < 0.005, error
 
 
+def test_ellipses_do_not_read_a_ring_from_two_straight_edges():
+    """random:117 square on at 3 m, high noise, no prior (one noise draw in 40): the ring not
+    extracted, an "ellipse" 1968 × 106 px fitted across the image from two nearly straight
+    arcs gave a ring 0.28 m away, seen edge-on, that verified at half its edges' length — a
+    wrong lock 2.7 m off. Its length was not measured (28 %); dropped, the ring is found."""
+    name = "random:117"
+    target = load_mockup(name).target_model()
+    frame = _lit_random_frame(name, 3.0, target_offset(0.0, 0.0, 0.0, 0.0, 0.0, 0.0), 20, "high")
+    m = build(target, REFERENCE).estimate(frame, None)
+    assert m.valid, m.reason
+    assert not is_wrong_lock(_errors(m, frame, target), 3.0, ambiguous=m.ambiguous)
+    assert _errors(m, frame, target).center_m < 0.1
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_ellipses_covariance_holds_what_an_unresolved_outer_wall_may_do(seed):
     """The deep, dark ring (``rendered.DEEP_RING_MOCKUP``, 8.5 cm proud) at 3 m turned 12°:
