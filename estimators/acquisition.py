@@ -464,11 +464,8 @@ def judge_tilt_and_range(
         # The tilt at that range, as the start a caller measures the pose afresh from.
         at_range = search_tilt(support, gradients, moved.X_CT, target, names, judging=True)
         candidate = at_range.X_CT if at_range.X_CT is not None else moved.X_CT
-        own = support.contour_scores(
-            gradients, X_CT.R[None], X_CT.p[None], only=names, frame_noise=True
-        )
-        gain = _gains_over(support, gradients, own, candidate.R[None], candidate.p[None], names)
-        found, beyond = TiltSearch(candidate, float(gain[0])), pose_beyond
+        gain = _gain_beyond_panel(support, gradients, X_CT, candidate, judging=True)
+        found, beyond = TiltSearch(candidate, gain), pose_beyond
     if found.X_CT is None or found.gain < TILT_MARGIN:
         return TiltSearch(None, found.gain)
     return found if beyond(found.X_CT, X_CT, covariance) else TiltSearch(None, found.gain)
@@ -506,16 +503,22 @@ def _gain_beyond_panel(
     X_other: Pose,
     *,
     shift_px: float = 0.0,
+    judging: bool = False,
 ) -> float:
     """By how much ``X_other`` is better supported than ``X_CT`` by the model's contours
-    beyond the panel (summed z-scores, both poses in one pass)."""
+    beyond the panel (summed z-scores, both poses in one pass); ``judging``: compared as a
+    judging ``search_tilt`` compares, in no less than the frame's noise and on the contours
+    both poses have in view."""
     z = support.contour_scores(
         gradients,
         np.stack([X_CT.R, X_other.R]),
         np.stack([X_CT.p, X_other.p]),
         only=_beyond_panel(support),
         shift_px=shift_px,
+        frame_noise=judging,
     )
+    if judging:
+        z = np.where(np.isfinite(z).all(axis=0), z, np.nan)
     own, other = summed_support(z)
     return float(other - own)
 
