@@ -317,7 +317,7 @@ def refine_ellipse(
     Returns (ellipse, residuals (N,) px, robust noise scale px).
     """
     uv = as_points(uv, 2, "uv")
-    start = np.array([initial.cx, initial.cy, np.log(initial.a), np.log(initial.b), initial.angle])
+    start = _state_of(initial)
     problem = VectorProblem(
         lambda state: [ellipse_sampson_distances(state, uv)[0]],
         5,
@@ -336,8 +336,7 @@ def major_axis_log_sd(uv: np.ndarray, ellipse: Ellipse, sigma_px: float) -> floa
     arcs on opposite sides of a thin ellipse — the curvature barely seen — fit its length
     loosely."""
     uv = as_points(uv, 2, "uv")
-    state = np.array([ellipse.cx, ellipse.cy, np.log(ellipse.a), np.log(ellipse.b), ellipse.angle])
-    _, J = ellipse_sampson_distances(state, uv, jacobian=True)
+    _, J = ellipse_sampson_distances(_state_of(ellipse), uv, jacobian=True)
     assert J is not None
     try:
         covariance = sigma_px**2 * np.linalg.inv(J.T @ J)
@@ -345,6 +344,11 @@ def major_axis_log_sd(uv: np.ndarray, ellipse: Ellipse, sigma_px: float) -> floa
         return math.inf
     variance = float(covariance[2, 2])
     return math.sqrt(variance) if math.isfinite(variance) and variance >= 0.0 else math.inf
+
+
+def _state_of(ellipse: Ellipse) -> np.ndarray:
+    """The refinement state (cx, cy, log a, log b, angle) of an ellipse."""
+    return np.array([ellipse.cx, ellipse.cy, np.log(ellipse.a), np.log(ellipse.b), ellipse.angle])
 
 
 def _ellipse_parameters(state: np.ndarray) -> tuple[float, float, float, float, float]:

@@ -75,7 +75,7 @@ class ExtractorSettings:
     max_residual_px: float = 1.2
     #: An ellipse whose points fix its major axis no better than this (1σ of log a: 10 %) is
     #: not measured: two short arcs on opposite sides of a thin ellipse — two nearly straight
-    #: edges — fit one 1968 px long across a 640 px image (held-out random:117 at 3 m: 19 %,
+    #: edges — fit one 1968 px long across a 640 px image (held-out random:117 at 3 m: 28 %,
     #: against ≤ 4 % for every real ellipse of those frames), and a ring read from it lay
     #: 0.28 m away instead of 3 m. (``min_arc_angle_rad`` passes it: 2π less the largest gap
     #: counts two opposite arcs as 199°.)
