@@ -90,11 +90,46 @@ class TurnCheck:
     apart: the best turn (0 = the pose itself), by how much its support beats the pose's own
     turn — or, when the pose's own is best, the runner-up — (z units, scaled down where more
     than two terms per turn add their noise: see ``TurnChecker.check``; NaN when nothing that
-    could tell them apart is in view), and whether anything that could was in view."""
+    could tell them apart is in view), and whether anything that could was in view; each
+    turn's summed support (``totals``, over ``terms`` contours and discs in view) and, of it,
+    the informative discs' (``disc_totals`` over ``disc_terms``)."""
 
     best: int
     margin: float
     seen: bool = True
+    totals: tuple[float, ...] = ()
+    terms: tuple[int, ...] = ()
+    disc_totals: tuple[float, ...] = ()
+    disc_terms: tuple[int, ...] = ()
+
+    def turn_the_discs_favour(self, margin: float) -> int | None:
+        """The turn whose discs alone beat the pose's own turn's by ``margin`` (in the check's
+        units), or None."""
+        if not any(self.disc_terms):
+            return None
+        gains = [
+            _in_margin_units(
+                self.disc_totals[k] - self.disc_totals[0], self.disc_terms[k] + self.disc_terms[0]
+            )
+            for k in range(len(self.disc_totals))
+        ]
+        best = int(np.argmax(gains))
+        return best if best != 0 and gains[best] >= margin else None
+
+
+def _in_margin_units(difference: float, terms: int) -> float:
+    """A difference of two summed supports over ``terms`` z-scores in all, in the unit of
+    ``TurnCheck.margin``: each z-score is unit-variance noise where the image holds nothing, so
+    a sum over many wanders by √n (``TURN_MARGIN_NOISE`` for the two terms of a thruster's two
+    contours per turn)."""
+    return difference / max(1.0, math.sqrt(terms) / TURN_MARGIN_NOISE)
+
+
+def own_turn_gain(fitted: TurnCheck, other: TurnCheck) -> float:
+    """By how much (``TurnCheck.margin`` units) the pose checked in ``other`` beats the one
+    checked in ``fitted`` at its own quarter turn: two fits, each at its own turn, compared on
+    the same parts — not a pose against the turned copies of itself, which were not fitted."""
+    return _in_margin_units(other.totals[0] - fitted.totals[0], fitted.terms[0] + other.terms[0])
 
 
 class TurnChecker:
@@ -158,6 +193,8 @@ class TurnChecker:
             return TurnCheck(0, math.nan, False)
         totals = np.zeros(len(self.turns))
         terms = np.zeros(len(self.turns))
+        disc_totals = np.zeros(len(self.turns))
+        disc_terms = np.zeros(len(self.turns), int)
         turned = [X_CT @ turn for turn in self.turns]
         # A search finds something where the image holds nothing: each part's score is taken
         # less what its search gains on noise alone, so that a part in view on nothing weighs
@@ -176,8 +213,10 @@ class TurnChecker:
             for k, X in enumerate(turned):
                 z = self.support.disc_responses(gradients, X, self.discs, shift_px=search_px)
                 seen = int(np.sum(np.isfinite(z)))
-                totals[k] += float(np.nansum(z)) - disc_gain * math.sqrt(seen)
-                terms[k] += seen
+                disc_totals[k] = float(np.nansum(z)) - disc_gain * math.sqrt(seen)
+                disc_terms[k] = seen
+        totals += disc_totals
+        terms += disc_terms
         if not np.any(terms):
             return TurnCheck(0, math.nan, False)
         order = np.argsort(-totals)
@@ -193,9 +232,16 @@ class TurnChecker:
         # at 1.2 m), and the tilt search then bent the pose to lay the outline on an edge.
         best = int(order[0])
         other = 0 if best != 0 else int(order[1])
-        noise = math.sqrt(terms[best] + terms[other]) / TURN_MARGIN_NOISE
-        margin = float(totals[best] - totals[other]) / max(1.0, noise)
-        return TurnCheck(best, margin, True)
+        margin = _in_margin_units(float(totals[best] - totals[other]), terms[best] + terms[other])
+        return TurnCheck(
+            best,
+            margin,
+            True,
+            tuple(float(t) for t in totals),
+            tuple(int(n) for n in terms),
+            tuple(float(t) for t in disc_totals),
+            tuple(int(n) for n in disc_terms),
+        )
 
 
 def _informative_discs(support: ModelSupport, turns: tuple[Pose, ...]) -> np.ndarray:
