@@ -129,7 +129,13 @@ def _in_margin_units(difference: float, terms: int) -> float:
 def own_turn_gain(fitted: TurnCheck, other: TurnCheck) -> float:
     """By how much (``TurnCheck.margin`` units) the pose checked in ``other`` beats the one
     checked in ``fitted`` at its own quarter turn: two fits, each at its own turn, compared on
-    the same parts — not a pose against the turned copies of itself, which were not fitted."""
+    the same parts — not a pose against the turned copies of itself, which were not fitted.
+    −∞ when ``other`` saw nothing that tells the turns apart (no evidence for it), +∞ when only
+    ``fitted`` did not."""
+    if not other.totals:
+        return -math.inf
+    if not fitted.totals:
+        return math.inf
     return _in_margin_units(other.totals[0] - fitted.totals[0], fitted.terms[0] + other.terms[0])
 
 

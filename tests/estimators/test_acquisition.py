@@ -381,3 +381,26 @@ def test_a_judging_tilt_search_takes_no_credit_for_a_contour_only_the_tilt_sees(
     assert summed.X_CT is not None and summed.gain == pytest.approx(44.0)
     shared = acquisition.search_tilt(support, None, f.truth.X_CT, TARGET, names, judging=True)
     assert shared.X_CT is None and shared.gain == 0.0
+
+
+def test_two_fits_compared_at_their_own_turns_and_a_check_that_saw_nothing():
+    """``own_turn_gain`` weighs two checks' own-turn sums in the margin's units (√n of the
+    terms over the two-term noise), and a check that saw nothing telling the turns apart gives
+    no evidence for its pose — rather than failing on its empty sums."""
+    seen_little = acquisition.TurnCheck(0, 5.0, True, (10.0, 2.0, 1.0, 0.0), (2, 2, 2, 2))
+    seen_more = acquisition.TurnCheck(0, 9.0, True, (30.0, 1.0, 0.0, 3.0), (2, 2, 2, 2))
+    nothing = acquisition.TurnCheck(0, math.nan, False)
+    assert acquisition.own_turn_gain(seen_little, seen_more) == pytest.approx(20.0)
+    assert acquisition.own_turn_gain(seen_more, seen_little) == pytest.approx(-20.0)
+    many = acquisition.TurnCheck(0, 1.0, True, (50.0, 0.0, 0.0, 0.0), (32, 32, 32, 32))
+    # 2 + 32 terms: their noise is √34 / 2 times the two-term unit.
+    assert acquisition.own_turn_gain(seen_little, many) == pytest.approx(40.0 / (math.sqrt(34) / 2))
+    discs = acquisition.TurnCheck(
+        0, 4.0, True, (9.0, 0.0, 20.0, 0.0), (14, 14, 14, 14), (1.0, -2.0, 14.7, 0.5), (12,) * 4
+    )
+    # The half turn's discs beat the pose's by 13.7 over 24 terms: 13.7 / (√24 / 2) = 5.6.
+    assert discs.turn_the_discs_favour(3.0) == 2
+    assert discs.turn_the_discs_favour(6.0) is None
+    assert acquisition.own_turn_gain(seen_little, nothing) == -math.inf
+    assert acquisition.own_turn_gain(nothing, seen_little) == math.inf
+    assert nothing.turn_the_discs_favour(3.0) is None
