@@ -302,11 +302,16 @@ class URArm:
         }
 
     def _flags(self, receive) -> tuple[bool, bool, str | None]:
+        # Each getter reads the latest package, and one may arrive between two reads. A stop
+        # changes the safety mode and pauses the program in the same package: read the program
+        # and robot modes first and the safety flags last, so that a stop straddling the reads
+        # is read as the stop, not as a program that stopped for no reason (the emulated
+        # protective stop was once logged "control script not running").
+        robot_mode = receive.getRobotMode()
+        runtime = receive.getRuntimeState()
         safety = receive.getSafetyMode()
         protective = bool(receive.isProtectiveStopped()) or safety == SafetyMode.PROTECTIVE_STOP
         emergency = bool(receive.isEmergencyStopped()) or safety in SAFETY_EMERGENCY
-        robot_mode = receive.getRobotMode()
-        runtime = receive.getRuntimeState()
         fault = None
         if not (protective or emergency) and safety not in SAFETY_MOVABLE:
             fault = f"safety mode {name_of(SafetyMode, safety)}"

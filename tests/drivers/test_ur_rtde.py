@@ -286,3 +286,45 @@ def test_real_ur_activates_holds_still_and_deactivates():
         arm.deactivate()
     finally:
         arm.close()
+
+
+class _PackageSwitch:
+    """An RTDE receive interface whose package changes after ``reads`` getter calls: a stop
+    (safety mode and program state changed together) arriving while the flags are read."""
+
+    def __init__(self, before: dict, after: dict, reads: int):
+        self._packages, self._reads, self._calls = (before, after), reads, 0
+
+    def _field(self, name: str):
+        package = self._packages[self._calls >= self._reads]
+        self._calls += 1
+        return package[name]
+
+    def __getattr__(self, name: str):
+        return lambda: self._field(name)
+
+
+def test_ur_arm_reads_a_stop_that_arrives_between_two_flag_reads_as_the_stop():
+    from drivers.ur_states import RobotMode, RuntimeState, SafetyMode
+
+    running = {
+        "getSafetyMode": SafetyMode.NORMAL,
+        "isProtectiveStopped": False,
+        "isEmergencyStopped": False,
+        "getRobotMode": RobotMode.RUNNING,
+        "getRuntimeState": RuntimeState.PLAYING,
+    }
+    stopped = running | {
+        "getSafetyMode": SafetyMode.PROTECTIVE_STOP,
+        "isProtectiveStopped": True,
+        "getRuntimeState": RuntimeState.PAUSED,
+    }
+    arm = make_arm("127.0.0.1")
+    arm._control = object()  # as if activated: the program's state then counts
+    for reads in range(len(running) + 1):
+        protective, emergency, fault = arm._flags(_PackageSwitch(running, stopped, reads))
+        # The stop is read (it names the fault: ArmState.fault_reason), or nothing yet — never
+        # a program that stopped for no reason.
+        assert protective or fault is None, (reads, fault)
+        assert not emergency
+    assert arm._flags(_PackageSwitch(running, stopped, 0))[0]
