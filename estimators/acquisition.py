@@ -447,15 +447,17 @@ def search_tilt(
 
 
 def search_range(
-    support: ModelSupport, gradients: GradientImage, X_CT: Pose, names: frozenset[str]
+    support: ModelSupport,
+    gradients: GradientImage,
+    X_CT: Pose,
+    names: frozenset[str],
+    own: np.ndarray,
 ) -> TiltSearch:
     """Grid search (``RANGE_SEARCH_SPAN``, ``RANGE_SEARCH_STEP``) over the pose's distance
     along the line of sight to its origin (its attitude kept), for the summed support of the
     contours ``names``, compared as a judging ``search_tilt`` compares: in no less than the
-    frame's noise, on the contours both poses have in view."""
-    own = support.contour_scores(
-        gradients, X_CT.R[None], X_CT.p[None], only=names, frame_noise=True
-    )
+    frame's noise, on the contours both poses have in view (``own``: the pose's scores so
+    measured, ``_judged_scores``)."""
     if not np.isfinite(own).any():
         return TiltSearch(None, 0.0)
     steps = np.arange(-RANGE_SEARCH_SPAN, RANGE_SEARCH_SPAN + 1e-9, RANGE_SEARCH_STEP)
@@ -488,6 +490,16 @@ def _gains_over(
     return summed_support(np.where(both, z, np.nan)) - summed_support(np.where(both, own, np.nan))
 
 
+def _judged_scores(
+    support: ModelSupport, gradients: GradientImage, X_CT: Pose, names: frozenset[str]
+) -> np.ndarray:
+    """The contours ``names``' scores (1, n_contours) at ``X_CT`` as a judge compares poses: in
+    no less than the frame's noise (``_gains_over``'s ``own``)."""
+    return support.contour_scores(
+        gradients, X_CT.R[None], X_CT.p[None], only=names, frame_noise=True
+    )
+
+
 def judge_tilt_and_range(
     support: ModelSupport,
     image: ImageStack,
@@ -513,20 +525,18 @@ def judge_tilt_and_range(
     gives (``ring_poses_near``)."""
     gradients = coarse_gradients(image)
     names = _beyond_panel(support)
+    own = _judged_scores(support, gradients, X_CT, names)
     found = search_tilt(support, gradients, X_CT, target, names, judging=True)
     beyond = rotation_beyond  # a tilt about the panel's centre: its rotation is the answer's
-    moved = search_range(support, gradients, X_CT, names)
+    moved = search_range(support, gradients, X_CT, names, own)
     if moved.X_CT is not None and moved.gain > found.gain:
         # The tilt at that range, as the start a caller measures the pose afresh from.
         at_range = search_tilt(support, gradients, moved.X_CT, target, names, judging=True)
         candidate = at_range.X_CT if at_range.X_CT is not None else moved.X_CT
-        gain = _gain_beyond_panel(support, gradients, X_CT, candidate, judging=True)
-        found, beyond = TiltSearch(candidate, gain), pose_beyond
+        gain = _gains_over(support, gradients, own, candidate.R[None], candidate.p[None], names)
+        found, beyond = TiltSearch(candidate, float(gain[0])), pose_beyond
     from_ring = ring_poses_near(image, X_CT, target, support.camera)
     if from_ring:
-        own = support.contour_scores(
-            gradients, X_CT.R[None], X_CT.p[None], only=names, frame_noise=True
-        )
         R_CT, p_CT = np.stack([X.R for X in from_ring]), np.stack([X.p for X in from_ring])
         gains = _gains_over(support, gradients, own, R_CT, p_CT, names)
         best = int(np.argmax(gains))
@@ -569,22 +579,16 @@ def _gain_beyond_panel(
     X_other: Pose,
     *,
     shift_px: float = 0.0,
-    judging: bool = False,
 ) -> float:
     """By how much ``X_other`` is better supported than ``X_CT`` by the model's contours
-    beyond the panel (summed z-scores, both poses in one pass); ``judging``: compared as a
-    judging ``search_tilt`` compares, in no less than the frame's noise and on the contours
-    both poses have in view."""
+    beyond the panel (summed z-scores, both poses in one pass)."""
     z = support.contour_scores(
         gradients,
         np.stack([X_CT.R, X_other.R]),
         np.stack([X_CT.p, X_other.p]),
         only=_beyond_panel(support),
         shift_px=shift_px,
-        frame_noise=judging,
     )
-    if judging:
-        z = np.where(np.isfinite(z).all(axis=0), z, np.nan)
     own, other = summed_support(z)
     return float(other - own)
 
