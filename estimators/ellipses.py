@@ -77,7 +77,12 @@ from estimators.ellipse_extraction import ExtractedEllipse, ExtractorSettings, e
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, normal_angle, rotation_between
 from estimators.imaging import GradientField, ImageStack, image_stack
-from estimators.measurement import Measurement, circle_covariance_from_pose
+from estimators.measurement import (
+    Measurement,
+    circle_covariance_from_pose,
+    normal_sigma,
+    normals_apart,
+)
 from estimators.model_view import head_extrusion, local_affine
 from estimators.planar_pose import PointObservations, ideal_pixels
 from estimators.point_fit import fit_discs
@@ -728,12 +733,14 @@ class EllipseEstimator:
         return out
 
     def _same_normal(self, a: _Fit, b: _Fit) -> bool:
-        """Whether two fits' normals agree within 3σ (and 1°)."""
-        separation = max(np.radians(1.0), 3.0 * _normal_sigma(a.result.covariance[:5, :5]))
-        if a.X_CT is not None:
-            cov5 = circle_covariance_from_pose(a.result.covariance, a.X_CT, self.outer)
-            separation = max(np.radians(1.0), 3.0 * _normal_sigma(cov5))
-        return normal_angle(a.ring.normal_C, b.ring.normal_C) < separation
+        """Whether two fits' normals agree within 3σ of ``a``'s (and 1°)."""
+        return not normals_apart(normal_angle(a.ring.normal_C, b.ring.normal_C), self._cov5(a))
+
+    def _cov5(self, fit: _Fit) -> np.ndarray:
+        """The 5-DOF covariance of a fit's ring (from its 6-DOF pose's when it has one)."""
+        if fit.X_CT is not None:
+            return circle_covariance_from_pose(fit.result.covariance, fit.X_CT, self.outer)
+        return fit.result.covariance[:5, :5]
 
     def _mirror_pose(self, ring: _Fit) -> CirclePose | None:
         """The ring's other closed-form pose, when it differs from ``ring`` by more than 3σ of
@@ -746,11 +753,7 @@ class EllipseEstimator:
         except ValueError:
             return None
         other = max(candidates, key=lambda c: normal_angle(c.normal_C, ring.ring.normal_C))
-        covariance = ring.result.covariance
-        if ring.X_CT is not None:
-            covariance = circle_covariance_from_pose(covariance, ring.X_CT, self.outer)
-        separation = max(np.radians(1.0), 3.0 * _normal_sigma(covariance))
-        if normal_angle(other.normal_C, ring.ring.normal_C) < separation:
+        if not normals_apart(normal_angle(other.normal_C, ring.ring.normal_C), self._cov5(ring)):
             return None
         return other
 
@@ -1561,7 +1564,7 @@ class EllipseEstimator:
                 R = turn @ fit.X_CT.R
                 X0 = Pose(R, center - R @ self.outer.center_T)
                 cov0 = covariance_at(sets, fit.result, X0, self.camera.K, points=fit.holes)
-                sigma0 = _normal_sigma(circle_covariance_from_pose(cov0, X0, self.outer), weak=True)
+                sigma0 = normal_sigma(circle_covariance_from_pose(cov0, X0, self.outer), weak=True)
             else:
                 cov0 = covariance_at(
                     sets,
@@ -1570,7 +1573,7 @@ class EllipseEstimator:
                     self.camera.K,
                     reference=self.outer,
                 )
-                sigma0 = _normal_sigma(cov0, weak=True)
+                sigma0 = normal_sigma(cov0, weak=True)
         except (ValueError, np.linalg.LinAlgError):
             return inflation * fit.result.covariance + self._outer_wall_covariance(fit)
         sigma0 *= np.sqrt(inflation)
@@ -1772,14 +1775,6 @@ def _same_sets(a: list[EdgeSet], b: list[EdgeSet]) -> bool:
         x.circle.name == y.circle.name and np.array_equal(x.uv, y.uv)
         for x, y in zip(a, b, strict=True)
     )
-
-
-def _normal_sigma(covariance5: np.ndarray, *, weak: bool = False) -> float:
-    """Root of the normal's total variance, or of its larger principal variance (``weak``)."""
-    block = covariance5[3:5, 3:5]
-    if weak:
-        return float(np.sqrt(max(np.linalg.eigvalsh(block)[-1], 0.0)))
-    return float(np.sqrt(max(np.trace(block), 0.0)))
 
 
 def _low_harmonics(t: np.ndarray, values: np.ndarray) -> tuple[float, float, float] | None:

@@ -306,6 +306,21 @@ def decided_parts(m: Measurement) -> tuple[bool, bool]:
     return (m.valid and m.X_CT is not None and not m.ambiguous, m.valid and not m.ambiguous)
 
 
+def normal_sigma(covariance_5dof: np.ndarray, *, weak: bool = False) -> float:
+    """Root of the total variance (rad²) of a circle's normal in its 5-DOF covariance, or of
+    its larger principal variance (``weak``)."""
+    block = covariance_5dof[3:5, 3:5]
+    if weak:
+        return float(np.sqrt(max(np.linalg.eigvalsh(block)[-1], 0.0)))
+    return float(np.sqrt(max(np.trace(block), 0.0)))
+
+
+def normals_apart(angle_rad: float, covariance_5dof: np.ndarray) -> bool:
+    """Whether two normals ``angle_rad`` apart are two poses of a circle measured with
+    ``covariance_5dof``, not one: more than 3σ of its normal (``normal_sigma``), and 1°."""
+    return angle_rad >= max(np.radians(1.0), 3.0 * normal_sigma(covariance_5dof))
+
+
 def honest(m: Measurement, roll_decided: bool, circle_decided: bool) -> Measurement:
     """``m`` as what it is when it took its undecided part from a prior (``from_prior``) whose
     roll and circle were decided as given: an undecided normal (a circle's mirror, a plate's
