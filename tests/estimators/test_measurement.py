@@ -3,7 +3,7 @@ import pytest
 
 from estimators.frame import CameraInfo, Frame
 from estimators.geometry import Pose, intrinsics_from_fov
-from estimators.measurement import Measurement, Tracker
+from estimators.measurement import Measurement, Tracker, decided_parts, faces_a_side
 
 INFO = CameraInfo(640, 480, intrinsics_from_fov(640, 480, 70.0), np.zeros(0), "reference")
 FRAME = Frame(np.zeros((480, 640), np.uint8), 1.5, INFO, 7)
@@ -140,9 +140,21 @@ def test_tracker_carries_the_prior_and_drops_it_on_loss():
     assert seen[0] is None and seen[1].p[2] == 2.0 and seen[2].p[2] == 3.0 and seen[3] is None
 
 
-def _answer(frame, prior, *, pose=True, circle=True, from_prior=False, ambiguous=False):
-    """A measurement of a pose 2 m ahead with (optionally) its ring circle."""
+def _answer(
+    frame,
+    prior,
+    *,
+    pose=True,
+    circle=True,
+    from_prior=False,
+    ambiguous=False,
+    tilt_deg=20.0,
+    system="ellipses",
+):
+    """A measurement of a pose 2 m ahead with (optionally) its ring circle, turned ``tilt_deg``
+    from the line of sight (σ of its normal 0.8°)."""
     X_CT = Pose(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 2.0])
+    tilt = np.radians(tilt_deg)
     fields = dict(from_prior=from_prior, ambiguous=ambiguous)
     if pose:
         fields.update(X_CT=X_CT, covariance=np.eye(6) * 1e-4)
@@ -152,11 +164,11 @@ def _answer(frame, prior, *, pose=True, circle=True, from_prior=False, ambiguous
         fields.update(
             circle="ring_outer",
             center_C=np.array([0.0, 0.0, 2.0]),
-            normal_C=np.array([0.0, 0.0, -1.0]),
+            normal_C=np.array([np.sin(tilt), 0.0, -np.cos(tilt)]),
             covariance_5dof=np.eye(5) * 1e-4,
         )
     status = "tracking" if prior is not None else "acquired"
-    return Measurement(system="s", status=status, stamp=frame.stamp, seq=frame.seq, **fields)
+    return Measurement(system=system, status=status, stamp=frame.stamp, seq=frame.seq, **fields)
 
 
 class _Script:
@@ -211,6 +223,27 @@ def test_tracker_keeps_a_circle_ambiguous_until_evidence_separates_its_two_poses
     # A pose without its circle whose roll came from an undecided prior is flagged instead.
     out = _run([dict(pose=False), dict(circle=False, from_prior=True)])
     assert out[1].ambiguous and out[1].X_CT is not None
+
+
+@pytest.mark.parametrize(("tilt_deg", "side_decided"), [(0.0, False), (1.0, False), (2.0, True)])
+def test_tracker_does_not_take_a_circles_side_from_a_prior_seen_head_on(tilt_deg, side_decided):
+    # A circle measured within its noise of head-on (σ of its normal 0.8°: its two poses, 2τ
+    # apart, are one below 3σ = 2.4°) is decided as a pose and says nothing about the side of
+    # the line of sight it will face once it turns: an answer that then keeps the prior's side
+    # stays ambiguous (held-out random:119 at 3 m: 18° off, taken as a lock).
+    out = _run([dict(pose=False, tilt_deg=tilt_deg), dict(pose=False, from_prior=True)])
+    assert not out[0].ambiguous
+    assert decided_parts(out[0])[1] == side_decided == faces_a_side(out[0])
+    assert out[1].ambiguous == (not side_decided)
+    # A measurement without a circle has no side to lose; a panel system's circle (its panel's
+    # axis, the roll undecided) is not a choice between a circle's two poses: its answer that
+    # kept the prior's roll loses the roll, as ever.
+    assert faces_a_side(_answer(FRAME, None, circle=False))
+    panel = _run(
+        [dict(pose=False, tilt_deg=tilt_deg, system="lines"), dict(from_prior=True, system="lines")]
+    )
+    assert decided_parts(panel[0])[1]
+    assert not panel[1].ambiguous and panel[1].X_CT is None and panel[1].center_C is not None
 
 
 def test_measurement_round_trips_its_ambiguity_fields():

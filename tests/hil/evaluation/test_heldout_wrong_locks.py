@@ -268,3 +268,16 @@ def test_ellipses_flag_a_track_far_from_its_prior_where_the_image_ties_the_rings
     rows = run_case_group(spec, 3.0, "turn_y_10deg", "random:107")
     assert len(rows) == 12
     assert wrong_locks(rows, 3.0) == []
+
+
+def test_ellipses_do_not_take_a_rings_side_from_a_prior_seen_head_on():
+    # random:119 at 3 m, high noise, the ring alone in view: acquired square on with its
+    # normal 3.4° off to one side — the ring's two poses one within the noise, reported as
+    # decided. One frame later, turned 8.7° to the other side, the ring held within the fine
+    # window and the image did not tell its two poses apart; the pose on the prior's side was
+    # kept because of the prior and locked because the prior was "decided" (18° off). A
+    # circle seen head-on decided nothing about the side it turns to (`faces_a_side`).
+    spec = replace(HELD_OUT, systems=("ellipses",), frames=3, auto_exposure=True)
+    rows = run_case_group(spec, 3.0, "turn_y_10deg", "random:119")
+    assert len(rows) == 12
+    assert wrong_locks(rows, 3.0) == []
