@@ -434,10 +434,10 @@ class EllipseEstimator:
 
     def _against_mirror(self, image: _Image, ring: _Fit, full: _Fit, prior: Pose, width: float):
         """A track's 6-DOF fit ``full``, not found within the fine window of its prior (or
-        its thruster out of view there), weighed against the ring's other pose (``ring``: the
-        ring's fit it came from, or ``full`` itself): the image decides between the two fits,
-        or the answer — the pose nearer the prior — says it is ambiguous. Returns (fit,
-        ambiguous, from_prior).
+        its thruster out of view there, or turned far from the prior within it), weighed against
+        the ring's other pose (``ring``: the ring's fit it came from, or ``full`` itself): the
+        image decides between the two fits, or the answer — the pose nearer the prior — says it
+        is ambiguous. Returns (fit, ambiguous, from_prior).
 
         Near head-on the ring's two poses lie on either side of the line of sight, and a prior
         on the wrong side — the target turned since — leads the fit to the wrong one, where
