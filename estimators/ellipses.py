@@ -539,7 +539,8 @@ class EllipseEstimator:
         the ring turned to is then not the prior's to say (as in ``_against_mirror``): random:107
         at 0.5 m, 17° turned since the prior, the ring found by extraction, its other pose
         unverified (the bore's rim at 0.14 of its length), the wrong pose kept as decided 13°
-        and 35 mm off. Returns (fit, ambiguous, from_prior)."""
+        and 35 mm off. Before a tie goes to the prior, where neither pose shows the thruster,
+        the ring's holes decide if they can. Returns (fit, ambiguous, from_prior)."""
         mirror = self._mirror(image, fit)
         if mirror is None:
             return fit, False, False
@@ -550,6 +551,16 @@ class EllipseEstimator:
             best, decided = self._better_of(fit, mirror)
         if decided:
             return best, False, False
+        if mirror_full is None:
+            # No thruster on either pose: the holes, labeled from the ring's own fit, may still
+            # tell the two apart (held-out random:102 at 1.2 m after the 17° turn: the pose
+            # nearer the prior, flagged, was 15° off; the holes decide for the true one). With
+            # a thruster on the other pose its roll labels the holes, as the answer's holes
+            # fit does (asked here, the holes' own pattern roll decided the default mock-up
+            # 6° off at 3 m, high noise, where the thruster's gave 0.9°).
+            holed, decided = self._with_holes(image, fit)
+            if decided:
+                return holed, False, False
         nearer, ambiguous, from_prior = self._by_prior(fit, mirror_full or mirror, prior)
         return nearer, ambiguous or not held, from_prior and held
 

@@ -2,6 +2,7 @@
 exactly as the held-out matrix runs them (docs/any_mockup.md: the same lists, so the same
 seeds): no answer may be a wrong lock."""
 
+import math
 from dataclasses import replace
 
 import pytest
@@ -294,3 +295,19 @@ def test_ellipses_weigh_a_track_that_turned_far_from_its_prior_against_the_rings
     rows = run_case_group(spec, 3.0, "turn_y_10deg", "random:116")
     assert len(rows) == 12
     assert wrong_locks(rows, 3.0) == []
+
+
+@pytest.mark.parametrize("mockup", ["random:102", "random:112"])
+def test_ellipses_let_the_rings_holes_settle_a_tie_of_the_ring_alone(mockup):
+    # random:102 and random:112 at 1.2 m, turned, the ring alone in view (no thruster on either
+    # of its poses): after the matrix's 17° turn the image did not tell the ring's two poses
+    # apart, the prior sat midway, and the answer was the pose nearer the prior, flagged
+    # ambiguous — 15° and 23–33 mm off, while the ring's holes, fitted from the ring's own
+    # pose, decide for the true one. Where the thruster settles nothing, the holes are asked
+    # before the tie is left to the prior.
+    spec = replace(HELD_OUT, systems=("ellipses",), frames=3, auto_exposure=True)
+    rows = run_case_group(spec, 1.2, "turn_y_10deg", mockup)
+    tracked = [r for r in rows if r.mode == "tracking" and r.noise == "low"]
+    assert len(tracked) == 3 and all(r.status != "lost" for r in tracked)
+    assert [r.ambiguous for r in tracked] == [False] * 3
+    assert max(r.error.attitude_rad for r in tracked) < math.radians(1.0), tracked
