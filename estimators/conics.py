@@ -200,21 +200,35 @@ def fit_ellipse_direct(uv: np.ndarray, weights: np.ndarray | None = None) -> np.
     uv = as_points(uv, 2, "uv")
     if len(uv) < 5:
         raise ValueError(f"an ellipse fit needs at least 5 points; got {len(uv)}")
-    mean = uv.mean(axis=0)
-    scale = np.sqrt(2.0) / max(np.sqrt(((uv - mean) ** 2).sum(axis=1).mean()), 1e-12)
-    x = (uv[:, 0] - mean[0]) * scale
-    y = (uv[:, 1] - mean[1]) * scale
-    D1 = np.column_stack([x * x, x * y, y * y])
-    D2 = np.column_stack([x, y, np.ones_like(x)])
+    H, D1, D2 = _normalised_design(uv)
     if weights is not None:
         w = np.sqrt(np.clip(np.asarray(weights, dtype=float).reshape(-1), 0.0, None))
         if w.shape != (len(uv),):
             raise ValueError(f"weights must have shape ({len(uv)},); got {np.shape(weights)}")
         D1 = D1 * w[:, None]
         D2 = D2 * w[:, None]
-    S1 = D1.T @ D1
-    S2 = D1.T @ D2
-    S3 = D2.T @ D2
+    return _ellipse_from_scatter(D1.T @ D1, D1.T @ D2, D2.T @ D2, H)
+
+
+def _normalised_design(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The Hartley normalisation H of points (N,2) (centred, mean distance √2) and the direct
+    fit's design matrices of the normalised points: quadratic (x², xy, y²) and linear (x, y, 1)
+    columns."""
+    mean = uv.mean(axis=0)
+    scale = np.sqrt(2.0) / max(np.sqrt(((uv - mean) ** 2).sum(axis=1).mean()), 1e-12)
+    x = (uv[:, 0] - mean[0]) * scale
+    y = (uv[:, 1] - mean[1]) * scale
+    # x_n = H x with H = [[s, 0, −s·mx], [0, s, −s·my], [0, 0, 1]].
+    H = np.array([[scale, 0.0, -scale * mean[0]], [0.0, scale, -scale * mean[1]], [0, 0, 1.0]])
+    return H, np.column_stack([x * x, x * y, y * y]), np.column_stack([x, y, np.ones_like(x)])
+
+
+def _ellipse_from_scatter(
+    S1: np.ndarray, S2: np.ndarray, S3: np.ndarray, H: np.ndarray
+) -> np.ndarray:
+    """The direct fit's ellipse from the scatter blocks S1 = D1ᵀD1, S2 = D1ᵀD2, S3 = D2ᵀD2 of
+    points normalised by H (Halíř & Flusser's reduced 3×3 eigenproblem), as the normalised
+    conic in pixel coordinates. ValueError when they determine no ellipse."""
     try:
         T = -np.linalg.solve(S3, S2.T)
     except np.linalg.LinAlgError as exc:
@@ -233,8 +247,6 @@ def fit_ellipse_direct(uv: np.ndarray, weights: np.ndarray | None = None) -> np.
     A, B, C = a1
     Dx, Ey, F = a2
     Q_normalised = np.array([[A, B / 2, Dx / 2], [B / 2, C, Ey / 2], [Dx / 2, Ey / 2, F]])
-    # Normalised coordinates: x_n = H x with H = [[s, 0, −s·mx], [0, s, −s·my], [0, 0, 1]].
-    H = np.array([[scale, 0.0, -scale * mean[0]], [0.0, scale, -scale * mean[1]], [0, 0, 1.0]])
     Q = H.T @ Q_normalised @ H
     if not np.all(np.isfinite(Q)):
         raise ValueError("points do not determine an ellipse (non-finite fit)")
@@ -249,19 +261,26 @@ def fit_ellipse_leaving_out_an_arc(uv: np.ndarray, *, blocks: int = 8) -> np.nda
     subsets). A least-squares fit, even a Huber one, leans toward a clustered wrong arc: a lit
     bore wall a ring's width inside its edge, found by the edge search on one side, flattened
     the ellipse by 9 % (b/a 0.91 for 0.99) and still fitted its points to 0.9 px rms. A subset
-    must be clearly better (median 0.8× the full fit's) to win. Returns the normalised conic."""
+    must be clearly better (median 0.8× the full fit's) to win. Returns the normalised conic.
+
+    The scatter matrices of the direct fit add over points, so each subset's is the whole
+    curve's less its two runs' (normalised once, for all points: the direct fit is invariant
+    under similarities, Fitzgibbon et al. 1999, so the subset's own normalisation would give
+    the same ellipse) — a 3×3 problem per subset instead of a fit."""
     uv = as_points(uv, 2, "uv")
     Q_all = fit_ellipse_direct(uv)
     if len(uv) < 8 * blocks:
         return Q_all
     best, best_score = Q_all, 0.8 * float(np.median(np.abs(sampson_distances(Q_all, uv))))
+    H, D1, D2 = _normalised_design(uv)
     runs = np.array_split(np.arange(len(uv)), blocks)
+    scatter_all = (D1.T @ D1, D1.T @ D2, D2.T @ D2)
+    scatter_runs = [(D1[r].T @ D1[r], D1[r].T @ D2[r], D2[r].T @ D2[r]) for r in runs]
     for i in range(blocks):
-        keep = np.ones(len(uv), bool)
-        keep[runs[i]] = False
-        keep[runs[(i + 1) % blocks]] = False
+        a, b = scatter_runs[i], scatter_runs[(i + 1) % blocks]
+        S1, S2, S3 = (total - a[k] - b[k] for k, total in enumerate(scatter_all))
         try:
-            Q = fit_ellipse_direct(uv[keep])
+            Q = _ellipse_from_scatter(S1, S2, S3, H)
         except ValueError:
             continue
         score = float(np.median(np.abs(sampson_distances(Q, uv))))
