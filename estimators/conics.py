@@ -268,13 +268,13 @@ def fit_ellipse_leaving_out_an_arc(uv: np.ndarray, *, blocks: int = 8) -> np.nda
     under similarities, Fitzgibbon et al. 1999, so the subset's own normalisation would give
     the same ellipse) — a 3×3 problem per subset instead of a fit."""
     uv = as_points(uv, 2, "uv")
-    Q_all = fit_ellipse_direct(uv)
     if len(uv) < 8 * blocks:
-        return Q_all
-    best, best_score = Q_all, 0.8 * float(np.median(np.abs(sampson_distances(Q_all, uv))))
+        return fit_ellipse_direct(uv)
     H, D1, D2 = _normalised_design(uv)
-    runs = np.array_split(np.arange(len(uv)), blocks)
     scatter_all = (D1.T @ D1, D1.T @ D2, D2.T @ D2)
+    Q_all = _ellipse_from_scatter(*scatter_all, H)  # = fit_ellipse_direct(uv)
+    best, best_score = Q_all, 0.8 * float(np.median(np.abs(sampson_distances(Q_all, uv))))
+    runs = np.array_split(np.arange(len(uv)), blocks)
     scatter_runs = [(D1[r].T @ D1[r], D1[r].T @ D2[r], D2[r].T @ D2[r]) for r in runs]
     for i in range(blocks):
         a, b = scatter_runs[i], scatter_runs[(i + 1) % blocks]
