@@ -247,9 +247,9 @@ class _Fit:
     #: edges were found too sparsely to verify it — can leave a choice undecided (``_better_of``)
     #: but never wins one: failing a support threshold is not evidence that a pose is wrong.
     verified: bool = True
-    #: Its holes were fitted (``holes``) and decided between the ring's two poses
-    #: (``_with_holes``): nothing is left for the ring's other pose to settle.
-    holes_decided: bool = False
+    #: Whether the ring's holes, once fitted (``_with_holes``), decided between the ring's two
+    #: poses — nothing is then left for the other pose to settle; None before they are fitted.
+    holes_decided: bool | None = None
 
     @property
     def polarities(self) -> dict[str, int]:
@@ -344,7 +344,7 @@ class EllipseEstimator:
             )
             return Measurement.lost(SYSTEM, frame, reason, started=started)
         fit, ambiguous, from_prior = found
-        fit, decided = (fit, True) if fit.holes_decided else self._with_holes(image, fit)
+        fit, decided = self._with_holes(image, fit)
         if fit.X_CT is None and self.inner is not None:
             # The ring alone — no thruster, no holes to label: near head-on its outer edge holds
             # its tilt only to second order, and the one first-order measure left is the
@@ -463,15 +463,15 @@ class EllipseEstimator:
             else self._other_full(image, ring, full, mirror_pose, width, near_roll=True)
         )
         if other is None:
-            return full, False, False
+            return holed, False, False
         best, decided = self._better_of(full, other)
         if decided:
-            return best, False, False
+            return (holed if best is full else best), False, False
         # The prior did not predict ring and thruster within the fine window (and the ring's
         # image is the same at both poses): which side of the line of sight the ring turned to
         # is not the prior's to say.
         nearer, _, _ = self._by_prior(full, other, prior)
-        return nearer, True, False
+        return (holed if nearer is full else nearer), True, False
 
     def _other_full(
         self,
@@ -554,6 +554,7 @@ class EllipseEstimator:
             best, decided = self._better_of(fit, mirror)
         if decided:
             return best, False, False
+        holed = None
         if mirror_full is None:
             # No thruster on either pose: the holes, labeled from the ring's own fit, may still
             # tell the two apart (held-out random:102 at 1.2 m after the 17° turn: the pose
@@ -565,6 +566,8 @@ class EllipseEstimator:
             if decided:
                 return holed, False, False
         nearer, ambiguous, from_prior = self._by_prior(fit, mirror_full or mirror, prior)
+        if nearer is fit and holed is not None:
+            nearer = holed  # (its holes fitted, undecided: not fitted again for the answer)
         return nearer, ambiguous or not held, from_prior and held
 
     def _thruster_found_on(
@@ -1419,6 +1422,16 @@ class EllipseEstimator:
 
     # --- ring holes -------------------------------------------------------------------------
     def _with_holes(self, image: _Image, fit: _Fit) -> tuple[_Fit, bool]:
+        """The 6-DOF fit redone with the ring's holes (``_fit_holes``), once: the fit returned
+        carries whether they decided (``holes_decided``), so asking again — a track's choice
+        between the ring's poses asks first, the answer after — costs nothing. Returns (fit,
+        whether the holes decided between the ring's two poses)."""
+        if fit.holes_decided is None:
+            holed, decided = self._fit_holes(image, fit)
+            fit = replace(holed, holes_decided=decided)
+        return fit, fit.holes_decided
+
+    def _fit_holes(self, image: _Image, fit: _Fit) -> tuple[_Fit, bool]:
         """The 6-DOF fit redone with the ring's holes, when enough of them are found around
         their projections (``fit`` unchanged otherwise, and for 5-DOF fits: without the roll
         the holes cannot be labeled). Returns (fit, whether the holes decided between the
@@ -1473,7 +1486,7 @@ class EllipseEstimator:
         # Decided: the other start is clearly worse, or ends at the same pose (the holes
         # leave no second minimum).
         decided = other_cost - cost > _HOLES_DECIDE_CHI2 or self._same_normal(best, other)
-        return replace(best, holes_decided=decided), decided
+        return best, decided
 
     def _roll_of_holes(self, image: _Image, fit: _Fit) -> Pose | None:
         """The ring alone (no thruster: roll unknown): the roll about its axis at which the
