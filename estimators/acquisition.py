@@ -943,15 +943,7 @@ def refine_quad(
             return corners
         previous, corners = corners, edges.corners_ideal
         assert corners is not None
-        quad_uv = camera.project(
-            np.column_stack(
-                [
-                    (corners[:, 0] - camera.K[0, 2]) / camera.K[0, 0],
-                    (corners[:, 1] - camera.K[1, 2]) / camera.K[1, 1],
-                    np.ones(4),
-                ]
-            )
-        )
+        quad_uv = camera.image_of_ideal(corners)
         if previous is not None and np.max(np.abs(corners - previous)) < 0.3:
             break
     return corners

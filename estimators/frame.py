@@ -82,6 +82,15 @@ class CameraInfo:
     def project(self, points_C: np.ndarray) -> np.ndarray:
         return project(points_C, self.K, self.dist)
 
+    def image_of_ideal(self, uv_ideal: np.ndarray) -> np.ndarray:
+        """Pinhole ("ideal") pixels (N,2) of this K as the camera images them, its lens
+        distortion applied (``planar_pose.ideal_pixels`` undoes it)."""
+        uv = np.asarray(uv_ideal, dtype=float).reshape(-1, 2)
+        K = self.K
+        y = (uv[:, 1] - K[1, 2]) / K[1, 1]
+        x = (uv[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        return self.project(np.column_stack([x, y, np.ones(len(uv))]))
+
     def in_view(self, points_C: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
         """Mask of points (N,3) in C imaged at least ``margin_px`` inside the borders."""
         return in_view(points_C, self.K, self.dist, self.width, self.height, margin_px=margin_px)

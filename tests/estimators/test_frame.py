@@ -6,6 +6,7 @@ import pytest
 from configuration.camera import load_camera
 from estimators.frame import CameraInfo, Frame, frame_problem
 from estimators.geometry import intrinsics_from_fov
+from estimators.planar_pose import ideal_pixels
 
 INFO = CameraInfo(640, 480, intrinsics_from_fov(640, 480, 70.0), np.zeros(0), "reference")
 
@@ -30,6 +31,17 @@ def test_camera_info_key_is_the_content_not_the_name():
     assert CameraInfo(640, 480, INFO.K, np.zeros(0), "reference", channels=3).key != INFO.key
     tilted = CameraInfo(640, 480, INFO.K, np.r_[np.zeros(12), 0.01, 0.0], "reference")
     assert tilted.key != INFO.key and tilted.dist.shape == (14,)
+
+
+def test_ideal_pixels_imaged_by_a_distorting_camera_and_back():
+    """``image_of_ideal`` applies the lens that ``ideal_pixels`` removes: a round trip returns
+    the ideal pixels, and the OAK's lens moves its corners by pixels."""
+    camera = load_camera("oak_d_rgb").camera_info()
+    uv_ideal = np.array([[10.0, 20.0], [640.0, 400.0], [1250.0, 780.0]])
+    imaged = camera.image_of_ideal(uv_ideal)
+    assert np.abs(imaged[[0, 2]] - uv_ideal[[0, 2]]).min() > 3.0
+    np.testing.assert_allclose(ideal_pixels(imaged, camera.K, camera.dist), uv_ideal, atol=1e-6)
+    np.testing.assert_allclose(INFO.image_of_ideal(uv_ideal), uv_ideal, atol=1e-9)
 
 
 def test_camera_info_in_view_rejects_fold_back_of_distortion():
