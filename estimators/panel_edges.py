@@ -265,6 +265,47 @@ def strips_from_quad(corners_uv: np.ndarray, strip_px: float) -> list[EdgeStrips
     return strips
 
 
+def last_side_quads(
+    edges: PanelEdges, side: int, guess_ideal: np.ndarray, step_px: float, reach: float
+) -> list[np.ndarray]:
+    """Where a quad's one missing ``side`` may lie once the other three edges are found:
+    quads (4,2 ideal px, model corner order) whose two corners on the opposite edge are where
+    the found lines meet, and whose missing side's ends slide along the two neighbouring lines
+    together, ``step_px`` apart, from ``1 − reach`` to ``1 + reach`` times their distance in
+    ``guess_ideal`` (a hypothesis's corners, 4,2). Empty when the lines do not meet."""
+    before, after, opposite = (
+        edges.edges[side - 1],
+        edges.edges[(side + 1) % 4],
+        edges.edges[(side + 2) % 4],
+    )
+    far_before = intersect(opposite.line, before.line)  # type: ignore[arg-type]
+    far_after = intersect(opposite.line, after.line)  # type: ignore[arg-type]
+    if far_before is None or far_after is None:
+        return []
+    guess = np.asarray(guess_ideal, dtype=float)
+    # Corner ``side`` ends the edge before it, corner ``side + 1`` starts the one after it.
+    ends = []
+    for line, far, near_guess in (
+        (before.line, far_before, guess[side]),
+        (after.line, far_after, guess[(side + 1) % 4]),
+    ):
+        direction = line.direction  # type: ignore[union-attr]
+        length = float((near_guess - far) @ direction)
+        ends.append((far, direction * length))
+    span = max(abs(float(np.linalg.norm(d))) for _, d in ends)
+    if span < 1.0:
+        return []
+    quads = []
+    for scale in np.arange(1.0 - reach, 1.0 + reach + 1e-9, step_px / span):
+        quad = np.zeros((4, 2))
+        quad[side] = ends[0][0] + scale * ends[0][1]
+        quad[(side + 1) % 4] = ends[1][0] + scale * ends[1][1]
+        quad[(side + 2) % 4] = far_after
+        quad[(side + 3) % 4] = far_before
+        quads.append(quad)
+    return quads
+
+
 def shift_strips_onto(strips: EdgeStrips, point: np.ndarray, direction: np.ndarray) -> EdgeStrips:
     """Strips moved along their normals onto the image line through ``point`` along
     ``direction`` (e.g. a labeled Hough segment), keeping their spacing and shape."""
@@ -319,6 +360,21 @@ class PanelEdges:
 
     edges: tuple[FittedEdge, ...]
     corners_ideal: np.ndarray | None
+
+    @staticmethod
+    def of(edges: Sequence[FittedEdge]) -> PanelEdges:
+        """The edges with their corners, when all four are found and neighbours meet."""
+        corners = None
+        if all(e.found for e in edges):
+            found = []
+            for i in range(4):
+                point = intersect(edges[i - 1].line, edges[i].line)  # type: ignore[arg-type]
+                if point is None:
+                    break
+                found.append(point)
+            if len(found) == 4 and np.all(np.isfinite(found)):
+                corners = np.array(found)
+        return PanelEdges(tuple(edges), corners)
 
     @property
     def all_found(self) -> bool:
@@ -394,6 +450,64 @@ def fit_edge(
     full_uv[ok] = uv_ideal
     full_sigma[ok] = sigma
     return FittedEdge(points, full_uv, full_sigma, line, ok[line.inliers])
+
+
+def side_contrast_z(
+    pixels: np.ndarray,
+    ends_uv: np.ndarray,
+    inside_uv: np.ndarray,
+    polarity: float,
+    noise_sigma: float,
+    keep: Callable[[np.ndarray], np.ndarray] | None = None,
+    *,
+    strip_px: float = 6.0,
+    gap_px: float = 1.0,
+    band_px: float = 4.0,
+    min_pixels: int = 8,
+) -> np.ndarray:
+    """The contrast across straight image edges at given places (``ends_uv``, S,2,2 px; the
+    panel toward ``inside_uv``), each as a z-score: the mean grey level of the pixels
+    ``gap_px`` to ``gap_px + band_px`` on the panel's side of the edge, less that of the
+    pixels as far on the other side, times ``polarity`` (+1: the panel brighter), over its
+    standard error for white noise ``noise_sigma`` — along the part of the edge strips would
+    cover (``edge_span``). Each pixel (kept by ``keep``) counts once, by its centre, and no
+    position is searched: where there is no edge each score is a standard normal, unlike
+    ``fit_edge``'s contrast, taken at each strip's best position
+    (tests/estimators/test_panel_edges.py). (S,) scores, NaN with fewer than ``min_pixels``
+    on a side."""
+    ends = np.asarray(ends_uv, dtype=float).reshape(-1, 2, 2)
+    h, w = pixels.shape[:2]
+    reach = gap_px + band_px + 1.0
+    lo = np.floor(np.maximum(ends.reshape(-1, 2).min(axis=0) - reach, 0.0)).astype(int)
+    hi = np.ceil(np.minimum(ends.reshape(-1, 2).max(axis=0) + reach, [w - 1, h - 1])).astype(int)
+    scores = np.full(len(ends), math.nan)
+    if np.any(hi < lo):
+        return scores
+    gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
+    uv = np.column_stack([gx.ravel(), gy.ravel()]).astype(float)
+    if keep is not None:
+        uv = uv[keep(uv)]
+    values = pixels[uv[:, 1].astype(int), uv[:, 0].astype(int)].astype(float)
+    a, b = ends[:, 0], ends[:, 1]
+    length = np.linalg.norm(b - a, axis=1)
+    tangent = (b - a) / np.maximum(length, 1e-9)[:, None]
+    normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
+    toward = np.einsum("sj,sj->s", normal, np.asarray(inside_uv, dtype=float) - a)
+    normal *= np.where(toward < 0, -1.0, 1.0)[:, None]
+    relative = uv[None, :, :] - a[:, None, :]
+    along = np.einsum("spj,sj->sp", relative, tangent)
+    across = np.einsum("spj,sj->sp", relative, normal)
+    span = np.array([edge_span(float(n), strip_px) for n in length]) * length[:, None]
+    on_edge = (along >= span[:, :1]) & (along <= span[:, 1:])
+    inner = on_edge & (across >= gap_px) & (across <= gap_px + band_px)
+    outer = on_edge & (-across >= gap_px) & (-across <= gap_px + band_px)
+    n_in, n_out = inner.sum(axis=1), outer.sum(axis=1)
+    enough = (n_in >= min_pixels) & (n_out >= min_pixels)
+    mean_in = (inner @ values) / np.maximum(n_in, 1)
+    mean_out = (outer @ values) / np.maximum(n_out, 1)
+    error = max(noise_sigma, 1e-6) * np.sqrt(1.0 / np.maximum(n_in, 1) + 1.0 / np.maximum(n_out, 1))
+    scores[enough] = (polarity * (mean_in - mean_out) / error)[enough]
+    return scores
 
 
 def edge_observations(ends_T: np.ndarray, edges: Sequence[FittedEdge | None]) -> EdgeObservations:
@@ -480,17 +594,7 @@ def fit_panel_edges(
             if other.information > edge.information:
                 edge = other
         fitted.append(edge)
-    corners = None
-    if all(e.found for e in fitted):
-        found = []
-        for i in range(4):
-            point = intersect(fitted[i - 1].line, fitted[i].line)  # type: ignore[arg-type]
-            if point is None:
-                break
-            found.append(point)
-        if len(found) == 4 and np.all(np.isfinite(found)):
-            corners = np.array(found)
-    return PanelEdges(tuple(fitted), corners)
+    return PanelEdges.of(fitted)
 
 
 def corner_sigma_px(edges: PanelEdges) -> float:

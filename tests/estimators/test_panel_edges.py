@@ -6,10 +6,13 @@ import numpy as np
 from configuration.camera import load_camera
 from estimators.acquisition import quarter_turns
 from estimators.geometry import Pose
+from estimators.lines import LineOptions
 from estimators.panel_edges import (
     edge_span,
     fit_panel_edges,
+    last_side_quads,
     shift_strips_onto,
+    side_contrast_z,
     strips_from_pose,
     strips_from_quad,
 )
@@ -142,3 +145,65 @@ def test_a_panel_side_that_is_not_there_is_rarely_found_in_the_noise():
 
     assert found_in(0.13) <= 8  # no side there: measured 4.5 % over 200 draws
     assert found_in(0.20) >= 98  # a side of contrast 0.07 against noise 0.1: 5.7 σ
+
+
+def _faint_side_images(beyond_side_1: float):
+    """The 50 px panel above, the face beyond its side 1 at ``beyond_side_1``."""
+    camera = load_camera("reference").camera_info()
+    size = (camera.width, camera.height)
+    corners = np.array([[296.3, 216.7], [345.8, 216.7], [345.8, 266.2], [296.3, 266.2]])
+    image = _panel_image(corners, size, 0.13, 0.35)
+    image[:, 330:] = _panel_image(corners, size, 0.13, beyond_side_1)[:, 330:]
+    return camera, corners, image
+
+
+def test_a_sides_contrast_at_its_predicted_place_is_a_z_score():
+    """Nothing searched, each pixel once: where the side has no contrast the score is a
+    standard normal (so a threshold means what it says), and a real side scores its contrast
+    over the standard error of the two bands' means."""
+    _, corners, absent = _faint_side_images(0.13)
+    _, _, faint = _faint_side_images(0.16)
+    side, inside = corners[[1, 2]], corners.mean(axis=0)
+    rng = np.random.default_rng(0)
+
+    def scores(image):
+        draws = [image + rng.normal(0.0, 0.1, image.shape).astype(np.float32) for _ in range(300)]
+        return np.array([side_contrast_z(d, side, inside, -1.0, 0.1)[0] for d in draws])
+
+    null, present = scores(absent), scores(faint)
+    # 300 draws: the mean's standard error is 0.06.
+    assert abs(null.mean()) < 0.25 and 0.85 < null.std() < 1.15, (null.mean(), null.std())
+    assert np.mean(null > 3.0) < 0.01
+    # 0.03 of contrast, bands of ~130 pixels a side, noise 0.1: 0.03 / (0.1 √(2/130)) ≈ 2.4.
+    assert 1.8 < present.mean() < 3.0, present.mean()
+
+
+def test_a_missing_side_scanned_where_three_sides_bound_it():
+    """The scan of a missing side along its neighbours (``last_side_quads``, the line
+    system's ``fourth_side_reach`` and ``fourth_side_z``): where the side is not there its best
+    place scores 4 σ in at most 1 draw of 60; a faint side (0.05 of contrast, which
+    ``fit_edge`` misses in 1 draw of 10) is found, to a pixel, in most."""
+    options = LineOptions()
+
+    def scan(beyond_side_1: float, draws: int = 60):
+        camera, corners, image = _faint_side_images(beyond_side_1)
+        strips = strips_from_quad(corners, 6.0)
+        rng = np.random.default_rng(5)
+        best = []
+        for _ in range(draws):
+            noisy = image + rng.normal(0.0, 0.1, image.shape).astype(np.float32)
+            edges = fit_panel_edges(
+                noisy, strips, camera, search_px=4.0, polarity=-1.0, noise_sigma=0.1
+            )
+            assert all(edges.edges[i].found for i in (0, 2, 3))
+            quads = np.array(last_side_quads(edges, 1, corners, 0.5, options.fourth_side_reach))
+            z = side_contrast_z(noisy, quads[:, 1:3], corners.mean(axis=0), -1.0, 0.1)
+            k = int(np.argmax(z))
+            best.append((z[k], float(np.max(np.abs(quads[k, 1:3, 0] - corners[1:3, 0])))))
+        return np.array(best)
+
+    absent, faint = scan(0.13), scan(0.18)
+    assert np.sum(absent[:, 0] >= options.fourth_side_z) <= 1, absent[:, 0]
+    found = faint[:, 0] >= options.fourth_side_z
+    assert found.mean() > 0.5, faint[:, 0]  # measured 43 of 60
+    assert np.median(faint[found, 1]) < 1.0, faint[found, 1]

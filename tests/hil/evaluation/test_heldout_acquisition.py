@@ -171,3 +171,11 @@ def test_a_hypothesis_on_the_wrong_side_of_the_line_of_sight_is_flipped_before_i
     # them, was refused for their disagreement (χ²/dof 5.0); measured from its planar flip,
     # which the whole model prefers, 1.0° off (5 of 6 frames acquired).
     _assert_acquired("corners", "random:110", 1.2, "none", 6, auto_exposure=True, frames=3)
+
+
+def test_a_faint_fourth_side_is_found_where_the_other_three_bound_it():
+    # random:112 at 3 m, square on, exposed, high noise: a 49 px panel, one side under the
+    # contrast an edge must show (3.5 σ, taken at each strip's best position: noise passes it
+    # where there is no edge 1 time in 20, so it stays). Scanned along the two sides beside
+    # it, its contrast with nothing searched reaches the scan's 4 σ (5 of 6 frames acquired).
+    _assert_acquired("lines", "random:112", 3.0, "none", 6, auto_exposure=True, frames=3)
