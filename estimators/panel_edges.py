@@ -292,7 +292,7 @@ def last_side_quads(
         direction = line.direction  # type: ignore[union-attr]
         length = float((near_guess - far) @ direction)
         ends.append((far, direction * length))
-    span = max(abs(float(np.linalg.norm(d))) for _, d in ends)
+    span = max(float(np.linalg.norm(d)) for _, d in ends)
     if span < 1.0:
         return []
     quads = []
@@ -477,9 +477,9 @@ def side_contrast_z(
     on a side."""
     ends = np.asarray(ends_uv, dtype=float).reshape(-1, 2, 2)
     h, w = pixels.shape[:2]
-    reach = gap_px + band_px + 1.0
-    lo = np.floor(np.maximum(ends.reshape(-1, 2).min(axis=0) - reach, 0.0)).astype(int)
-    hi = np.ceil(np.minimum(ends.reshape(-1, 2).max(axis=0) + reach, [w - 1, h - 1])).astype(int)
+    margin = gap_px + band_px + 1.0
+    lo = np.floor(np.maximum(ends.reshape(-1, 2).min(axis=0) - margin, 0.0)).astype(int)
+    hi = np.ceil(np.minimum(ends.reshape(-1, 2).max(axis=0) + margin, [w - 1, h - 1])).astype(int)
     scores = np.full(len(ends), math.nan)
     if np.any(hi < lo):
         return scores
