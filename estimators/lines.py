@@ -71,17 +71,16 @@ from estimators.outline_edges import (
     outline_observations,
 )
 from estimators.panel_edges import (
+    LAST_SIDE_REACH,
+    LAST_SIDE_Z,
     EdgeStrips,
     PanelEdges,
     corner_sigma_px,
-    fit_edge,
+    find_last_side,
     fit_panel_edges,
-    last_side_quads,
     panel_edge_ends,
     shift_strips_onto,
-    side_contrast_z,
     strips_from_pose,
-    strips_from_quad,
 )
 from estimators.planar_pose import (
     MIN_SCALE2,
@@ -129,8 +128,8 @@ class LineOptions:
     strip_px: float = 6.0
     band_px: float = 3.0
     min_contrast_snr: float = 3.5
-    fourth_side_z: float = 4.0
-    fourth_side_reach: float = 0.3
+    fourth_side_z: float = LAST_SIDE_Z
+    fourth_side_reach: float = LAST_SIDE_REACH
     max_reduced_chi2: float = 5.0
     min_edge_support: float = 3.0
     min_panel_edge_support: float = 2.5
@@ -426,16 +425,8 @@ class LineEstimator:
         self, image: ImageStack, edges: PanelEdges, side: int, X0: Pose
     ) -> PanelEdges | None:
         """The panel's edges with its one missing ``side`` found where the other three bound
-        it, or None. A faint side falls under ``min_contrast_snr`` in one frame of a few (a
-        small panel at 3 m: five strips a side, 5 σ each), and that threshold cannot be
-        lowered: taken at each strip's best position, it passes noise where there is no edge 1
-        time in 20 at 3.5 σ, 1 in 4 at 2.5 σ. The three sides found fix the fourth's direction
-        and the lines its ends slide on; where along them depends on the tilt, which a small
-        panel's hypothesis may have 25° wrong. So the side is scanned along them
-        (``last_side_quads``, half-pixel steps within ``fourth_side_reach`` of ``X0``'s
-        place), its contrast at each place a z-score with nothing searched
-        (``side_contrast_z``), and the best place must reach ``fourth_side_z``, which allows
-        for the scan's many looks. There the side is measured (±1.5 px) as any edge is.
+        it (``find_last_side``, scanned within ``fourth_side_reach`` of where ``X0`` puts it,
+        at ``fourth_side_z``), or None.
 
         Without a prior only: a track that misses a side at the prior's place falls back to
         acquisition, which measures every side afresh. Scanned in tracking, the default
@@ -448,40 +439,21 @@ class LineEstimator:
             self.camera.K,
             self.camera.dist,
         )
-        quads = last_side_quads(edges, side, guess, 0.5, options.fourth_side_reach)
-        if not quads:
-            return None
-        keep = self._keep_mask(X0)
-        quads_uv = self.camera.image_of_ideal(np.concatenate(quads)).reshape(-1, 4, 2)
-        ends = quads_uv[:, [side, (side + 1) % 4]]
-        z = side_contrast_z(
+        return find_last_side(
             image.pixels,
-            ends,
-            quads_uv[0].mean(axis=0),
+            edges,
+            side,
+            guess,
+            self.camera,
             self.polarity,
             image.noise_sigma,
-            keep,
+            clip_sigma=image.clip_sigma,
+            keep=self._keep_mask(X0),
             strip_px=options.strip_px,
-        )
-        best = int(np.nanargmax(z)) if np.any(np.isfinite(z)) else -1
-        if best < 0 or not z[best] >= options.fourth_side_z:
-            return None
-        strip = strips_from_quad(quads_uv[best], options.strip_px)[side]
-        edge = fit_edge(
-            image.pixels,
-            strip,
-            self.camera,
             half_width_px=options.band_px,
-            search_px=1.5,
-            min_contrast_snr=0.0,  # (the z-score above is the test)
-            polarity=self.polarity,
-            keep=keep,
-            noise_sigma=image.clip_sigma,
+            min_z=options.fourth_side_z,
+            reach=options.fourth_side_reach,
         )
-        if not edge.found:
-            return None
-        completed = PanelEdges.of(edges.edges[:side] + (edge,) + edges.edges[side + 1 :])
-        return completed if completed.all_found else None
 
     def _keep_mask(self, X_CT: Pose):
         """Pixels to use for edge fits: not on a disc (bolt head near the panel) and inside the
