@@ -92,7 +92,6 @@ from estimators.planar_pose import (
     PoseFit,
     choose_pose,
     fit_from_starts,
-    ideal_pixels,
     ippe_poses,
     profile_widened,
     project_ideal,
@@ -434,11 +433,7 @@ class LineEstimator:
         up to 33): there a side is missed where something of the other polarity stands beside
         it, not for being faint (docs/any_mockup_heldout.md)."""
         options = self.options
-        guess = ideal_pixels(
-            self.camera.project(X0.apply(self.target.panel_corners_T)),
-            self.camera.K,
-            self.camera.dist,
-        )
+        guess = project_ideal(X0, self.target.panel_corners_T, self.camera.K)
         return find_last_side(
             image.pixels,
             edges,
