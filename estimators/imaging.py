@@ -36,6 +36,10 @@ MIN_IMAGE_SIDE_PX = 24
 NOISE_FLOOR = 0.05
 #: A region of a gradient field this large (fraction of the image) has the whole image filtered.
 WHOLE_FIELD_FRACTION = 0.5
+#: A region of a gradient field is filtered this much larger on each side (fraction of its
+#: width and height): the stages of one frame ask for nearly the same region, a few pixels
+#: larger or shifted as the pose moves, and each would otherwise filter it afresh.
+FIELD_REGION_GROWTH = 0.15
 #: Below this spread of intensities (on [0, 1]) there is nothing to see.
 MIN_INTENSITY_SPREAD = 0.03
 
@@ -226,7 +230,9 @@ class ImageStack:
         x1, y1 (clipped to the image), or the whole image. Only the region (with its filter
         margin) is filtered — inside it the values are the whole image's — unless a field
         already computed at ``sigma_px`` covers it, or it is most of the image (then the whole
-        image is filtered once, for every later region)."""
+        image is filtered once, for every later region). A region is filtered grown by
+        ``FIELD_REGION_GROWTH`` on each side, so that the next stage's, a little larger or
+        shifted, is covered."""
         whole = self._cache.get(("field", sigma_px, None))
         if whole is not None:
             return whole
@@ -237,6 +243,7 @@ class ImageStack:
             for key, field_ in list(self._cache.items()):
                 if key[:2] == ("field", sigma_px) and _covers(key[2], roi):
                     return field_
+            roi = _grown(roi, FIELD_REGION_GROWTH, w, h)
             if (roi[2] - roi[0]) * (roi[3] - roi[1]) < WHOLE_FIELD_FRACTION * h * w:
                 return self._cached(
                     ("field", sigma_px, roi),
@@ -255,6 +262,17 @@ class ImageStack:
             with self._lock:
                 value = self._cache.setdefault(key, value)
         return value
+
+
+def _grown(
+    roi: tuple[int, int, int, int], fraction: float, width: int, height: int
+) -> tuple[int, int, int, int]:
+    """``roi`` = (x0, y0, x1, y1), x1 and y1 exclusive, grown by ``fraction`` of its width and
+    height on each side (at least 4 px), clipped to the image."""
+    x0, y0, x1, y1 = roi
+    dx = max(4, math.ceil(fraction * (x1 - x0)))
+    dy = max(4, math.ceil(fraction * (y1 - y0)))
+    return max(0, x0 - dx), max(0, y0 - dy), min(width, x1 + dx), min(height, y1 + dy)
 
 
 def _covers(outer: tuple[int, int, int, int], inner: tuple[int, int, int, int]) -> bool:
