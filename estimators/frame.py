@@ -7,7 +7,7 @@ import them without a cycle (DESIGN.md: imports go down).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -78,6 +78,10 @@ class CameraInfo:
     @property
     def has_distortion(self) -> bool:
         return bool(np.any(self.dist != 0))
+
+    def as_mono(self) -> CameraInfo:
+        """The same camera delivering one channel (the intensities the estimators read)."""
+        return self if self.channels == 1 else replace(self, channels=1)
 
     def project(self, points_C: np.ndarray) -> np.ndarray:
         return project(points_C, self.K, self.dist)

@@ -14,7 +14,7 @@ import functools
 import math
 import threading
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -302,6 +302,25 @@ def image_stack(frame: Frame) -> ImageStack | str:
     return stack
 
 
+def gray_frame(frame: Frame) -> Frame:
+    """The frame with its BGR image converted to the single channel the estimators read (the
+    conversion ``image_stack`` makes: its stack is the same) and its camera's info
+    ``as_mono``; a mono frame, or one with a problem (``frame_problem``), as it is. For a frame
+    sent to other processes: a colour frame is three times the bytes."""
+    if frame.image.ndim == 2 or frame_problem(frame) is not None:
+        return frame
+    return replace(frame, image=_gray(frame.image), info=frame.info.as_mono())
+
+
+def _gray(image: np.ndarray) -> np.ndarray:
+    """uint8 stays uint8; other types become float32; BGR is converted with OpenCV's luma
+    weights."""
+    if image.dtype == np.uint8:
+        return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    pixels = np.asarray(image, dtype=np.float32)
+    return cv2.cvtColor(pixels, cv2.COLOR_BGR2GRAY) if pixels.ndim == 3 else pixels
+
+
 def _prepare(frame: Frame) -> ImageStack | str:
     """uint8 images are scaled by 1/255; float images are taken as intensities on [0, 1] (the
     renderer's convention); BGR images are converted with OpenCV's luma weights."""
@@ -311,14 +330,11 @@ def _prepare(frame: Frame) -> ImageStack | str:
     image = frame.image
     if min(image.shape[:2]) < MIN_IMAGE_SIDE_PX:
         return f"image {image.shape[1]}x{image.shape[0]} is too small (< {MIN_IMAGE_SIDE_PX} px)"
-    if image.dtype == np.uint8:
-        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    gray = _gray(image)
+    if gray.dtype == np.uint8:
         pixels = gray.astype(np.float32) * np.float32(1.0 / 255.0)
     else:
-        pixels = np.asarray(image, dtype=np.float32)
-        if pixels.ndim == 3:
-            pixels = cv2.cvtColor(pixels, cv2.COLOR_BGR2GRAY)
-        pixels = np.clip(pixels, 0.0, 1.0)
+        pixels = np.clip(gray, 0.0, 1.0)
     local_mean = cv2.blur(pixels, (5, 5))
     low, high = percentile(local_mean[::4, ::4], [1.0, 99.0])
     if high - low < MIN_INTENSITY_SPREAD:

@@ -1,9 +1,17 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from configuration.camera import load_camera
 from estimators.frame import Frame
-from estimators.imaging import ImageStack, estimate_noise_sigma, image_stack, percentile
+from estimators.imaging import (
+    ImageStack,
+    estimate_noise_sigma,
+    gray_frame,
+    image_stack,
+    percentile,
+)
 
 CAMERA = load_camera("reference").camera_info()
 
@@ -67,6 +75,24 @@ def test_a_region_a_little_larger_or_shifted_reuses_the_field_filtered_for_the_f
     assert stack.gradient_field(2.0, (190, 95, 415, 310)) is not first  # another smoothing
     far = stack.gradient_field(1.5, (10, 10, 60, 60))
     assert far is not first and far.shape[0] * far.shape[1] < 0.1 * first.gxy[..., 0].size
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+def test_a_colour_frame_made_gray_gives_the_same_image_stack(dtype):
+    mono = _structured_frame()
+    image = mono.image if dtype == np.uint8 else mono.image.astype(np.float32) / 255.0
+    rng = np.random.default_rng(2)
+    tint = np.stack([image, image, image], axis=2)
+    tint = np.clip(tint + rng.integers(-9, 10, tint.shape), 0, 255) if dtype == np.uint8 else tint
+    colour = Frame(tint.astype(dtype), 0.0, replace(CAMERA, channels=3), 0)
+    gray = gray_frame(colour)
+    assert gray.image.shape == CAMERA.shape and gray.info.channels == 1
+    assert gray.info.key[3:] == colour.info.key[3:]  # the same intrinsics
+    a, b = image_stack(colour), image_stack(gray)
+    np.testing.assert_array_equal(a.pixels, b.pixels)
+    assert (a.noise_sigma, a.clip_sigma) == (b.noise_sigma, b.clip_sigma)
+    broken = replace(colour, image=colour.image[:, :, :2])
+    assert gray_frame(broken) is broken  # its problem is the estimators' to report
 
 
 def test_a_frame_of_nothing_but_noise_is_blank():
