@@ -227,6 +227,8 @@ class CornerEstimator:
         self.options = options
         self.layout = FeatureLayout.of(target)
         self.support = ModelSupport(target, camera)
+        if camera.has_distortion:
+            camera.undistorted_grid()  # (the pixel masks look it up: built now, not in a frame)
         self._z_panel = float(target.panel_corners_T[:, 2].mean())
         self._ring_inner = (
             target.circle("ring_inner").radius if target.has_circle("ring_inner") else math.inf

@@ -7,11 +7,20 @@ import them without a cycle (DESIGN.md: imports go down).
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from estimators.geometry import Pose, check_distortion, in_view, lens_terms, project
+from estimators.geometry import (
+    Pose,
+    as_points,
+    check_distortion,
+    in_view,
+    lens_terms,
+    project,
+    undistort_pixels,
+)
 
 
 def readonly_array(array: np.ndarray, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -86,6 +95,28 @@ class CameraInfo:
     def project(self, points_C: np.ndarray) -> np.ndarray:
         return project(points_C, self.K, self.dist)
 
+    def undistort(self, uv: np.ndarray) -> np.ndarray:
+        """Normalized, undistorted image coordinates (N,2) of pixel coordinates (N,2)
+        (``geometry.undistort_pixels``). Whole pixels inside the image are looked up in a grid
+        of every pixel's, computed once per camera and process by the same function (the same
+        values: the inverse is computed point by point): at 1280×800 the line system undistorts
+        8 000 band pixels a frame, 2.8 ms of its 32, and the grid takes 0.3 s and 16 MB."""
+        uv = as_points(uv, 2, "uv")
+        if not self.has_distortion or len(uv) == 0:
+            return undistort_pixels(uv, self.K, self.dist)
+        u, v = uv[:, 0], uv[:, 1]
+        whole = (u == np.floor(u)) & (v == np.floor(v))
+        whole &= (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+        if not np.all(whole):
+            return undistort_pixels(uv, self.K, self.dist)
+        return self.undistorted_grid()[v.astype(np.intp), u.astype(np.intp)]
+
+    def undistorted_grid(self) -> np.ndarray:
+        """Normalized, undistorted coordinates (H, W, 2) of every pixel, as ``undistort`` looks
+        them up; computed on first use (an estimator that undistorts whole pixels asks for it
+        when it is built, so that no frame waits for it)."""
+        return _undistorted_grid(self)
+
     def image_of_ideal(self, uv_ideal: np.ndarray) -> np.ndarray:
         """Pinhole ("ideal") pixels (N,2) of this K as the camera images them, its lens
         distortion applied (``planar_pose.ideal_pixels`` undoes it)."""
@@ -108,6 +139,28 @@ class CameraInfo:
             "dist": self.dist.tolist(),
             "channels": self.channels,
         }
+
+
+#: Each camera's grid of undistorted pixels (``CameraInfo.undistort``), by ``CameraInfo.key``;
+#: the last two cameras' are kept.
+_UNDISTORTED_GRIDS: dict[tuple, np.ndarray] = {}
+_GRIDS_LOCK = threading.Lock()
+
+
+def _undistorted_grid(camera: CameraInfo) -> np.ndarray:
+    """Normalized, undistorted coordinates (H, W, 2) of every pixel of ``camera``."""
+    grid = _UNDISTORTED_GRIDS.get(camera.key)
+    if grid is None:
+        v, u = np.mgrid[0 : camera.height, 0 : camera.width]
+        pixels = np.column_stack([u.ravel(), v.ravel()]).astype(float)
+        grid = undistort_pixels(pixels, camera.K, camera.dist)
+        grid = grid.reshape(camera.height, camera.width, 2)
+        grid.flags.writeable = False
+        with _GRIDS_LOCK:  # (a twin computed by a racing thread is equal)
+            _UNDISTORTED_GRIDS[camera.key] = grid
+            while len(_UNDISTORTED_GRIDS) > 2:
+                del _UNDISTORTED_GRIDS[next(iter(_UNDISTORTED_GRIDS))]
+    return grid
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -235,6 +235,8 @@ class LineEstimator:
         self.options = options
         self.support = ModelSupport(target, camera)
         self.polarity = _polarity(target)
+        if camera.has_distortion:
+            camera.undistorted_grid()  # (the pixel masks look it up: built now, not in a frame)
         self._z_panel = float(target.panel_corners_T[:, 2].mean())
         discs = [f for f in target.point_features if f.kind == "disc"]
         self._disc_xy = np.array([f.p_T[:2] for f in discs]).reshape(-1, 2)

@@ -10,7 +10,7 @@ import numpy as np
 
 from estimators.compiled import compiled
 from estimators.frame import CameraInfo
-from estimators.geometry import Pose, as_points, undistort_pixels
+from estimators.geometry import Pose, as_points
 
 
 def local_affine(X_CT: Pose, points_T: np.ndarray, camera: CameraInfo, *, step_m: float = 1e-4):
@@ -30,7 +30,7 @@ def local_affine(X_CT: Pose, points_T: np.ndarray, camera: CameraInfo, *, step_m
 def plane_coordinates(uv: np.ndarray, X_CT: Pose, camera: CameraInfo, z_T: float) -> np.ndarray:
     """T-frame (x, y) (N,2) where the viewing rays of pixels (N,2) meet the plane z = z_T of T
     (NaN where a ray misses it in front of the camera)."""
-    xy = undistort_pixels(as_points(uv, 2, "uv"), camera.K, camera.dist)
+    xy = camera.undistort(uv)
     rays_C = np.column_stack([xy, np.ones(len(xy))])
     # In T: origin o = camera centre, direction d; solve (o + s·d)_z = z_T.
     R_TC = X_CT.R.T

@@ -5,7 +5,7 @@ import pytest
 
 from configuration.camera import load_camera
 from estimators.frame import CameraInfo, Frame, frame_problem
-from estimators.geometry import intrinsics_from_fov
+from estimators.geometry import intrinsics_from_fov, undistort_pixels
 from estimators.planar_pose import ideal_pixels
 
 INFO = CameraInfo(640, 480, intrinsics_from_fov(640, 480, 70.0), np.zeros(0), "reference")
@@ -42,6 +42,27 @@ def test_ideal_pixels_imaged_by_a_distorting_camera_and_back():
     assert np.abs(imaged[[0, 2]] - uv_ideal[[0, 2]]).min() > 3.0
     np.testing.assert_allclose(ideal_pixels(imaged, camera.K, camera.dist), uv_ideal, atol=1e-6)
     np.testing.assert_allclose(INFO.image_of_ideal(uv_ideal), uv_ideal, atol=1e-9)
+
+
+def test_whole_pixels_are_undistorted_from_the_cameras_grid_to_the_bit():
+    camera = load_camera("oak_d_rgb").camera_info()
+    rng = np.random.default_rng(3)
+    whole = np.column_stack(
+        [rng.integers(0, camera.width, 500), rng.integers(0, camera.height, 500)]
+    ).astype(float)
+    grid = camera.undistorted_grid()
+    assert camera.undistorted_grid() is grid  # built once
+    assert grid.shape == (camera.height, camera.width, 2)
+    np.testing.assert_array_equal(
+        camera.undistort(whole), undistort_pixels(whole, camera.K, camera.dist)
+    )
+    # Sub-pixel points and points off the image are computed, not looked up.
+    for points in (whole + 0.25, whole - [camera.width, 0]):
+        np.testing.assert_array_equal(
+            camera.undistort(points), undistort_pixels(points, camera.K, camera.dist)
+        )
+    corner = camera.undistort(np.array([[0.0, 0.0]]))[0]
+    assert np.linalg.norm(corner - grid[0, 0]) == 0.0 and abs(corner[0]) > 0.5
 
 
 def test_camera_info_in_view_rejects_fold_back_of_distortion():
