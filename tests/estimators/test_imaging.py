@@ -79,12 +79,12 @@ def test_a_region_a_little_larger_or_shifted_reuses_the_field_filtered_for_the_f
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.float32])
 def test_a_colour_frame_made_gray_gives_the_same_image_stack(dtype):
-    mono = _structured_frame()
-    image = mono.image if dtype == np.uint8 else mono.image.astype(np.float32) / 255.0
+    # Channels that differ, so that the luma weights matter.
+    mono = _structured_frame().image.astype(float)
     rng = np.random.default_rng(2)
-    tint = np.stack([image, image, image], axis=2)
-    tint = np.clip(tint + rng.integers(-9, 10, tint.shape), 0, 255) if dtype == np.uint8 else tint
-    colour = Frame(tint.astype(dtype), 0.0, replace(CAMERA, channels=3), 0)
+    bgr = np.clip(mono[:, :, None] + rng.integers(-9, 10, (*mono.shape, 3)), 0, 255)
+    bgr = bgr.astype(np.uint8) if dtype == np.uint8 else (bgr / 255.0).astype(dtype)
+    colour = Frame(bgr, 0.0, replace(CAMERA, channels=3), 0)
     gray = gray_frame(colour)
     assert gray.image.shape == CAMERA.shape and gray.info.channels == 1
     assert gray.info.key[3:] == colour.info.key[3:]  # the same intrinsics
