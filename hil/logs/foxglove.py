@@ -157,6 +157,10 @@ class FoxgloveRecorder:
         if target is not None and target.has_circle("ring_outer"):
             ring = target.circle("ring_outer")
             self._ring_T = circle_points(ring.center_T, ring.normal_T, ring.radius, 48)
+            # The ring is drawn through the lens, whose projection is a numba kernel: its first
+            # call loads it (120 ms), and in a tick it aborted wall-clock approaches with the
+            # OAK camera at their first estimate (deadline 24 ms). Loaded here, before the loop.
+            project(self._ring_T[:1] + [0.0, 0.0, 1.0], camera.K, camera.dist)
         self._topics: set[str] = set()
         self._calibration: bytes | None = None
 

@@ -168,3 +168,35 @@ def test_recover_of_a_sigkilled_simulated_trial_reads_to_the_end(tmp_path):
     assert len(messages) > 100
     again = CliRunner().invoke(app, ["recover", str(killed), "--out", str(fixed)])
     assert again.exit_code == 2 and "exists" in again.output
+
+
+def test_the_recorder_loads_the_lens_kernel_before_the_loop_not_in_a_tick(tmp_path):
+    """The ring is drawn through the camera's lens by a compiled kernel, and its first call
+    loads it: 120 ms, which in a tick aborted every wall-clock approach with the OAK camera at
+    its first estimate (deadline 24 ms). Built, the recorder has loaded it. A fresh process:
+    in this one other tests may have loaded it already."""
+    script = f"""
+import numpy as np
+from configuration.camera import load_camera
+from configuration.mockup import load_mockup
+from estimators.geometry import Pose
+from estimators.lens_distortion import project_distorted
+from hil.logs.foxglove import FoxgloveRecorder
+from hil.logs.triallog import TrialLogWriter
+
+assert not project_distorted.signatures
+FoxgloveRecorder(
+    TrialLogWriter({str(tmp_path / "trial.mcap")!r}, {{"config": {{}}, "seed": 1}}),
+    X_WB=Pose.identity(),
+    X_EC=Pose.identity(),
+    X_WM=lambda s: Pose.identity(),
+    camera=load_camera("oak_d_rgb").camera_info(),
+    target=load_mockup("default").target_model(),
+)
+print(len(project_distorted.signatures))
+"""
+    done = subprocess.run(
+        [sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert int(done.stdout.split()[-1]) >= 1
