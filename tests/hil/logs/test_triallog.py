@@ -1,3 +1,4 @@
+import base64
 import dataclasses
 import json
 import math
@@ -25,6 +26,7 @@ from hil.logs.triallog import (
     TrialLog,
     TrialLogError,
     TrialLogWriter,
+    frame_message,
     recover,
     to_jsonable,
 )
@@ -115,6 +117,20 @@ def test_frames_png_is_lossless_and_colour_survives(tmp_path):
     (frame,) = TrialLog.open(tmp_path / "f.mcap").frames()
     assert (frame.t, frame.format, frame.frame_id) == (0.25, "png", "wrist")
     assert np.array_equal(frame.image(), colour)
+
+
+def test_frame_message_is_the_json_encoder_s_own_bytes():
+    # Joined around the base64 text instead of encoded whole: the same bytes, escapes and all.
+    encoded = bytes(range(256)) * 3
+    stamp_ns = 12_345_678_901
+    message = frame_message(stamp_ns, 'wrist "left"', encoded, "jpeg")
+    record = {
+        "timestamp": {"sec": 12, "nsec": 345_678_901},
+        "frame_id": 'wrist "left"',
+        "data": base64.b64encode(encoded).decode("ascii"),
+        "format": "jpeg",
+    }
+    assert message == json.dumps(record, separators=(",", ":")).encode()
 
 
 def test_standard_mcap_reader_sees_header_first_and_all_channels(tmp_path, trial):
