@@ -446,8 +446,11 @@ def _estimate(snap: SafetySnapshot, config: SupervisorConfig, fail) -> None:
             recoverable=True,
         )
     if snap.estimate_health != "ok":
+        # The loop hands no pose on from an estimate that is not ok: the checks below would
+        # only add "no finite pose estimate" to the reason.
         fail("estimate", f"estimate is {snap.estimate_health}", recoverable=True)
-    elif snap.estimate_age_s > config.max_estimate_age_s:
+        return
+    if snap.estimate_age_s > config.max_estimate_age_s:
         fail(
             "estimate",
             f"estimate is {snap.estimate_age_s:.2f} s old, limit {config.max_estimate_age_s} s",

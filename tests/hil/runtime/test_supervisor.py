@@ -1021,6 +1021,13 @@ def test_supervisor_a_non_finite_twist_counts_as_motion():
     assert "command" not in kind_names(snapshot(commanded_V_BE=tiny, **at_rest))
 
 
+def test_a_coasting_estimate_is_named_once_not_also_as_a_missing_pose():
+    # The loop passes no pose on from an estimate that is not ok; the reason names the cause.
+    for health in ("coasting", "lost", "uninitialized"):
+        snap = snapshot(estimate_health=health, X_TC_est=None)
+        assert message(snap, "estimate") == f"estimate is {health}"
+
+
 def test_supervisor_range_rules_wait_for_a_finite_rotation_too():
     broken = Pose.unchecked(np.full((3, 3), np.nan), FACING.p)
     fast = np.array([0.2, 0, 0, 0, 0, 0])  # too fast for 1.2 m, were the range known
