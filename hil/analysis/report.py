@@ -213,6 +213,8 @@ def plot_timing(analysis: TrialAnalysis, path: Path) -> Path:
     nominal = analysis.timing.nominal_period_ms
     ax_c.plot(analysis.t, analysis.period_ms, color="black", lw=0.8, label="period")
     ax_c.plot(analysis.t, analysis.work_ms, color="#1f77b4", lw=0.8, label="tick work")
+    if np.isfinite(analysis.cpu_ms).any():
+        ax_c.plot(analysis.t, analysis.cpu_ms, color="#ff7f0e", lw=0.6, label="of it on the CPU")
     if math.isfinite(nominal):
         ax_c.axhline(nominal, color="#7b1fa2", ls="--", lw=1.0, label=f"nominal {nominal:g} ms")
     if analysis.deadline_miss.any():
@@ -309,6 +311,10 @@ def report_json(analysis: TrialAnalysis) -> dict[str, Any]:
             **_spread(timing.period_ms, "p50", "p99", "max"),
         },
         "tick_work_ms": _spread(timing.work_ms, "p50", "p99", "max"),
+        "longest_tick_ms": {
+            "work": _number(timing.longest_work_ms),
+            "cpu": _number(timing.longest_cpu_ms),
+        },
         "deadline_misses": timing.deadline_misses,
         "frames": {
             "received": vision.frames_received,
@@ -444,6 +450,11 @@ def timing_rows(analysis: TrialAnalysis) -> list[list[str]]:
         [
             "tick work p50 / p99 / max",
             f"{_fmt(work['p50'], 1, 2)} / {_fmt(work['p99'], 1, 2)} / {_fmt(work['max'], 1, 2)} ms",
+        ],
+        [
+            "longest tick: work / the control thread on the CPU",
+            f"{_fmt(f['longest_tick_ms']['work'], 1, 2)} / "
+            f"{_fmt(f['longest_tick_ms']['cpu'], 1, 2)} ms",
         ],
         ["deadline misses", str(f["deadline_misses"])],
         [

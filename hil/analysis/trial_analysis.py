@@ -142,6 +142,10 @@ class TimingSummary:
     work_ms: Spread
     late_ms: Spread
     deadline_misses: int
+    #: The longest tick's work and the control thread's CPU time over it (ms; NaN when the log
+    #: has no CPU time): equal when the thread ran throughout, far apart when it waited.
+    longest_work_ms: float = math.nan
+    longest_cpu_ms: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)
@@ -186,6 +190,7 @@ class TrialAnalysis:
     stop: np.ndarray
     period_ms: np.ndarray
     work_ms: np.ndarray
+    cpu_ms: np.ndarray  # NaN where the log has none
     deadline_miss: np.ndarray
     # over each system's results
     systems: tuple[str, ...]
@@ -351,6 +356,7 @@ def analyse(log: TrialLog) -> TrialAnalysis:
         stop=np.array([bool(tick.command.stop) for tick in ticks], dtype=bool),
         period_ms=np.array([_nan_if_none(tick.timing.period_ms) for tick in ticks], dtype=float),
         work_ms=np.array([tick.timing.work_ms for tick in ticks], dtype=float),
+        cpu_ms=np.array([_nan_if_none(tick.timing.cpu_ms) for tick in ticks], dtype=float),
         deadline_miss=np.array([bool(tick.timing.deadline_miss) for tick in ticks], dtype=bool),
         systems=systems,
         series=series,
@@ -663,12 +669,15 @@ def _standoff(
 
 def _timing(ticks: list[TickRecord], nominal_period_s: float) -> TimingSummary:
     timing = [tick.timing for tick in ticks]
+    longest = max(timing, key=lambda x: x.work_ms, default=None)
     return TimingSummary(
         nominal_period_ms=1000.0 * nominal_period_s,
         period_ms=Spread.of([_nan_if_none(x.period_ms) for x in timing]),
         work_ms=Spread.of([x.work_ms for x in timing]),
         late_ms=Spread.of([x.late_ms for x in timing]),
         deadline_misses=sum(bool(x.deadline_miss) for x in timing),
+        longest_work_ms=math.nan if longest is None else longest.work_ms,
+        longest_cpu_ms=math.nan if longest is None else _nan_if_none(longest.cpu_ms),
     )
 
 

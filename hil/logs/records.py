@@ -123,12 +123,18 @@ class TimingRecord:
     Under ``--clock wall`` all of it is wall-clock time. Under ``--clock sim`` the period is
     simulated (never late) and ``work_ms`` is the tick's CPU time: the simulation shares the
     machine with other runs, and the work is what must fit the real period; there the misses are
-    counted but only lateness in simulated time trips the supervisor's deadline rule."""
+    counted but only lateness in simulated time trips the supervisor's deadline rule.
+    ``cpu_ms``: the control thread's CPU time over the same work (None in logs from before it
+    was kept). A long tick whose CPU time is its work ran the whole time: slow code, or a core
+    taken from the thread without its knowing (interrupts the kernel charges to it, a virtual
+    machine's CPU paused by its host). One with little CPU time waited: for a lock, I/O, the
+    interpreter's lock or a core."""
 
     period_ms: float | None
     late_ms: float
     work_ms: float
     deadline_miss: bool
+    cpu_ms: float | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -32,6 +32,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import math
+import time
 import traceback
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
@@ -242,6 +243,7 @@ class ControlLoop:
     def tick(self, late_s: float = 0.0) -> TickRecord:
         """One control tick; ``late_s``: how late it started after its deadline."""
         work_start = self.clock.work_time()
+        cpu_start = time.thread_time()
         t = self.clock.now()
         problems: list[Violation] = []
         arm, arm_error = self._read(self.arm.state, "arm")
@@ -337,9 +339,10 @@ class ControlLoop:
             self._event(t, kind, message)
         self._log_vision(work_start)
         work_s = self.clock.work_time() - work_start
+        cpu_s = time.thread_time() - cpu_start
         record = self._record(
             t, estimate, X_CT_est, X_TC_est, command, track_velocity, gripper_command,
-            arm, track, gripper, status, late_s, work_s,
+            arm, track, gripper, status, late_s, work_s, cpu_s,
         )  # fmt: skip
         self.log.write_tick(record)
         for observer in self.observers:
@@ -421,6 +424,7 @@ class ControlLoop:
         status: VisionStatus,
         late_s: float,
         work_s: float,
+        cpu_s: float,
     ) -> TickRecord:
         period = None if self._previous_start is None else t - self._previous_start
         self._previous_start = t
@@ -455,6 +459,7 @@ class ControlLoop:
                 late_ms=1000.0 * late_s,
                 work_ms=1000.0 * work_s,
                 deadline_miss=bool(miss),
+                cpu_ms=1000.0 * cpu_s,
             ),
             vision=VisionCounters(
                 frames_received=status.frames_received,

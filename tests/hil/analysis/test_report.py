@@ -13,6 +13,7 @@ from hil.analysis.trial_analysis import analyse
 from hil.cli import app
 from hil.logs.triallog import TrialLog, TrialLogError
 from tests.hil.logs.synthetic_log import (
+    CPU_SHARE,
     STANDOFF_ERROR,
     SYSTEMS,
     chunk_spans,
@@ -40,6 +41,7 @@ JSON_KEYS = {
     "ticks",
     "control_period_ms",
     "tick_work_ms",
+    "longest_tick_ms",
     "deadline_misses",
     "frames",
     "results_stale",
@@ -53,6 +55,7 @@ JSON_KEYS = {
 NESTED = {
     "control_period_ms": {"nominal", "p50", "p99", "max"},
     "tick_work_ms": {"p50", "p99", "max"},
+    "longest_tick_ms": {"work", "cpu"},
     "frames": {"received", "processed", "dropped"},
     "vision_latency_ms": {"p50", "p95", "max"},
 }
@@ -195,6 +198,9 @@ def test_cli_report_json_has_every_key_and_the_injected_figures(sim_log):
     assert period["p99"] == pytest.approx(np.percentile(periods, 99))
     assert period["max"] == pytest.approx(periods.max())
     assert figures["tick_work_ms"]["p99"] == pytest.approx(np.percentile(trial.work_ms, 99))
+    longest = figures["longest_tick_ms"]
+    assert longest["work"] == pytest.approx(trial.work_ms.max())
+    assert longest["cpu"] == pytest.approx(CPU_SHARE * trial.work_ms.max())
     assert figures["deadline_misses"] == int(trial.deadline_miss.sum()) == 6
     received, processed, dropped = trial.frame_counts
     assert figures["frames"] == {"received": received, "processed": processed, "dropped": dropped}

@@ -87,6 +87,10 @@ SCHEDULE = (
 ACTIVE = ("acquire", "approach", "standoff", "grasp", "retreat")
 
 
+#: The share of a synthetic tick's work spent on the CPU (``TimingRecord.cpu_ms``).
+CPU_SHARE = 0.75
+
+
 @dataclass
 class SyntheticTrial:
     """Records and events as the loop would log them, and what was injected.
@@ -94,7 +98,8 @@ class SyntheticTrial:
     ``errors[system]`` = (position error (m), attitude error (rad)) arrays over that system's
     vision records in capture order (NaN where the result was lost), ``errors["fused"]`` the
     same over ticks (NaN without an estimate); ``status[system]``: each of its results'
-    outcome, in capture order. ``period_ms`` / ``work_ms`` / ``deadline_miss``: per tick
+    outcome, in capture order. ``period_ms`` / ``work_ms`` / ``deadline_miss``: per tick (the
+    control thread's CPU time is ``CPU_SHARE`` of the work)
     (``period_ms`` NaN at the first); ``latency_ms[system]`` / ``processing_ms[system]``: per
     result that reached fusion (not stale) / per result; ``frames``: the camera's frames
     (seq, capture, arrival, dropped); ``frame_counts``: (received, processed, dropped) at the
@@ -410,6 +415,7 @@ def make_trial(
                     late_ms=late_ms,
                     work_ms=work_ms,
                     deadline_miss=miss,
+                    cpu_ms=CPU_SHARE * work_ms,
                 ),
                 vision=VisionCounters(
                     frames_received=len(arrived),

@@ -2,6 +2,7 @@
 stepped clock: frames arrive 120 ms after capture, each system is charged its processing time,
 fusion applies measurements at their capture stamps."""
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -396,3 +397,28 @@ def test_a_ticks_overrun_aborts_on_real_time_and_is_only_logged_on_a_simulated_c
     else:
         assert "deadline" not in outcome.abort_reason
         assert outcome.ticks > overrun[0].tick + 100
+
+
+def test_a_tick_records_its_cpu_time_beside_its_work_so_a_wait_is_told_from_a_computation():
+    """Tick 20 waits 30 ms for the arm (a lock, a pipe, a core); tick 40 computes 30 ms."""
+    bench = make_loop()
+    bench.loop.clock.work_time = time.perf_counter  # the stopwatch of a rig
+    read, calls = bench.arm.state, iter(range(10**9))
+
+    def state():
+        n = next(calls)
+        if n == 20:
+            time.sleep(0.030)
+        elif n == 40:
+            end = time.thread_time() + 0.030
+            while time.thread_time() < end:
+                pass
+        return read()
+
+    bench.arm.state = state
+    bench.loop.run(max_duration_s=0.5)
+    waited, computed = bench.log.ticks[20].timing, bench.log.ticks[40].timing
+    assert waited.work_ms >= 30.0 and waited.cpu_ms < 10.0
+    assert computed.work_ms >= 30.0 and 30.0 <= computed.cpu_ms <= computed.work_ms + 1.0
+    others = [t.timing for t in bench.log.ticks if t.tick not in (20, 40)]
+    assert all(0.0 <= x.cpu_ms < 30.0 for x in others)
