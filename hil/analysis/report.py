@@ -213,7 +213,8 @@ def plot_timing(analysis: TrialAnalysis, path: Path) -> Path:
     nominal = analysis.timing.nominal_period_ms
     ax_c.plot(analysis.t, analysis.period_ms, color="black", lw=0.8, label="period")
     ax_c.plot(analysis.t, analysis.work_ms, color="#1f77b4", lw=0.8, label="tick work")
-    if np.isfinite(analysis.cpu_ms).any():
+    simulated = analysis.outcome_data.get("clock") == "sim"
+    if not simulated and np.isfinite(analysis.cpu_ms).any():  # under sim the work is CPU time
         ax_c.plot(analysis.t, analysis.cpu_ms, color="#ff7f0e", lw=0.6, label="of it on the CPU")
     if math.isfinite(nominal):
         ax_c.axhline(nominal, color="#7b1fa2", ls="--", lw=1.0, label=f"nominal {nominal:g} ms")
@@ -229,7 +230,10 @@ def plot_timing(analysis: TrialAnalysis, path: Path) -> Path:
         )
     ax_c.set_ylabel("ms")
     ax_c.set_ylim(bottom=0)
-    ax_c.set_title("Control loop: period and work of each tick (wall clock)")
+    ax_c.set_title(
+        "Control loop: period and work of each tick "
+        + ("(work: the tick's CPU time; simulated clock)" if simulated else "(wall clock)")
+    )
     ax_c.legend(loc="upper right", fontsize=8, ncols=4)
     for i, system in enumerate(analysis.systems):
         s = analysis.series[system]
