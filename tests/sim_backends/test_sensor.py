@@ -131,3 +131,17 @@ def test_auto_exposure_brings_a_dim_targets_highlights_near_full_scale_and_meter
     # Without a depth the non-black pixels are metered; the gain stays in the camera's range.
     assert auto_exposure_gain(image * 0.001, None) == AUTO_EXPOSURE_GAIN_RANGE[1]
     assert auto_exposure_gain(np.zeros((4, 4), np.float32), None) == 1.0
+
+
+def test_to_uint8_rounds_ties_to_even_and_saturates_as_numpy_would_for_any_shape():
+    halves = np.arange(-4, 516) / 510.0  # every tie k + 1/2 of the 8-bit scale, and beyond
+    values = np.concatenate([halves, np.nextafter(halves, 2), np.nextafter(halves, -2)])
+    values = values.astype(np.float32)
+    expected = np.clip(np.rint(values * np.float32(255.0)), 0, 255).astype(np.uint8)
+    assert expected[4] == 0 and expected[5] == 0 and expected[7] == 2  # ties to even
+    for shape in ((-1,), (-1, 3), (-1, 6, 1)):
+        n = len(values) // 6 * 6
+        got = to_uint8(values[:n].reshape(shape))
+        assert got.dtype == np.uint8 and got.shape == values[:n].reshape(shape).shape
+        assert np.array_equal(got.ravel(), expected[:n])
+    assert to_uint8(np.float32(1.7)) == 255 and to_uint8(np.float32(-0.3)) == 0
