@@ -21,7 +21,7 @@ from drivers.base import DeviceError, DeviceTimeout
 from estimators.frame import CameraInfo, Frame, GroundTruth
 from estimators.geometry import Pose
 from sim_backends.renderer import Renderer
-from sim_backends.sensor import expose, frame_rng
+from sim_backends.sensor import NoisePool, expose, frame_rng
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -34,7 +34,8 @@ class Viewpoint:
 
 
 class SimCamera:
-    """Renders a frame on every ``read``; frame ``seq`` of seed ``s`` is always the same image."""
+    """Renders a frame on every ``read``; frame ``seq`` of seed ``s`` is always the same image
+    (unless its noise comes from a ``NoisePool``)."""
 
     def __init__(
         self,
@@ -44,11 +45,16 @@ class SimCamera:
         *,
         seed: int = 0,
         clock: Callable[[], float] = time.monotonic,
+        noise_draws: NoisePool | None = None,
     ):
+        """``noise_draws``: where the sensor noise comes from — by default frame ``seq``'s own
+        generator (``frame_rng``), so that a frame is the same image for a seed; a
+        ``NoisePool`` for a camera that must keep its frame rate."""
         self._renderer = renderer
         self._viewpoint = viewpoint
         self._noise = noise or NoiseConfig()
         self._seed = seed
+        self._noise_draws = noise_draws
         self._clock = clock
         self._seq = 0
         self._connected = False
@@ -93,7 +99,7 @@ class SimCamera:
             rendering.depth_m,
             self.info.K,
             self._noise,
-            frame_rng(self._seed, seq),
+            frame_rng(self._seed, seq) if self._noise_draws is None else self._noise_draws,
             view.twist_C,
         )
         frame = Frame(

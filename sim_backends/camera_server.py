@@ -24,6 +24,7 @@ from configuration.vision import CameraTiming
 from sim_backends.camera import SimCamera, Viewpoint
 from sim_backends.renderer import make_renderer
 from sim_backends.scene import MockupScene
+from sim_backends.sensor import NoisePool
 from sim_backends.world_server import CAMERA_NICE, LatestSender, RenderRequest
 
 
@@ -52,6 +53,7 @@ def camera_main(
             lambda: view[-1],
             noise,
             seed=seed,
+            noise_draws=NoisePool(seed),  # its frames depend on the timing anyway
         )
         sim_camera.connect()
         sim_camera.activate()

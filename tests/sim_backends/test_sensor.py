@@ -1,3 +1,5 @@
+import itertools
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -6,6 +8,7 @@ from configuration.render import NoiseConfig
 from estimators.geometry import Pose, intrinsics_from_fov, project
 from sim_backends.sensor import (
     AUTO_EXPOSURE_GAIN_RANGE,
+    NoisePool,
     add_noise,
     auto_exposure_gain,
     expose,
@@ -145,3 +148,21 @@ def test_to_uint8_rounds_ties_to_even_and_saturates_as_numpy_would_for_any_shape
         assert got.dtype == np.uint8 and got.shape == values[:n].reshape(shape).shape
         assert np.array_equal(got.ravel(), expected[:n])
     assert to_uint8(np.float32(1.7)) == 255 and to_uint8(np.float32(-0.3)) == 0
+
+
+def test_a_noise_pool_gives_each_frame_white_noise_of_its_own():
+    pool = NoisePool(seed=3)
+    frames = [pool.standard_normal((120, 160, 3)).copy() for _ in range(12)]
+    for noise in frames:
+        assert noise.dtype == np.float32 and noise.shape == (120, 160, 3)
+        assert abs(noise.mean()) < 0.02 and noise.std() == pytest.approx(1.0, rel=0.02)
+        # white: neighbouring pixels uncorrelated
+        assert abs(np.corrcoef(noise[:, :-1].ravel(), noise[:, 1:].ravel())[0, 1]) < 0.02
+    for a, b in itertools.pairwise(frames):  # a pixel's noise differs frame to frame
+        assert abs(np.corrcoef(a.ravel(), b.ravel())[0, 1]) < 0.02
+    # the sensor model takes it where it takes a frame's generator: the preset's σ at mid-grey
+    level = np.full((480, 640), 0.5, dtype=np.float32)
+    noisy = add_noise(level, NoiseConfig(preset="low"), NoisePool(seed=1))
+    assert noisy.var() == pytest.approx(clipped_gaussian_variance(0.5, np.sqrt(0.05)), rel=0.05)
+    with pytest.raises(ValueError, match="float32"):
+        pool.standard_normal((4, 4), dtype=np.float64)
