@@ -99,10 +99,10 @@ class SyntheticTrial:
     vision records in capture order (NaN where the result was lost), ``errors["fused"]`` the
     same over ticks (NaN without an estimate); ``status[system]``: each of its results'
     outcome, in capture order. ``period_ms`` / ``work_ms`` / ``deadline_miss``: per tick
-    (``period_ms`` NaN at the first; the tick's CPU time is ``CPU_SHARE`` of its work); ``latency_ms[system]`` / ``processing_ms[system]``: per
-    result that reached fusion (not stale) / per result; ``frames``: the camera's frames
-    (seq, capture, arrival, dropped); ``frame_counts``: (received, processed, dropped) at the
-    end."""
+    (``period_ms`` NaN at the first; the tick's CPU time is ``CPU_SHARE`` of its work);
+    ``latency_ms[system]`` / ``processing_ms[system]``: per result that reached fusion (not
+    stale) / per result; ``frames``: the camera's frames (seq, capture, arrival, dropped);
+    ``frame_counts``: (received, processed, dropped) at the end."""
 
     header: dict[str, Any]
     rate_hz: float
