@@ -401,13 +401,18 @@ class LineEstimator:
                     continue
                 # Polarity: brighter (or darker) on the panel's side of the segment.
                 samples = p + np.linspace(0.2, 0.8, 5)[:, None] * seg
-                derivative = gradients.directional(samples, normal)
-                if self.polarity * float(np.mean(derivative)) <= 0:
+                strength = self.polarity * float(np.mean(gradients.directional(samples, normal)))
+                if strength <= 0:
                     continue
-                chosen.append((seg_length, p, q))
+                chosen.append((seg_length * strength, p, q))
             if not chosen:
                 lines.append(None)
                 continue
+            # The segment with the most gradient along it: a shadow or a side band beside the
+            # panel has an edge of the panel's polarity too, faint and as long or longer
+            # (held-out random:117 at 3 m, noise-free, tracked from the truth: a band 6 px
+            # wide beside the dark panel, a fifth of its contrast; taken for the panel's
+            # edge as the longer segment, it gave a pose 33° and 0.49 m off).
             chosen.sort(key=lambda c: -c[0])
             _, p0, q0 = chosen[0]
             d0 = (q0 - p0) / np.linalg.norm(q0 - p0)

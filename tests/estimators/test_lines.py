@@ -1,5 +1,6 @@
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -142,3 +143,35 @@ def test_the_integer_median_of_gradient_magnitudes_is_numpys_median():
         for high in (3, 2041):
             values = rng.integers(0, high, size=size).astype(np.float32)
             assert _integer_median(values) == float(np.median(values))
+
+
+def test_a_faint_band_beside_a_panel_edge_does_not_take_the_edges_label():
+    """A shadow or side band beside the panel has an edge of the panel's polarity too. Here
+    one 6 px wide, a fifth of the panel's contrast, its outer edge a fifth longer than the
+    panel's: as the longer image segment it was labeled the panel's edge, the track failed
+    and fell back to acquisition (held-out random:117 at 3 m, noise-free: a pose 33° off)."""
+    image, X_true, info = rendered.render(3.0, rendered.GENERIC, supersample=2)
+    corners = info.project(X_true.apply(TARGET.panel_corners_T))
+    a, b = corners[1], corners[2]
+    along = (b - a) / np.linalg.norm(b - a)
+    outward = np.array([-along[1], along[0]])
+    if outward @ (corners.mean(axis=0) - a) > 0:
+        outward = -outward
+    inside = a + 8.0 * -outward + 0.5 * (b - a)
+    outside = a + 10.0 * outward + 0.5 * (b - a)
+    panel, face = (float(image[round(p[1]), round(p[0])]) for p in (inside, outside))
+    # The band as a trapezoid on the edge, its coverage of each pixel from an 8× raster.
+    extend = 0.1 * (b - a)
+    band = np.array([a, b, b + extend + 6.0 * outward, a - extend + 6.0 * outward])
+    scale = 8
+    mask = np.zeros((image.shape[0] * scale, image.shape[1] * scale), np.uint8)
+    cv2.fillConvexPoly(mask, np.round((band + 0.5) * scale - 0.5).astype(np.int32), 255)
+    cover = cv2.resize(
+        mask.astype(np.float32) / 255.0, image.shape[::-1], interpolation=cv2.INTER_AREA
+    )
+    banded = (image * (1.0 - cover) + (face + 0.2 * (panel - face)) * cover).astype(np.float32)
+    estimator = build(TARGET, info)
+    tracked = estimator.estimate(Frame(banded, 0.0, info, 0), X_true)
+    assert tracked.status == "tracking", tracked.reason
+    position, attitude = _errors(tracked, X_true)
+    assert position < 0.001 and attitude < math.radians(0.1)
