@@ -8,7 +8,10 @@ under Gaussian noise), with variance σ²/Σ(∂I/∂δ)². Grey levels a, b are
 edge. A coarse search of one common offset for all strips first absorbs a prior that is off by
 a few pixels — or, for a prior uncertain by more, of a line through the strips' own coarse
 offsets (a prior tilted against the edge) — and the strips are then fitted coarse to fine (s
-from 1.2 px down to 0.45 px) within a pixel or two of that start.
+from 1.2 px down to 0.45 px) within a pixel or two of that start. Last, the inlying strips'
+pixels fit one line together, and every strip's offset moves with it: a strip's own estimate,
+from a few dozen pixels, carries a small-sample bias that one line fitted to all of them does
+not (``_onto_joint_line``).
 
 Clipping. A sensor clips its noise at black and white, so the mean of a pixel near either end
 is not its intensity (lifted near 0, lowered near 1). A step against black (the face's outline
@@ -205,7 +208,9 @@ def _tilted_start(values, d, strip, k, grid, max_slope):
 
 
 @compiled
-def _fit_offsets(values, d, strip, k, grid, half_width, wall_of_strip, noise_sigma, max_slope):
+def _fit_offsets(
+    values, d, strip, k, grid, half_width, wall_of_strip, noise_sigma, max_slope, place
+):
     """Steps 1–3 of ``fit_edge_points`` on a band's pixels (see there): the strips' offsets,
     their standard deviations and usable flags, the grey levels, the contrast's standard
     deviation and the residual noise; ``ok`` all False when no step fits."""
@@ -273,6 +278,12 @@ def _fit_offsets(values, d, strip, k, grid, half_width, wall_of_strip, noise_sig
         if not np.all(np.isfinite(levels)):
             return failed
 
+    # 2b. The strips' offsets moved together onto the line that all their pixels fit best.
+    own = delta  # a strip whose own fit ran to its search's end found no edge
+    delta = _onto_joint_line(
+        values, d, strip, place, delta, w, levels, noise_sigma, base, max_shift
+    )
+
     # 3. Statistics at the solution. Per-pixel information: from the residuals' own variance;
     # with a clipping model, the clipped likelihood's (a clipped pixel tells less than an
     # unclipped one), on the scale of the noise σ scaled by how the residuals compare with what
@@ -314,9 +325,98 @@ def _fit_offsets(values, d, strip, k, grid, half_width, wall_of_strip, noise_sig
     contrast_sigma = np.inf
     if det != 0.0:
         contrast_sigma = math.sqrt(max(noise2 * (oo + aa + 2.0 * ao) / det, 0.0))
-    ok = (counts >= 4) & np.isfinite(delta) & (np.abs(delta - base) < max_shift - 1e-6)
+    ok = (counts >= 4) & np.isfinite(delta) & (np.abs(own - base) < max_shift - 1e-6)
     ok &= np.isfinite(sigma) & (info > 0)
     return delta, sigma, ok, levels[0], levels[1], contrast_sigma, math.sqrt(noise2)
+
+
+@compiled
+def _onto_joint_line(values, d, strip, place, delta, w, levels, noise_sigma, base, max_shift):
+    """The strips' offsets ``delta`` (K,) shifted, all by one line along the edge, onto the line
+    δ(x) = α + β·x (x: each strip's place along the edge, px, ``place``) that the pixels of all
+    the inlying strips fit best together (maximum likelihood, the grey levels held).
+
+    Each strip's own offset comes from its few dozen pixels, and a maximum-likelihood estimate
+    from so few is biased at high noise — by O(σ²/n) (M. H. Quenouille 1956; D. R. Cox and
+    E. J. Snell 1968) — where the step is asymmetric: against black, the clipped side. On a
+    synthetic step of 0.35 against black under the study's high noise (σ 0.32), the offsets
+    and the line through them lay 0.015 px toward the bright side (6000 draws; half that with
+    strips twice as long), and the face's outline then shrinks: the line system's range at
+    3 m was 0.8 mm long. Two parameters fitted to all the pixels carry a bias the strips'
+    count times smaller. Each strip keeps its own scatter about the line (the fits downstream
+    judge it); only the line moves.
+
+    Inliers as the line through the edge points will take them (``fit_line_robust``): Tukey's
+    biweight on residuals over each strip's σ, scaled by their robust spread, from a
+    Theil–Sen start (strips on clutter beside the edge must not tilt the line). With fewer
+    than three inliers, or a move over half a pixel, ``delta`` is kept."""
+    k = len(delta)
+    jj = np.zeros(k)
+    n_of = np.zeros(k)
+    for i in range(len(values)):
+        j = strip[i]
+        b0, b1, b2, q0, q1, q2 = _profile_at(d[i], delta[j], w[i], EDGE_WIDTH_PX)
+        intensity = b0 * levels[0] + b1 * levels[1] + b2 * levels[2]
+        _, info = clipped_terms(values[i], intensity, noise_sigma)
+        J = q0 * levels[0] + q1 * levels[1] + q2 * levels[2]
+        jj[j] += info * J * J
+        n_of[j] += 1.0
+    usable = np.flatnonzero((jj > 0) & (n_of >= 4) & (np.abs(delta - base) < max_shift - 1e-6))
+    if len(usable) < 3:
+        return delta
+    x, y, root = place[usable], delta[usable], np.sqrt(jj[usable])
+    slopes = []
+    for p in range(len(usable)):
+        for q in range(p + 1, len(usable)):
+            if abs(x[q] - x[p]) > 1e-9:
+                slopes.append((y[q] - y[p]) / (x[q] - x[p]))
+    if len(slopes) == 0:
+        return delta
+    beta = np.median(np.array(slopes))
+    alpha = np.median(y - beta * x)
+    inlier = np.zeros(len(usable), np.bool_)
+    for _ in range(7):
+        residual = (y - alpha - beta * x) * root
+        spread = max(1.0, 1.4826 * np.median(np.abs(residual)))
+        u = residual / (4.685 * spread)
+        inlier = np.abs(u) < 1.0
+        if np.count_nonzero(inlier) < 3:
+            return delta
+        weight = np.where(inlier, (1.0 - u * u) ** 2, 0.0) * jj[usable]
+        sw, swx, swxx = np.sum(weight), np.sum(weight * x), np.sum(weight * x * x)
+        swy, swxy = np.sum(weight * y), np.sum(weight * x * y)
+        det = sw * swxx - swx * swx
+        if det <= 0.0:
+            return delta
+        alpha, beta = (swxx * swy - swx * swxy) / det, (sw * swxy - swx * swy) / det
+    on_line = np.zeros(k, np.bool_)
+    on_line[usable[inlier]] = True
+    alpha0, beta0 = alpha, beta
+    for _ in range(3):
+        h11 = h12 = h22 = g1 = g2 = 0.0
+        for i in range(len(values)):
+            j = strip[i]
+            if not on_line[j]:
+                continue
+            at = alpha + beta * place[j]
+            b0, b1, b2, q0, q1, q2 = _profile_at(d[i], at, w[i], EDGE_WIDTH_PX)
+            intensity = b0 * levels[0] + b1 * levels[1] + b2 * levels[2]
+            score, info = clipped_terms(values[i], intensity, noise_sigma)
+            J = q0 * levels[0] + q1 * levels[1] + q2 * levels[2]
+            h11 += info * J * J
+            h12 += info * J * J * place[j]
+            h22 += info * J * J * place[j] * place[j]
+            g1 += J * score
+            g2 += J * score * place[j]
+        det = h11 * h22 - h12 * h12
+        if det <= 0.0:
+            return delta
+        alpha += min(max((h22 * g1 - h12 * g2) / det, -0.5), 0.5)
+        beta += (h11 * g2 - h12 * g1) / det
+    shift = (alpha - alpha0) + (beta - beta0) * place
+    if not np.all(np.isfinite(shift)) or np.max(np.abs(shift)) > 0.5:
+        return delta
+    return delta + shift
 
 
 #: Strips per chunk when collecting a band's pixels: one bounding box per chunk, so that a
@@ -431,8 +531,19 @@ def fit_edge_points(
 
     grid = np.arange(-search_px, search_px + 1e-9, 1.0) if search_px > 0 else np.zeros(1)
     wall = np.zeros(k) if wall_px is None else np.clip(np.nan_to_num(wall_px), 0.0, 3.0)
+    along = np.array([-normals[0, 1], normals[0, 0]])
+    place = (centers - centers.mean(axis=0)) @ along  # each strip's place along the edge (px)
     delta, sigma, ok, a, b, contrast_sigma, noise = _fit_offsets(
-        values, d, strip, k, grid, float(half_width_px), wall, float(noise_sigma), tilt_px / (k - 1)
+        values,
+        d,
+        strip,
+        k,
+        grid,
+        float(half_width_px),
+        wall,
+        float(noise_sigma),
+        tilt_px / (k - 1),
+        place,
     )
     if not math.isfinite(a):  # no step fits the band
         return _no_points(k)
