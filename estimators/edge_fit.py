@@ -198,13 +198,23 @@ def _tilted_start(values, d, strip, k, grid, max_slope):
             count += 1
     if count < 3:
         return np.full(k, np.nan)
-    slopes = []
-    for p in range(count):
-        for q in range(p + 1, count):
-            slopes.append((found[q] - found[p]) / (place[q] - place[p]))
-    slope = min(max(np.median(np.array(slopes)), -max_slope), max_slope)
+    slope = min(max(_median_slope(place[:count], found[:count]), -max_slope), max_slope)
     intercept = np.median(found[:count] - slope * place[:count])
     return intercept + slope * np.arange(k)
+
+
+@compiled
+def _median_slope(x, y):
+    """Theil–Sen's slope of y over x: the median of the slopes between every two points at
+    different x (NaN when there are none)."""
+    slopes = []
+    for p in range(len(x)):
+        for q in range(p + 1, len(x)):
+            if abs(x[q] - x[p]) > 1e-9:
+                slopes.append((y[q] - y[p]) / (x[q] - x[p]))
+    if len(slopes) == 0:
+        return np.nan
+    return np.median(np.array(slopes))
 
 
 @compiled
@@ -365,14 +375,9 @@ def _onto_joint_line(values, d, strip, place, delta, w, levels, noise_sigma, bas
     if len(usable) < 3:
         return delta
     x, y, root = place[usable], delta[usable], np.sqrt(jj[usable])
-    slopes = []
-    for p in range(len(usable)):
-        for q in range(p + 1, len(usable)):
-            if abs(x[q] - x[p]) > 1e-9:
-                slopes.append((y[q] - y[p]) / (x[q] - x[p]))
-    if len(slopes) == 0:
+    beta = _median_slope(x, y)
+    if not math.isfinite(beta):
         return delta
-    beta = np.median(np.array(slopes))
     alpha = np.median(y - beta * x)
     inlier = np.zeros(len(usable), np.bool_)
     for _ in range(7):
